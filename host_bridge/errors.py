@@ -1,0 +1,35 @@
+"""Errors of the PC side; each message says what was wrong, where, and what to do."""
+
+from __future__ import annotations
+
+
+class HostError(Exception):
+    """Base of every error the host raises on purpose."""
+
+
+class DecodeError(HostError):
+    """A payload does not deserialize with its type definition (truncated CDR, wrong type)."""
+
+
+class UnknownTypeError(HostError):
+    """No definition is known for a message type."""
+
+
+class ConvertError(HostError):
+    """A decoded message cannot be converted (unsupported encoding, inconsistent sizes)."""
+
+
+class RegistryError(HostError):
+    """The converter registry was assembled wrongly (a type registered twice)."""
+
+
+class InputError(HostError):
+    """An input (bag path, Zenoh endpoint) cannot be opened."""
+
+
+class ConfigError(HostError):
+    """The host configuration or command line is wrong."""
+
+
+class SinkError(HostError):
+    """The Rerun sink cannot be set up (viewer not spawnable, bad address)."""

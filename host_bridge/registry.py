@@ -1,0 +1,119 @@
+"""Converter protocol, log items, the per-message context, and the type -> converter map.
+
+A converter is a pure function ``(msg, ctx) -> list[LogEntry]``: it never calls ``rr.log``; the
+sink does. Converters of high-rate small types may also offer a run form that turns many
+messages of one topic into columns for ``rr.send_columns``.
+
+The registry is assembled explicitly in :func:`default_registry` from each converter module's
+``CONVERTERS`` mapping; nothing registers itself on import, and a type registered twice is an
+error.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import rerun as rr
+
+from host_bridge.errors import RegistryError
+
+TIMELINE_ROS = "ros_time"
+TIMELINE_RECEIVE = "receive_time"
+TIMELINE_LOG = "log_time"
+
+
+@dataclass(frozen=True, slots=True)
+class LogItem:
+    """Archetypes to log at one entity path.
+
+    ``times`` replaces the message's timeline values for this item (a TF message carries one
+    stamp per transform); ``None`` keeps them. Static items ignore times.
+    """
+
+    path: str
+    archetypes: tuple[rr.AsComponents, ...]
+    static: bool = False
+    times: Mapping[str, int] | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class ColumnsItem:
+    """Rows for ``rr.send_columns``: one row per entry of each ``times`` array (int64 ns)."""
+
+    path: str
+    columns: Sequence[Any]
+    times: Mapping[str, npt.NDArray[np.int64]]
+
+
+LogEntry = LogItem | ColumnsItem
+
+
+@dataclass(frozen=True, slots=True)
+class ConvertContext:
+    """What a converter may know beyond the message itself.
+
+    ``state`` is per-topic scratch the dispatcher keeps between messages (odometry trails,
+    the last map a grid update patches); it is the only thing a converter may mutate.
+    """
+
+    robot: str
+    topic: str
+    entity_path: str
+    times: Mapping[str, int]
+    options: Mapping[str, Any] = field(default_factory=dict)
+    state: dict[str, Any] = field(default_factory=dict)
+
+    def frame(self, frame_id: str) -> str | None:
+        """Rerun frame name of a ROS frame: ``<robot>/<frame_id>``; None for an empty id."""
+        frame_id = frame_id.strip("/")
+        return f"{self.robot}/{frame_id}" if frame_id else None
+
+    def child_path(self, *parts: str) -> str:
+        return "/".join([self.entity_path, *parts])
+
+
+Converter = Callable[[Any, ConvertContext], list[LogEntry]]
+RunConverter = Callable[[Sequence[Any], Sequence[ConvertContext]], list[LogEntry]]
+
+
+@dataclass(frozen=True, slots=True)
+class ConverterSpec:
+    convert: Converter
+    convert_run: RunConverter | None = None
+
+
+class Registry:
+    """Map from full ROS type name (``sensor_msgs/msg/LaserScan``) to its converter."""
+
+    def __init__(self, fallback: ConverterSpec) -> None:
+        self._fallback = fallback
+        self._specs: dict[str, ConverterSpec] = {}
+
+    def add(self, msgtype: str, spec: ConverterSpec) -> None:
+        if msgtype in self._specs:
+            msg = f"type {msgtype!r} is registered twice; each type has exactly one converter"
+            raise RegistryError(msg)
+        self._specs[msgtype] = spec
+
+    def add_all(self, specs: Mapping[str, ConverterSpec]) -> None:
+        for msgtype, spec in specs.items():
+            self.add(msgtype, spec)
+
+    def get(self, msgtype: str) -> ConverterSpec:
+        return self._specs.get(msgtype, self._fallback)
+
+    def types(self) -> list[str]:
+        return sorted(self._specs)
+
+
+def default_registry() -> Registry:
+    from host_bridge.converters import generic, laser, odometry, tf
+
+    registry = Registry(generic.SPEC)
+    for module in (tf, laser, odometry):
+        registry.add_all(module.CONVERTERS)
+    return registry

@@ -1,0 +1,251 @@
+"""The Swanky wire protocol (schemas/wire.md), and the record every input becomes.
+
+Pure Python with no third-party imports, so the relay on a Raspberry Pi and the host share it.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import struct
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from robot_relay.errors import WireError
+
+PREFIX = "swanky"
+ATTACHMENT_VERSION = 1
+CATALOG_VERSION = 1
+CDR_ENCODING = "application/cdr"
+ROBOT_NAME_PATTERN = re.compile(r"^[A-Za-z0-9_-]+$")
+
+FLAG_LZ4 = 0x01
+FLAG_ZSTD = 0x02
+_KNOWN_FLAGS = FLAG_LZ4 | FLAG_ZSTD
+
+_ATTACHMENT = struct.Struct("<BBHIqqQ")
+ATTACHMENT_SIZE = _ATTACHMENT.size
+
+DefinitionEncoding = Literal["ros2msg", "ros1msg", "ros2idl"]
+
+
+def check_robot_name(robot: str) -> str:
+    """Return ``robot`` if it can be a key chunk, entity root and frame prefix."""
+    if not ROBOT_NAME_PATTERN.match(robot):
+        msg = (
+            f"robot name {robot!r} is not allowed: use letters, digits, '_' and '-' only "
+            "(it becomes a Zenoh key chunk, a Rerun entity root and a frame prefix)"
+        )
+        raise WireError(msg)
+    return robot
+
+
+def absolute_topic(topic: str) -> str:
+    """ROS topic with exactly one leading slash (rosbag2 allows names without it)."""
+    return "/" + topic.lstrip("/")
+
+
+def data_key(robot: str, topic: str) -> str:
+    return f"{PREFIX}/{robot}/data/{topic.lstrip('/')}"
+
+
+def data_selector(robots: str = "*") -> str:
+    """Key expression matching every data sample of the robots matched by ``robots``."""
+    return f"{PREFIX}/{robots}/data/**"
+
+
+def catalog_key(robot: str) -> str:
+    return f"{PREFIX}/{robot}/catalog"
+
+
+def alive_key(robot: str) -> str:
+    return f"{PREFIX}/{robot}/alive"
+
+
+def parse_data_key(key: str) -> tuple[str, str]:
+    """Split a data key into (robot, absolute topic)."""
+    parts = key.split("/", 3)
+    if len(parts) != 4 or parts[0] != PREFIX or parts[2] != "data" or not parts[3]:
+        msg = f"key {key!r} is not a Swanky data key ({PREFIX}/<robot>/data/<topic>)"
+        raise WireError(msg)
+    return parts[1], "/" + parts[3]
+
+
+def parse_robot_key(key: str) -> str:
+    """Robot name of any key under ``swanky/<robot>/``."""
+    parts = key.split("/")
+    if len(parts) < 3 or parts[0] != PREFIX:
+        msg = f"key {key!r} is not under {PREFIX}/<robot>/"
+        raise WireError(msg)
+    return parts[1]
+
+
+def cdr_encoding(msgtype: str) -> str:
+    return f"{CDR_ENCODING};{msgtype}"
+
+
+def parse_cdr_encoding(encoding: str, key: str) -> str:
+    """ROS type name carried as the schema of an ``application/cdr`` encoding."""
+    base, _, schema = encoding.partition(";")
+    if base != CDR_ENCODING or not schema:
+        msg = f"sample on {key!r} has encoding {encoding!r}, expected '{CDR_ENCODING};<ros type>'"
+        raise WireError(msg)
+    return schema
+
+
+@dataclass(frozen=True, slots=True)
+class Attachment:
+    """Per-sample metadata sent beside the CDR bytes."""
+
+    sequence: int
+    receive_ns: int
+    source_ns: int = 0
+    flags: int = 0
+
+    def pack(self) -> bytes:
+        return _ATTACHMENT.pack(
+            ATTACHMENT_VERSION, self.flags, 0, self.sequence & 0xFFFFFFFF, self.receive_ns,
+            self.source_ns, 0,
+        )
+
+    @classmethod
+    def unpack(cls, data: bytes, key: str) -> Attachment:
+        if len(data) != ATTACHMENT_SIZE:
+            msg = (
+                f"attachment on {key!r} is {len(data)} bytes, expected {ATTACHMENT_SIZE}: "
+                "relay and host speak different wire versions"
+            )
+            raise WireError(msg)
+        version, flags, _, sequence, receive_ns, source_ns, _ = _ATTACHMENT.unpack(data)
+        if version != ATTACHMENT_VERSION:
+            msg = (
+                f"attachment on {key!r} has wire version {version}, this host speaks "
+                f"{ATTACHMENT_VERSION}: upgrade the older side"
+            )
+            raise WireError(msg)
+        if flags & ~_KNOWN_FLAGS or flags == _KNOWN_FLAGS:
+            msg = f"attachment on {key!r} has unknown flags {flags:#04x}"
+            raise WireError(msg)
+        return cls(sequence, receive_ns, source_ns, flags)
+
+
+def decompress(payload: bytes, flags: int, key: str) -> bytes:
+    """Undo the compression named by the attachment flags."""
+    try:
+        if flags & FLAG_LZ4:
+            import lz4.frame
+
+            return bytes(lz4.frame.decompress(payload))
+        if flags & FLAG_ZSTD:
+            import zstandard
+
+            return bytes(zstandard.ZstdDecompressor().decompress(payload))
+    except ImportError as err:
+        msg = f"sample on {key!r} is compressed but {err.name} is not installed"
+        raise WireError(msg) from err
+    except Exception as err:
+        msg = f"sample on {key!r} does not decompress: {err}"
+        raise WireError(msg) from err
+    return payload
+
+
+@dataclass(frozen=True, slots=True)
+class MessageDefinition:
+    """Full text of a message type and every type it uses."""
+
+    encoding: DefinitionEncoding
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class QosProfile:
+    reliability: Literal["reliable", "best_effort"] = "reliable"
+    durability: Literal["volatile", "transient_local"] = "volatile"
+    depth: int = 10
+
+
+@dataclass(frozen=True, slots=True)
+class TopicInfo:
+    topic: str
+    msgtype: str
+    definition: MessageDefinition | None
+    qos: QosProfile = field(default_factory=QosProfile)
+
+    @property
+    def latched(self) -> bool:
+        return self.qos.durability == "transient_local"
+
+
+@dataclass(frozen=True, slots=True)
+class Catalog:
+    robot: str
+    source: str
+    topics: tuple[TopicInfo, ...]
+
+    def to_json(self) -> str:
+        return json.dumps(
+            {
+                "version": CATALOG_VERSION,
+                "robot": self.robot,
+                "source": self.source,
+                "topics": [
+                    {
+                        "topic": t.topic,
+                        "type": t.msgtype,
+                        "latched": t.latched,
+                        "qos": {
+                            "reliability": t.qos.reliability,
+                            "durability": t.qos.durability,
+                            "depth": t.qos.depth,
+                        },
+                        "definition": None
+                        if t.definition is None
+                        else {"encoding": t.definition.encoding, "text": t.definition.text},
+                    }
+                    for t in self.topics
+                ],
+            }
+        )
+
+    @classmethod
+    def from_json(cls, text: str | bytes, key: str) -> Catalog:
+        try:
+            doc: Any = json.loads(text)
+            if doc["version"] != CATALOG_VERSION:
+                msg = f"catalog on {key!r} has version {doc['version']}, expected {CATALOG_VERSION}"
+                raise WireError(msg)
+            topics = tuple(
+                TopicInfo(
+                    topic=t["topic"],
+                    msgtype=t["type"],
+                    definition=None
+                    if t["definition"] is None
+                    else MessageDefinition(t["definition"]["encoding"], t["definition"]["text"]),
+                    qos=QosProfile(**t["qos"]),
+                )
+                for t in doc["topics"]
+            )
+            return cls(robot=doc["robot"], source=doc["source"], topics=topics)
+        except WireError:
+            raise
+        except (ValueError, KeyError, TypeError) as err:
+            msg = f"catalog on {key!r} is not valid: {err!r}"
+            raise WireError(msg) from err
+
+
+@dataclass(frozen=True, slots=True)
+class RawMessage:
+    """One undecoded ROS message; every input (relay, rmw_zenoh, bag) yields these.
+
+    ``data`` is CDR with its encapsulation header. ``receive_ns`` is when the relay got it
+    (live only), ``log_ns`` the bag log time (replays, direct or through a relay).
+    """
+
+    robot: str
+    topic: str
+    msgtype: str
+    data: bytes | memoryview
+    definition: MessageDefinition | None = None
+    receive_ns: int | None = None
+    log_ns: int | None = None
+    sequence: int | None = None
