@@ -57,7 +57,8 @@ class ConvertContext:
     """What a converter may know beyond the message itself.
 
     ``state`` is per-topic scratch the dispatcher keeps between messages (odometry trails,
-    the last map a grid update patches); it is the only thing a converter may mutate.
+    the last map a grid update patches); ``robot_state`` is shared by all topics of one robot
+    (the URDF that /joint_states moves). They are the only things a converter may mutate.
     """
 
     robot: str
@@ -66,6 +67,7 @@ class ConvertContext:
     times: Mapping[str, int]
     options: Mapping[str, Any] = field(default_factory=dict)
     state: dict[str, Any] = field(default_factory=dict)
+    robot_state: dict[str, Any] = field(default_factory=dict)
 
     def frame(self, frame_id: str) -> str | None:
         """Rerun frame name of a ROS frame: ``<robot>/<frame_id>``; None for an empty id."""
