@@ -26,7 +26,7 @@ _KNOWN_FLAGS = FLAG_LZ4 | FLAG_ZSTD
 _ATTACHMENT = struct.Struct("<BBHIqqQ")
 ATTACHMENT_SIZE = _ATTACHMENT.size
 
-DefinitionEncoding = Literal["ros2msg", "ros1msg", "ros2idl"]
+DefinitionEncoding = Literal["ros2msg", "ros2idl"]
 
 
 def check_robot_name(robot: str) -> str:

@@ -1,0 +1,50 @@
+"""Small pieces several converters share: stamps, quaternions, frames, time columns."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import rerun as rr
+
+from host_bridge.registry import ConvertContext
+
+
+def stamp_ns(stamp: Any) -> int:
+    """builtin_interfaces/Time (or a ROS 1 time) as integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def header_frame(msg: Any, ctx: ConvertContext) -> str | None:
+    return ctx.frame(msg.header.frame_id)
+
+
+def frame_components(frame: str | None) -> tuple[rr.AsComponents, ...]:
+    """``CoordinateFrame`` for a sensor entity, nothing when the message has no frame id."""
+    return () if frame is None else (rr.CoordinateFrame(frame),)
+
+
+def xyz(vector: Any) -> list[float]:
+    return [float(vector.x), float(vector.y), float(vector.z)]
+
+
+def xyzw(quaternion: Any) -> list[float]:
+    """ROS quaternion in Rerun's xyzw order; the all-zero (invalid) one becomes identity."""
+    q = [float(quaternion.x), float(quaternion.y), float(quaternion.z), float(quaternion.w)]
+    return q if any(q) else [0.0, 0.0, 0.0, 1.0]
+
+
+def time_columns(
+    ctxs: Sequence[ConvertContext], ros_ns: Sequence[int] | None = None
+) -> dict[str, npt.NDArray[np.int64]]:
+    """Timeline arrays for one row per context; ``ros_ns`` overrides ros_time per row."""
+    names = set().union(*(c.times for c in ctxs)) if ctxs else set()
+    columns = {
+        name: np.fromiter((c.times.get(name, 0) for c in ctxs), dtype=np.int64, count=len(ctxs))
+        for name in names
+    }
+    if ros_ns is not None:
+        columns["ros_time"] = np.asarray(ros_ns, dtype=np.int64)
+    return columns

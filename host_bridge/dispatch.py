@@ -1,0 +1,210 @@
+"""RawMessage runs -> decode -> convert -> sink, with the error policy and per-topic counters.
+
+A bad message never stops the host: decoding and conversion errors are caught per message,
+warned about once per (robot, topic, error kind), counted, and shown in Rerun under
+``/_swanky/warnings``. ``strict`` (tests, ``--strict``) re-raises instead.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import rerun as rr
+
+from host_bridge.decode import Decoder
+from host_bridge.errors import HostError
+from host_bridge.registry import (
+    TIMELINE_LOG,
+    TIMELINE_RECEIVE,
+    TIMELINE_ROS,
+    ConvertContext,
+    LogItem,
+    Registry,
+    default_registry,
+)
+from host_bridge.sink import RerunSink
+from robot_relay.wire import RawMessage
+
+log = logging.getLogger("swanky.host")
+
+WARNINGS_PATH = "/_swanky/warnings"
+
+OptionsLookup = Callable[[str, str, str], Mapping[str, Any]]
+
+
+def no_options(robot: str, topic: str, msgtype: str) -> Mapping[str, Any]:
+    return {}
+
+
+@dataclass(slots=True)
+class TopicCounters:
+    msgtype: str
+    received: int = 0
+    converted: int = 0
+    dropped: int = 0
+    warnings: int = 0
+    sequence_gaps: int = 0
+    last_sequence: int | None = None
+    convert_seconds: float = 0.0
+
+
+@dataclass(slots=True)
+class _Topic:
+    entity_path: str
+    options: Mapping[str, Any]
+    state: dict[str, Any] = field(default_factory=dict)
+
+
+def message_times(msg: Any, raw: RawMessage) -> dict[str, int]:
+    times: dict[str, int] = {}
+    header = getattr(msg, "header", None)
+    stamp = getattr(header, "stamp", None)
+    if stamp is not None:
+        ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+        if ns:
+            times[TIMELINE_ROS] = ns
+    if raw.receive_ns is not None:
+        times[TIMELINE_RECEIVE] = raw.receive_ns
+    if raw.log_ns is not None:
+        times[TIMELINE_LOG] = raw.log_ns
+    return times
+
+
+class Dispatcher:
+    def __init__(
+        self,
+        sink: RerunSink,
+        *,
+        registry: Registry | None = None,
+        decoder: Decoder | None = None,
+        options: OptionsLookup = no_options,
+        strict: bool = False,
+    ) -> None:
+        self.sink = sink
+        self.registry = registry or default_registry()
+        self.decoder = decoder or Decoder()
+        self.options = options
+        self.strict = strict
+        self.counters: dict[tuple[str, str], TopicCounters] = {}
+        self._topics: dict[tuple[str, str], _Topic] = {}
+        self._robot_state: dict[str, dict[str, Any]] = {}
+        self._warned: set[tuple[str, str, str]] = set()
+
+    def _topic(self, raw: RawMessage) -> _Topic:
+        key = (raw.robot, raw.topic)
+        topic = self._topics.get(key)
+        if topic is None:
+            options = self.options(raw.robot, raw.topic, raw.msgtype)
+            path = options.get("entity_path") or f"/{raw.robot}{raw.topic}"
+            topic = _Topic(entity_path=path, options=options)
+            self._topics[key] = topic
+        return topic
+
+    def warn(self, robot: str, topic: str, err: Exception) -> None:
+        """Report an error once per (robot, topic, kind); later ones are only counted."""
+        counters = self.counters.get((robot, topic))
+        if counters is not None:
+            counters.warnings += 1
+        kind = type(err).__name__
+        if (robot, topic, kind) in self._warned:
+            return
+        self._warned.add((robot, topic, kind))
+        text = f"[{robot}] {topic}: {err} (further {kind}s on this topic are counted, not shown)"
+        log.warning("%s", text)
+        self.sink.log([LogItem(WARNINGS_PATH, (rr.TextLog(text, level=rr.TextLogLevel.WARN),))], {})
+
+    def _count(self, raw: RawMessage) -> TopicCounters:
+        key = (raw.robot, raw.topic)
+        counters = self.counters.get(key)
+        if counters is None:
+            counters = self.counters[key] = TopicCounters(raw.msgtype)
+        counters.received += 1
+        if raw.sequence is not None:
+            if counters.last_sequence is not None:
+                gap = (raw.sequence - counters.last_sequence - 1) & 0xFFFFFFFF
+                # A relay restart starts again at 0; that is not a loss.
+                if 0 < gap < 0x80000000 and raw.sequence != 0:
+                    counters.sequence_gaps += gap
+            counters.last_sequence = raw.sequence
+        return counters
+
+    def dispatch(self, batch: Sequence[RawMessage]) -> None:
+        """Convert and log a run of messages; messages of one topic keep their order."""
+        runs: dict[tuple[str, str], list[RawMessage]] = {}
+        for raw in batch:
+            runs.setdefault((raw.robot, raw.topic), []).append(raw)
+        for run in runs.values():
+            self._dispatch_run(run)
+
+    def _dispatch_run(self, run: list[RawMessage]) -> None:
+        first = run[0]
+        topic = self._topic(first)
+        robot_state = self._robot_state.setdefault(first.robot, {})
+        decoded: list[tuple[Any, ConvertContext, RawMessage]] = []
+        for raw in run:
+            counters = self._count(raw)
+            try:
+                msg = self.decoder.decode(raw)
+            except HostError as err:
+                counters.dropped += 1
+                if self.strict:
+                    raise
+                self.warn(raw.robot, raw.topic, err)
+                continue
+            ctx = ConvertContext(
+                robot=raw.robot,
+                topic=raw.topic,
+                entity_path=topic.entity_path,
+                times=message_times(msg, raw),
+                options=topic.options,
+                state=topic.state,
+                robot_state=robot_state,
+            )
+            decoded.append((msg, ctx, raw))
+        if decoded:
+            self._convert(decoded)
+
+    def _convert(self, decoded: list[tuple[Any, ConvertContext, RawMessage]]) -> None:
+        msgtype = decoded[0][2].msgtype
+        spec = self.registry.get(msgtype)
+        counters = self.counters[(decoded[0][2].robot, decoded[0][2].topic)]
+        started = time.perf_counter()
+        if spec.convert_run is not None and len(decoded) > 1:
+            try:
+                entries = spec.convert_run([d[0] for d in decoded], [d[1] for d in decoded])
+                self.sink.log(entries, decoded[0][1].times)
+                counters.converted += len(decoded)
+                counters.convert_seconds += time.perf_counter() - started
+                return
+            except Exception:
+                if self.strict:
+                    raise
+                # Fall through: convert one by one so only the bad message is lost.
+        for msg, ctx, raw in decoded:
+            try:
+                entries = spec.convert(msg, ctx)
+            except Exception as err:
+                counters.dropped += 1
+                if self.strict:
+                    raise
+                self.warn(raw.robot, raw.topic, err)
+                continue
+            self.sink.log(entries, ctx.times)
+            counters.converted += 1
+        counters.convert_seconds += time.perf_counter() - started
+
+    def summary(self) -> str:
+        """A table of every topic seen: type, received, converted, dropped, warnings."""
+        header = ("robot", "topic", "type", "received", "converted", "dropped", "warnings")
+        rows = [header] + [
+            (robot, topic, c.msgtype, str(c.received), str(c.converted), str(c.dropped),
+             str(c.warnings))
+            for (robot, topic), c in sorted(self.counters.items())
+        ]
+        widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
+        return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(r, widths)) for r in rows)
+

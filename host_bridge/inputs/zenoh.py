@@ -1,0 +1,226 @@
+"""Swanky wire samples (schemas/wire.md) -> RawMessages, with definitions from each robot's
+catalog.
+
+A robot's samples wait (bounded) until its catalog has arrived: a ROS 1 bag replayed by a relay
+carries CDR laid out after ROS 1 definitions (``Header.seq``), which the bundled ROS 2 types
+would misread. Zenoh callbacks only parse and enqueue; decoding happens on the host's thread.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass
+
+import zenoh
+from zenoh import ext
+
+from robot_relay.errors import WireError
+from robot_relay.wire import (
+    PREFIX,
+    Attachment,
+    Catalog,
+    RawMessage,
+    TopicInfo,
+    catalog_key,
+    data_selector,
+    decompress,
+    parse_cdr_encoding,
+    parse_data_key,
+    parse_robot_key,
+)
+
+log = logging.getLogger("swanky.host")
+
+CATALOG_TIMEOUT_S = 5.0
+CATALOG_RETRY_S = 2.0
+MAX_PENDING_PER_ROBOT = 2000
+
+
+@dataclass(frozen=True, slots=True)
+class InputProblem:
+    """A sample the input had to drop; the dispatcher reports it once per kind."""
+
+    robot: str
+    topic: str
+    error: Exception
+
+
+QueueItem = RawMessage | InputProblem
+
+
+class _Robot:
+    def __init__(self) -> None:
+        self.topics: dict[str, TopicInfo] | None = None
+        self.pending: list[RawMessage] = []
+        self.fetching = False
+        self.last_fetch = 0.0
+
+
+class ZenohInput:
+    """Subscribes to the data of the robots matched by ``robots`` (a key-expression chunk)."""
+
+    def __init__(
+        self, session: zenoh.Session, robots: str = "*", queue_size: int = 20000
+    ) -> None:
+        self.session = session
+        self.queue: queue.Queue[QueueItem] = queue.Queue(maxsize=queue_size)
+        self.dropped = 0
+        self._robots: dict[str, _Robot] = {}
+        self._lock = threading.Lock()
+        self._closed = threading.Event()
+        self._subscriber = ext.declare_advanced_subscriber(
+            session,
+            data_selector(robots),
+            self._on_sample,
+            history=ext.HistoryConfig(detect_late_publishers=True),
+        )
+        self._liveliness = session.liveliness().declare_subscriber(
+            f"{PREFIX}/{robots}/alive", self._on_alive, history=True
+        )
+
+    # -- zenoh callbacks (zenoh's threads) -------------------------------------------------
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        robot = parse_robot_key(str(sample.key_expr))
+        if sample.kind == zenoh.SampleKind.PUT:
+            log.info("robot %s joined", robot)
+            self._fetch_catalog(robot)
+        else:
+            log.info("robot %s left", robot)
+            with self._lock:
+                state = self._robots.get(robot)
+                if state is not None:
+                    # A restarted relay may bring other topics or definitions.
+                    state.topics = None
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            robot, topic = parse_data_key(key)
+        except WireError as err:
+            self._put(InputProblem("?", key, err))
+            return
+        try:
+            attachment_bytes = sample.attachment
+            if attachment_bytes is None:
+                msg = f"sample on {key!r} has no attachment: not sent by a swanky relay"
+                raise WireError(msg)
+            attachment = Attachment.unpack(attachment_bytes.to_bytes(), key)
+            msgtype = parse_cdr_encoding(str(sample.encoding), key)
+            payload = decompress(sample.payload.to_bytes(), attachment.flags, key)
+        except WireError as err:
+            self._put(InputProblem(robot, topic, err))
+            return
+        raw = RawMessage(
+            robot=robot,
+            topic=topic,
+            msgtype=msgtype,
+            data=payload,
+            receive_ns=attachment.receive_ns,
+            log_ns=attachment.source_ns or None,
+            sequence=attachment.sequence,
+        )
+        self._route(raw)
+
+    # -- routing -----------------------------------------------------------------------------
+
+    def _route(self, raw: RawMessage) -> None:
+        with self._lock:
+            state = self._robots.setdefault(raw.robot, _Robot())
+            deliver = state.topics is not None
+            if state.topics is None:
+                if len(state.pending) < MAX_PENDING_PER_ROBOT:
+                    state.pending.append(raw)
+                else:
+                    self.dropped += 1
+                fetch = not state.fetching
+            else:
+                info = state.topics.get(raw.topic)
+                fetch = info is None and time.monotonic() - state.last_fetch > CATALOG_RETRY_S
+                if info is not None and info.msgtype == raw.msgtype:
+                    raw = dataclasses.replace(raw, definition=info.definition)
+        if fetch:
+            self._fetch_catalog(raw.robot)
+        if deliver:
+            self._put(raw)
+
+    def _put(self, item: QueueItem) -> None:
+        try:
+            self.queue.put_nowait(item)
+        except queue.Full:
+            self.dropped += 1
+
+    def _fetch_catalog(self, robot: str) -> None:
+        with self._lock:
+            state = self._robots.setdefault(robot, _Robot())
+            if state.fetching:
+                return
+            state.fetching = True
+            state.last_fetch = time.monotonic()
+        threading.Thread(
+            target=self._catalog_worker, args=(robot,), name=f"catalog-{robot}", daemon=True
+        ).start()
+
+    def _catalog_worker(self, robot: str) -> None:
+        key = catalog_key(robot)
+        catalog: Catalog | None = None
+        error: Exception | None = None
+        try:
+            for reply in self.session.get(key, timeout=CATALOG_TIMEOUT_S):
+                if reply.ok is not None:
+                    catalog = Catalog.from_json(reply.ok.payload.to_bytes(), key)
+                    break
+        except WireError as err:
+            error = err
+        except Exception as err:  # session closed while asking
+            if self._closed.is_set():
+                return
+            error = err
+        if catalog is None and error is None:
+            error = WireError(
+                f"robot {robot} did not answer its catalog ({key}) within {CATALOG_TIMEOUT_S} s; "
+                "decoding its topics with the bundled ROS 2 Humble types"
+            )
+        with self._lock:
+            state = self._robots[robot]
+            state.fetching = False
+            known = dict(state.topics or {})
+            if catalog is not None:
+                known.update({t.topic: t for t in catalog.topics})
+            state.topics = known
+            pending, state.pending = state.pending, []
+        if error is not None:
+            self._put(InputProblem(robot, key, error))
+        for raw in pending:
+            info = known.get(raw.topic)
+            if info is not None and info.msgtype == raw.msgtype:
+                raw = dataclasses.replace(raw, definition=info.definition)
+            self._put(raw)
+
+    # -- consumer side -----------------------------------------------------------------------
+
+    def drain(self, max_items: int = 1024, wait: float = 0.05) -> list[QueueItem]:
+        """Gather what arrives within ``wait`` seconds (at least one item, or none on timeout)."""
+        items: list[QueueItem] = []
+        try:
+            items.append(self.queue.get(timeout=wait))
+        except queue.Empty:
+            return items
+        deadline = time.monotonic() + 0.005
+        while len(items) < max_items:
+            try:
+                items.append(self.queue.get_nowait())
+            except queue.Empty:
+                if time.monotonic() >= deadline:
+                    break
+                time.sleep(0.001)
+        return items
+
+    def close(self) -> None:
+        self._closed.set()
+        self._subscriber.undeclare()
+        self._liveliness.undeclare()

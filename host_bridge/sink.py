@@ -1,0 +1,108 @@
+"""The Rerun side: one recording stream, its sinks (viewer, gRPC address, .rrd file, web), and
+the only place that calls ``log`` / ``send_columns``."""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+
+from host_bridge.errors import SinkError
+from host_bridge.registry import ColumnsItem, LogEntry, LogItem
+
+APPLICATION_ID = "swanky"
+
+
+@dataclass(frozen=True, slots=True)
+class SinkOptions:
+    """Where the recording goes; several at once are allowed (e.g. a viewer and a file)."""
+
+    spawn: bool = False
+    connect: str | None = None
+    save: Path | None = None
+    serve_web: bool = False
+    web_port: int | None = None
+    grpc_port: int | None = None
+    recording_id: str | None = None
+
+    @property
+    def any(self) -> bool:
+        return self.spawn or self.connect is not None or self.save is not None or self.serve_web
+
+
+class RerunSink:
+    """Logs converter output with the message's timelines."""
+
+    def __init__(self, options: SinkOptions) -> None:
+        self.recording = rr.RecordingStream(APPLICATION_ID, recording_id=options.recording_id)
+        # Swanky sets log_time itself (the bag's record time); the SDK's wall clock would clash.
+        rr.set_log_time_enabled(False, recording=self.recording)
+        rr.set_log_tick_enabled(False, recording=self.recording)
+        self.web_url: str | None = None
+        self._open(options)
+        self._times: Mapping[str, int] | None = None
+
+    def _open(self, options: SinkOptions) -> None:
+        sinks: list[rr.sinks.LogSinkLike] = []
+        if options.save is not None:
+            if not options.save.parent.is_dir():
+                msg = f"--save {options.save}: directory {options.save.parent} does not exist"
+                raise SinkError(msg)
+            sinks.append(rr.FileSink(str(options.save)))
+        if options.spawn:
+            if shutil.which("rerun") is None:
+                msg = "cannot spawn the Rerun viewer: no 'rerun' executable on PATH"
+                raise SinkError(msg)
+            try:
+                rr.spawn(connect=False, recording=self.recording)
+            except Exception as err:
+                msg = (
+                    f"cannot spawn the Rerun viewer ({err}); on a headless machine use "
+                    "--save FILE.rrd or --serve-web"
+                )
+                raise SinkError(msg) from err
+            sinks.append(rr.GrpcSink())
+        if options.connect is not None:
+            sinks.append(rr.GrpcSink(options.connect))
+        if options.serve_web:
+            sinks.append(rr.GrpcServerSink(port=options.grpc_port or 9876))
+        self.recording.set_sinks(*sinks)
+        if options.serve_web:
+            grpc_url = f"rerun+http://127.0.0.1:{options.grpc_port or 9876}/proxy"
+            rr.serve_web_viewer(web_port=options.web_port, open_browser=False, connect_to=grpc_url)
+            self.web_url = f"http://127.0.0.1:{options.web_port or 9090}/?url={grpc_url}"
+
+    def _set_times(self, times: Mapping[str, int]) -> None:
+        if times == self._times:
+            return
+        self.recording.reset_time()
+        for name, ns in times.items():
+            self.recording.set_time(name, timestamp=np.datetime64(ns, "ns"))
+        self._times = times
+
+    def log(self, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
+        for entry in entries:
+            if isinstance(entry, ColumnsItem):
+                indexes = [
+                    rr.TimeColumn(name, timestamp=values.astype("datetime64[ns]"))
+                    for name, values in entry.times.items()
+                ]
+                self.recording.send_columns(entry.path, indexes=indexes, columns=entry.columns)
+            elif isinstance(entry, LogItem):
+                if entry.static:
+                    self.recording.log(entry.path, *entry.archetypes, static=True)
+                else:
+                    self._set_times(times if entry.times is None else entry.times)
+                    self.recording.log(entry.path, *entry.archetypes)
+
+    def flush(self) -> None:
+        self.recording.flush()
+
+    def close(self) -> None:
+        """Flush everything and close the sinks, so a saved .rrd is complete."""
+        self.recording.flush()
+        self.recording.disconnect()

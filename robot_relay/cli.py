@@ -1,0 +1,115 @@
+"""``swanky-relay``: runs on the robot; forwards raw CDR of ROS topics (live or from a bag)."""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import logging
+import signal
+import socket
+import sys
+import threading
+from collections.abc import Sequence
+from pathlib import Path
+
+from robot_relay.errors import RelayError
+from robot_relay.session import add_zenoh_arguments, open_session
+from robot_relay.wire import ROBOT_NAME_PATTERN, check_robot_name
+
+log = logging.getLogger("swanky.relay")
+
+
+def default_robot_name() -> str:
+    name = "".join(c if ROBOT_NAME_PATTERN.match(c) else "_" for c in socket.gethostname())
+    return name or "robot"
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="swanky-relay",
+        description="Forward ROS topics as raw CDR over Zenoh to a swanky-host (never decodes).",
+    )
+    parser.add_argument(
+        "--robot", "-r", default=default_robot_name(),
+        help="robot name: Zenoh key chunk, Rerun entity root, frame prefix (default: hostname)",
+    )
+    parser.add_argument("--bag", type=Path, help="replay this bag instead of the live ROS graph")
+    parser.add_argument("--rate", type=float, default=1.0, help="replay speed factor (0: max)")
+    parser.add_argument("--loop", action="store_true", help="replay the bag forever")
+    parser.add_argument(
+        "--topics", nargs="+", metavar="GLOB", default=["*"], help="topics to forward (globs)"
+    )
+    parser.add_argument(
+        "--exclude", nargs="+", metavar="GLOB", default=[], help="topics not to forward (globs)"
+    )
+    parser.add_argument(
+        "--wait-for-host", type=float, default=None, metavar="SECONDS",
+        help="replay: start once a host listens; give up after SECONDS (default: wait forever)",
+    )
+    add_zenoh_arguments(parser)
+    return parser.parse_args(argv)
+
+
+def topic_filter(include: Sequence[str], exclude: Sequence[str]):  # type: ignore[no-untyped-def]
+    def accept(topic: str) -> bool:
+        name = "/" + topic.lstrip("/")
+        return any(fnmatch.fnmatchcase(name, g) for g in include) and not any(
+            fnmatch.fnmatchcase(name, g) for g in exclude
+        )
+
+    return accept
+
+
+def run_bag(args: argparse.Namespace, stop: threading.Event) -> int:
+    from robot_relay.relay import Relay
+    from robot_relay.sources.bag import BagSource
+
+    with BagSource(
+        args.bag, args.robot, rate=args.rate, loop=args.loop,
+        topics=topic_filter(args.topics, args.exclude),
+    ) as source:
+        catalog = source.catalog()
+        if not catalog.topics:
+            log.error("bag %s has no topics matching %s", args.bag, " ".join(args.topics))
+            return 1
+        session = open_session(args)
+        try:
+            relay = Relay(session, catalog)
+            log.info("robot %s: %d topics from %s", args.robot, len(catalog.topics), args.bag)
+            if not relay.wait_for_host(args.wait_for_host):
+                log.error("no host subscribed within %.1f s; nothing replayed", args.wait_for_host)
+                return 1
+            relay.publish_all(source.messages(), stop)
+            log.info("robot %s: replay finished, %d messages sent", args.robot, relay.published)
+            relay.close()
+        finally:
+            session.close()
+    return 0
+
+
+def run_live(args: argparse.Namespace, stop: threading.Event) -> int:
+    from robot_relay.sources.ros2 import run_ros2_relay
+
+    return run_ros2_relay(args, stop, topic_filter(args.topics, args.exclude))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(levelname)s: %(message)s")
+    args = parse_args(argv)
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    try:
+        check_robot_name(args.robot)
+        return run_bag(args, stop) if args.bag is not None else run_live(args, stop)
+    except RelayError as err:
+        print(f"swanky-relay: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
