@@ -38,16 +38,20 @@ def _relay_args(endpoint: str) -> argparse.Namespace:
     )
 
 
-def _replay(bag: Path, endpoint: str, stop: threading.Event) -> None:
-    session = open_session(_relay_args(endpoint))
+def _replay(bag: Path, endpoint: str, stop: threading.Event, host_stop: threading.Event) -> None:
     try:
-        with BagSource(bag, DEMO_ROBOT, rate=1.0, loop=True) as source:
-            relay = Relay(session, source.catalog())
-            if relay.wait_for_host(timeout=30.0):
-                relay.publish_all(source.messages(), stop)
-            relay.close()
-    finally:
-        session.close()
+        session = open_session(_relay_args(endpoint))
+        try:
+            with BagSource(bag, DEMO_ROBOT, rate=1.0, loop=True) as source:
+                relay = Relay(session, source.catalog())
+                if relay.wait_for_host(timeout=30.0):
+                    relay.publish_all(source.messages(), stop)
+                relay.close()
+        finally:
+            session.close()
+    except Exception:
+        log.exception("demo relay failed; stopping the demo")
+        host_stop.set()
 
 
 def run_demo(args: argparse.Namespace, run_host: Callable[[], None], stop: threading.Event) -> None:
@@ -59,7 +63,7 @@ def run_demo(args: argparse.Namespace, run_host: Callable[[], None], stop: threa
         bag = write_demo_bag(Path(tmp) / "demo", DEMO_BAG_SECONDS)
         log.info("demo: simulated robot %r, bag %s, loopback %s", DEMO_ROBOT, bag, endpoint)
         relay = threading.Thread(
-            target=_replay, args=(bag, endpoint, relay_stop), name="demo-relay", daemon=True
+            target=_replay, args=(bag, endpoint, relay_stop, stop), name="demo-relay", daemon=True
         )
         relay.start()
         try:

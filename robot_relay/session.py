@@ -45,7 +45,8 @@ def config_from_args(args: argparse.Namespace) -> zenoh.Config:
     except Exception as err:
         msg = f"zenoh config file {args.config}: {err}"
         raise ConfigError(msg) from err
-    values: list[tuple[str, str]] = []
+    # zenoh-ext's AdvancedPublisher (latched topics) needs timestamps on samples.
+    values: list[tuple[str, str]] = [("timestamping/enabled", "true")]
     if args.mode:
         values.append(("mode", json.dumps(args.mode)))
     if args.connect:

@@ -26,7 +26,7 @@ _MAX_SEQUENCE_MESSAGES = 16
 def flatten(msg: Any, prefix: str, max_array: int) -> Iterator[tuple[str, float | str | Any]]:
     """(path, value) leaves of a message: floats, strings, or small numeric numpy arrays."""
     for f in fields(msg):
-        if f.name == "header" and prefix == "":
+        if f.name.startswith("__") or (f.name == "header" and prefix == ""):
             continue
         yield from _leaves(getattr(msg, f.name), f"{prefix}{f.name}", max_array)
 
