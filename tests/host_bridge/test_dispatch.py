@@ -1,0 +1,99 @@
+"""The error policy: a bad message is reported once, named, and nothing else is lost."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import pytest
+from rosbags.typesys import Stores, get_typestore
+
+from host_bridge.dispatch import Dispatcher
+from host_bridge.errors import DecodeError
+from host_bridge.sink import RerunSink, SinkOptions
+from robot_relay.wire import MessageDefinition, RawMessage
+from tests.rrd import entity_rows
+
+STORE = get_typestore(Stores.ROS2_HUMBLE)
+T = STORE.types
+
+
+def string_cdr(text: str) -> bytes:
+    return bytes(STORE.serialize_cdr(T["std_msgs/msg/String"](data=text), "std_msgs/msg/String"))
+
+
+def float_cdr(value: float) -> bytes:
+    return bytes(STORE.serialize_cdr(T["std_msgs/msg/Float64"](data=value), "std_msgs/msg/Float64"))
+
+
+def raw(topic: str, msgtype: str, data: bytes, ns: int, **kw: object) -> RawMessage:
+    return RawMessage("tb3", topic, msgtype, data, log_ns=ns, **kw)  # type: ignore[arg-type]
+
+
+@pytest.fixture
+def dispatcher(tmp_path: Path) -> Dispatcher:
+    return Dispatcher(RerunSink(SinkOptions(save=tmp_path / "out.rrd")))
+
+
+def test_truncated_cdr_is_warned_once_naming_the_topic_and_others_flow(
+    dispatcher: Dispatcher, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    good = float_cdr(1.5)
+    batch = [
+        raw("/speed", "std_msgs/msg/Float64", good, 1),
+        raw("/speed", "std_msgs/msg/Float64", good[:6], 2),
+        raw("/speed", "std_msgs/msg/Float64", good[:5], 3),
+        raw("/speed", "std_msgs/msg/Float64", good, 4),
+        raw("/mode", "std_msgs/msg/String", string_cdr("auto"), 5),
+    ]
+    with caplog.at_level(logging.WARNING):
+        dispatcher.dispatch(batch)
+    warnings = [r.getMessage() for r in caplog.records]
+    assert len(warnings) == 1
+    assert "/speed" in warnings[0] and "std_msgs/msg/Float64" in warnings[0]
+    counters = dispatcher.counters[("tb3", "/speed")]
+    assert (counters.received, counters.converted, counters.dropped) == (4, 2, 2)
+    dispatcher.sink.close()
+    rows = entity_rows(tmp_path / "out.rrd")
+    assert [r["Scalars:scalars"] for r in rows["/tb3/speed/data"]] == [[1.5], [1.5]]
+    assert rows["/tb3/mode/data"][0]["TextLog:text"] == ["auto"]
+    assert "/speed" in rows["/_swanky/warnings"][0]["TextLog:text"][0]
+
+
+def test_unknown_type_without_definition_names_type_and_topic(
+    dispatcher: Dispatcher, caplog: pytest.LogCaptureFixture
+) -> None:
+    with caplog.at_level(logging.WARNING):
+        dispatcher.dispatch([
+            raw("/custom", "my_pkg/msg/Thing", b"\x00\x01\x00\x00", 1),
+            raw("/mode", "std_msgs/msg/String", string_cdr("ok"), 2),
+        ])
+    [warning] = [r.getMessage() for r in caplog.records]
+    assert "/custom" in warning and "my_pkg/msg/Thing" in warning
+    assert dispatcher.counters[("tb3", "/mode")].converted == 1
+
+
+def test_custom_type_decodes_from_the_definition_it_came_with(dispatcher: Dispatcher) -> None:
+    text = "float64 speed\nstring label\n"
+    custom = get_typestore(Stores.EMPTY)
+    from rosbags.typesys import get_types_from_msg
+
+    custom.register(get_types_from_msg(text, "my_pkg/msg/Thing"))
+    data = custom.serialize_cdr(custom.types["my_pkg/msg/Thing"](speed=2.5, label="x"),
+                                "my_pkg/msg/Thing")
+    message = raw("/custom", "my_pkg/msg/Thing", bytes(data), 1,
+                  definition=MessageDefinition("ros2msg", text))
+    dispatcher.dispatch([message])
+    assert dispatcher.counters[("tb3", "/custom")].converted == 1
+
+
+def test_strict_mode_re_raises(tmp_path: Path) -> None:
+    strict = Dispatcher(RerunSink(SinkOptions(save=tmp_path / "s.rrd")), strict=True)
+    with pytest.raises(DecodeError, match="/speed"):
+        strict.dispatch([raw("/speed", "std_msgs/msg/Float64", b"\x00\x01", 1)])
+
+
+def test_sequence_gaps_count_as_drops(dispatcher: Dispatcher) -> None:
+    data = float_cdr(1.0)
+    dispatcher.dispatch([raw("/s", "std_msgs/msg/Float64", data, i, sequence=i) for i in (0, 1, 4)])
+    assert dispatcher.counters[("tb3", "/s")].sequence_gaps == 2

@@ -1,0 +1,220 @@
+"""TF, LaserScan, Odometry and the generic fallback: values Rerun receives."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from rosbags.typesys import Stores, get_typestore
+
+from host_bridge.converters.generic import convert_generic
+from host_bridge.converters.laser import convert_scan
+from host_bridge.converters.odometry import convert_odometry_run
+from host_bridge.converters.tf import convert_tf, convert_tf_run
+from host_bridge.registry import ColumnsItem, ConvertContext, LogItem, default_registry
+
+T = get_typestore(Stores.ROS2_HUMBLE).types
+
+
+def ctx(topic: str, robot: str = "tb3", **options: Any) -> ConvertContext:
+    return ConvertContext(
+        robot=robot, topic=topic, entity_path=f"/{robot}{topic}",
+        times={"ros_time": 5, "log_time": 6}, options=options,
+    )
+
+
+def header(frame: str, ns: int = 0) -> Any:
+    stamp = T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
+    return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+
+def transform(parent: str, child: str, x: float, yaw: float, ns: int) -> Any:
+    return T["geometry_msgs/msg/TransformStamped"](
+        header=header(parent, ns),
+        child_frame_id=child,
+        transform=T["geometry_msgs/msg/Transform"](
+            translation=T["geometry_msgs/msg/Vector3"](x=x, y=0.0, z=0.0),
+            rotation=T["geometry_msgs/msg/Quaternion"](
+                x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)
+            ),
+        ),
+    )
+
+
+def column(item: ColumnsItem, name: str) -> list[Any]:
+    for col in item.columns:
+        if col.component_descriptor().component == name:
+            return list(col.as_arrow_array().to_pylist())
+    raise KeyError(name)
+
+
+def scan(ranges: list[float]) -> Any:
+    return T["sensor_msgs/msg/LaserScan"](
+        header=header("laser", 7), angle_min=0.0, angle_max=math.pi,
+        angle_increment=math.pi / 2, time_increment=0.0, scan_time=0.1, range_min=0.1,
+        range_max=10.0, ranges=np.array(ranges, dtype=np.float32),
+        intensities=np.array([], dtype=np.float32),
+    )
+
+
+def test_dynamic_tf_is_one_row_per_transform_with_prefixed_frames_and_own_stamps() -> None:
+    msg = T["tf2_msgs/msg/TFMessage"](transforms=[
+        transform("odom", "base_link", 1.5, math.pi / 2, 10),
+        transform("/base_link", "wheel", 0.1, 0.0, 20),
+    ])
+    [item] = convert_tf(msg, ctx("/tf"))
+    assert isinstance(item, ColumnsItem)
+    assert item.path == "/tb3/tf"
+    assert column(item, "Transform3D:parent_frame") == [["tb3/odom"], ["tb3/base_link"]]
+    assert column(item, "Transform3D:child_frame") == [["tb3/base_link"], ["tb3/wheel"]]
+    assert column(item, "Transform3D:translation")[0] == [[1.5, 0.0, 0.0]]
+    qx, qy, qz, qw = column(item, "Transform3D:quaternion")[0][0]
+    assert (qx, qy) == (0.0, 0.0)
+    assert qz == pytest.approx(math.sqrt(0.5)) and qw == pytest.approx(math.sqrt(0.5))
+    assert item.times["ros_time"].tolist() == [10, 20]
+    assert item.times["log_time"].tolist() == [6, 6]
+
+
+def test_tf_runs_concatenate_and_two_robots_never_share_frames() -> None:
+    one = T["tf2_msgs/msg/TFMessage"](transforms=[transform("odom", "base_link", 1.0, 0, 1)])
+    [item] = convert_tf_run([one, one], [ctx("/tf", "tb1"), ctx("/tf", "tb1")])
+    assert isinstance(item, ColumnsItem)
+    assert len(item.times["ros_time"]) == 2
+    [other] = convert_tf(one, ctx("/tf", "tb2"))
+    assert isinstance(other, ColumnsItem)
+    assert column(other, "Transform3D:child_frame") == [["tb2/base_link"]]
+
+
+def test_static_tf_is_static_one_entity_per_child_frame() -> None:
+    msg = T["tf2_msgs/msg/TFMessage"](transforms=[
+        transform("base_link", "laser", 0.2, 0.0, 0), transform("base_link", "imu", 0.0, 0.0, 0),
+    ])
+    state = ctx("/tf_static")
+    items = convert_tf(msg, state)
+    assert [i.path for i in items] == ["/tb3/tf_static/laser", "/tb3/tf_static/imu"]
+    assert all(isinstance(i, LogItem) and i.static for i in items)
+    assert state.robot_state["tf_children"] == {"laser", "imu"}
+
+
+def test_laser_points_drop_invalid_returns_and_sit_in_the_scan_frame() -> None:
+    items = convert_scan(scan([1.0, float("nan"), 2.0, 50.0]), ctx("/scan"))
+    [points] = items
+    assert isinstance(points, LogItem)
+    positions = points.archetypes[0].positions.as_arrow_array().to_pylist()  # type: ignore[attr-defined]
+    np.testing.assert_allclose(positions, [[1.0, 0.0, 0.0], [-2.0, 0.0, 0.0]], atol=1e-6)
+    frame = points.archetypes[1].frame.as_arrow_array().to_pylist()  # type: ignore[attr-defined]
+    assert frame == ["tb3/laser"]
+
+
+def test_laser_rays_mode_draws_segments_from_the_sensor() -> None:
+    items = convert_scan(scan([1.0, 1.0, 1.0, 1.0]), ctx("/scan", mode="both"))
+    assert [i.path for i in items] == ["/tb3/scan", "/tb3/scan/rays"]
+    rays = items[1]
+    assert isinstance(rays, LogItem)
+    strips = rays.archetypes[0].strips.as_arrow_array().to_pylist()  # type: ignore[attr-defined]
+    assert len(strips) == 4
+    np.testing.assert_allclose(strips[1], [[0, 0, 0], [0, 1, 0]], atol=1e-6)
+
+
+def test_odometry_pose_twist_and_trail() -> None:
+    def odom(x: float) -> Any:
+        pose = T["geometry_msgs/msg/Pose"](
+            position=T["geometry_msgs/msg/Point"](x=x, y=2.0, z=0.0),
+            orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        )
+        twist = T["geometry_msgs/msg/Twist"](
+            linear=T["geometry_msgs/msg/Vector3"](x=0.3, y=0.0, z=0.0),
+            angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.5),
+        )
+        return T["nav_msgs/msg/Odometry"](
+            header=header("odom", 1), child_frame_id="base_link",
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+            twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+        )
+
+    c = ctx("/odom")
+    items = convert_odometry_run([odom(0.0), odom(0.001), odom(1.0)], [c, c, c])
+    by_path = {i.path: i for i in items if isinstance(i, ColumnsItem)}
+    pose = by_path["/tb3/odom"]
+    assert column(pose, "Transform3D:translation")[2] == [[1.0, 2.0, 0.0]]
+    assert column(pose, "Transform3D:parent_frame")[0] == ["tb3/odom"]
+    assert column(by_path["/tb3/odom/twist/linear/x"], "Scalars:scalars") == [[0.3]] * 3
+    assert column(by_path["/tb3/odom/twist/angular/z"], "Scalars:scalars") == [[0.5]] * 3
+    trails = [i for i in items if i.path == "/tb3/odom/trail"]
+    # The 1 mm step is below the trail's minimum distance: only 0.0 -> 1.0 is drawn.
+    assert len(trails) == 1
+    assert isinstance(trails[0], LogItem)
+    strip = trails[0].archetypes[0].strips.as_arrow_array().to_pylist()  # type: ignore[attr-defined]
+    assert strip == [[[0.0, 2.0, 0.0], [1.0, 2.0, 0.0]]]
+
+
+def test_generic_fallback_plots_numbers_and_logs_text() -> None:
+    msg = T["sensor_msgs/msg/BatteryState"](
+        header=header("bat"), voltage=12.5, temperature=30.0, current=-1.0, charge=1.0,
+        capacity=2.0, design_capacity=2.0, percentage=0.5, power_supply_status=2,
+        power_supply_health=1, power_supply_technology=3, present=True,
+        cell_voltage=np.array([4.1, 4.2], dtype=np.float32),
+        cell_temperature=np.array([], dtype=np.float32), location="slot", serial_number="A1",
+    )
+    items = {i.path: i for i in convert_generic(msg, ctx("/battery"))}
+    assert "/tb3/battery/header" not in items
+    voltage = items["/tb3/battery/voltage"]
+    assert isinstance(voltage, ColumnsItem)
+    assert column(voltage, "Scalars:scalars") == [[12.5]]
+    assert column(items["/tb3/battery/present"], "Scalars:scalars") == [[1.0]]  # type: ignore[arg-type]
+    cells = column(items["/tb3/battery/cell_voltage"], "Scalars:scalars")  # type: ignore[arg-type]
+    np.testing.assert_allclose(cells, [[4.1, 4.2]], rtol=1e-6)
+    assert column(items["/tb3/battery/location"], "TextLog:text") == [["slot"]]  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("msgtype", default_registry().types())
+def test_every_registered_type_has_a_converter_that_handles_a_default_message(
+    msgtype: str,
+) -> None:
+    """Walks the registry: each converter accepts a default-constructed message of its type
+    (or refuses it with a ConvertError, never another exception)."""
+    from host_bridge.errors import ConvertError
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    spec = default_registry().get(msgtype)
+    if msgtype not in store.types:
+        pytest.skip(f"{msgtype} is not in the Humble store (defined in schemas/msg)")
+    msg = _default_message(store, msgtype)
+    try:
+        entries = spec.convert(msg, ctx("/topic"))
+    except ConvertError:
+        return
+    assert all(e.path.startswith("/tb3/") for e in entries)
+
+
+def _default_message(store: Any, msgtype: str) -> Any:
+    """A message of ``msgtype`` with zero/empty fields, built from the typestore's field table."""
+    from rosbags.interfaces import Nodetype
+
+    _, fields = store.fielddefs[msgtype]
+    values: dict[str, Any] = {}
+    for name, (kind, arg) in fields:
+        if kind == Nodetype.BASE:
+            values[name] = "" if arg[0] == "string" else 0
+        elif kind == Nodetype.NAME:
+            values[name] = _default_message(store, arg)
+        elif kind == Nodetype.ARRAY:
+            sub, count = arg
+            if sub[0] == Nodetype.BASE and sub[1][0] != "string":
+                values[name] = np.zeros(count, dtype=_dtype(sub[1][0]))
+            else:
+                values[name] = [_default_message(store, sub[1]) if sub[0] == Nodetype.NAME else ""
+                                for _ in range(count)]
+        else:  # SEQUENCE
+            sub = arg[0]
+            if sub[0] == Nodetype.BASE and sub[1][0] != "string":
+                values[name] = np.zeros(0, dtype=_dtype(sub[1][0]))
+            else:
+                values[name] = []
+    return store.types[msgtype](**values)
+
+
+def _dtype(ros_type: str) -> str:
+    return {"bool": "bool", "byte": "uint8", "char": "uint8", "octet": "uint8"}.get(ros_type, ros_type)

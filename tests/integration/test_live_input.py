@@ -1,0 +1,101 @@
+"""The host's Zenoh input against real publishers in a second session over loopback."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Iterator
+
+import pytest
+import zenoh
+from rosbags.typesys import Stores, get_typestore
+
+from host_bridge.inputs.zenoh import InputProblem, QueueItem, ZenohInput
+from robot_relay.relay import Relay
+from robot_relay.session import open_session
+from robot_relay.wire import Attachment, Catalog, RawMessage, TopicInfo, cdr_encoding, data_key
+from tests.integration.procs import free_port
+
+pytestmark = pytest.mark.integration
+
+STORE = get_typestore(Stores.ROS2_HUMBLE)
+
+
+def zenoh_args(**kw: list[str]) -> argparse.Namespace:
+    return argparse.Namespace(mode=None, connect=kw.get("connect", []),
+                              listen=kw.get("listen", []), config=None, cfg=[],
+                              no_multicast_scouting=True)
+
+
+@pytest.fixture
+def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    host = open_session(zenoh_args(listen=[endpoint]))
+    robot = open_session(zenoh_args(connect=[endpoint]))
+    yield host, robot
+    robot.close()
+    host.close()
+
+
+def collect(source: ZenohInput, count: int, timeout: float = 10.0) -> list[QueueItem]:
+    items: list[QueueItem] = []
+    deadline = time.monotonic() + timeout
+    while len(items) < count and time.monotonic() < deadline:
+        items.extend(source.drain(wait=0.1))
+    return items
+
+
+def test_wrong_attachment_version_is_named_and_other_samples_flow(
+    sessions: tuple[zenoh.Session, zenoh.Session],
+) -> None:
+    host, robot = sessions
+    data = bytes(STORE.serialize_cdr(STORE.types["std_msgs/msg/String"](data="hi"),
+                                     "std_msgs/msg/String"))
+    catalog = Catalog("tb3", "bag", (TopicInfo("/chat", "std_msgs/msg/String", None),))
+    relay = Relay(robot, catalog)
+    source = ZenohInput(host)
+    try:
+        assert relay.wait_for_host(10.0)
+        bad = bytearray(Attachment(0, 1).pack())
+        bad[0] = 7
+        robot.put(data_key("tb3", "/chat"), data, encoding=cdr_encoding("std_msgs/msg/String"),
+                  attachment=bytes(bad))
+        relay.publish(RawMessage("tb3", "/chat", "std_msgs/msg/String", data, log_ns=5))
+        items = collect(source, 2)
+    finally:
+        source.close()
+        relay.close()
+    problems = [i for i in items if isinstance(i, InputProblem)]
+    messages = [i for i in items if isinstance(i, RawMessage)]
+    assert len(problems) == 1
+    assert "swanky/tb3/data/chat" in str(problems[0].error)
+    assert "wire version 7" in str(problems[0].error)
+    assert len(messages) == 1
+    assert messages[0].data == data and messages[0].log_ns == 5
+    assert messages[0].topic == "/chat" and messages[0].sequence == 0
+
+
+def test_latched_topic_reaches_a_host_that_starts_late(
+    sessions: tuple[zenoh.Session, zenoh.Session],
+) -> None:
+    host, robot = sessions
+    tf = STORE.types["tf2_msgs/msg/TFMessage"](transforms=[])
+    data = bytes(STORE.serialize_cdr(tf, "tf2_msgs/msg/TFMessage"))
+    from robot_relay.wire import QosProfile
+
+    catalog = Catalog("tb3", "bag", (
+        TopicInfo("/tf_static", "tf2_msgs/msg/TFMessage", None,
+                  QosProfile(durability="transient_local", depth=1)),
+    ))
+    relay = Relay(robot, catalog)
+    try:
+        relay.publish(RawMessage("tb3", "/tf_static", "tf2_msgs/msg/TFMessage", data))
+        time.sleep(0.5)
+        source = ZenohInput(host)  # subscribes only now
+        try:
+            items = collect(source, 1)
+        finally:
+            source.close()
+    finally:
+        relay.close()
+    assert [i.topic for i in items if isinstance(i, RawMessage)] == ["/tf_static"]
