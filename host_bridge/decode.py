@@ -17,8 +17,14 @@ from rosbags.typesys.store import Typestore
 from host_bridge.errors import DecodeError, UnknownTypeError
 from robot_relay.wire import MessageDefinition, RawMessage
 
+
 def base_typestore() -> Typestore:
-    return get_typestore(Stores.ROS2_HUMBLE)
+    """ROS 2 Humble plus the definitions shipped in schemas/msg (vision_msgs, ...)."""
+    from host_bridge.schemas import extra_typesdict
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    store.register(extra_typesdict())
+    return store
 
 
 def _parse(definition: MessageDefinition, msgtype: str) -> dict[str, Any]:
@@ -97,7 +103,7 @@ class Decoder:
             return store.deserialize_cdr(raw.data, raw.msgtype)
         except Exception as err:
             msg = (
-                f"{raw.topic} ({raw.msgtype}): {len(raw.data)}-byte payload does not "
-                f"deserialize: {err.__class__.__name__}: {err}"
+                f"{len(raw.data)}-byte {raw.msgtype} payload does not deserialize "
+                f"(truncated, or not the type the source announced): {err}"
             )
             raise DecodeError(msg) from err

@@ -11,7 +11,7 @@ error.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -45,7 +45,7 @@ class ColumnsItem:
     """Rows for ``rr.send_columns``: one row per entry of each ``times`` array (int64 ns)."""
 
     path: str
-    columns: Sequence[Any]
+    columns: Iterable[Any]
     times: Mapping[str, npt.NDArray[np.int64]]
 
 
@@ -113,9 +113,21 @@ class Registry:
 
 
 def default_registry() -> Registry:
-    from host_bridge.converters import generic, laser, odometry, tf
+    from host_bridge.converters import (
+        generic,
+        geo,
+        imu,
+        laser,
+        markers,
+        odometry,
+        pointcloud,
+        proximity,
+        scalars,
+        tf,
+        vision,
+    )
 
     registry = Registry(generic.SPEC)
-    for module in (tf, laser, odometry):
+    for module in (tf, laser, odometry, pointcloud, imu, geo, proximity, scalars, markers, vision):
         registry.add_all(module.CONVERTERS)
     return registry

@@ -9,7 +9,7 @@ import signal
 import socket
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from robot_relay.errors import RelayError
@@ -50,7 +50,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def topic_filter(include: Sequence[str], exclude: Sequence[str]):  # type: ignore[no-untyped-def]
+def topic_filter(include: Sequence[str], exclude: Sequence[str]) -> Callable[[str], bool]:
     def accept(topic: str) -> bool:
         name = "/" + topic.lstrip("/")
         return any(fnmatch.fnmatchcase(name, g) for g in include) and not any(

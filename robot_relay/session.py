@@ -41,7 +41,9 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
 
 def config_from_args(args: argparse.Namespace) -> zenoh.Config:
     try:
-        config = zenoh.Config.from_file(args.config) if args.config else zenoh.Config()
+        config: zenoh.Config = (
+            zenoh.Config.from_file(args.config) if args.config else zenoh.Config()
+        )
     except Exception as err:
         msg = f"zenoh config file {args.config}: {err}"
         raise ConfigError(msg) from err
@@ -73,7 +75,7 @@ def config_from_args(args: argparse.Namespace) -> zenoh.Config:
 def open_session(args: argparse.Namespace) -> zenoh.Session:
     config = config_from_args(args)
     try:
-        session = zenoh.open(config)
+        session: zenoh.Session = zenoh.open(config)
     except Exception as err:
         msg = f"cannot open a zenoh session ({err}); check -e/-l endpoints and -c/--cfg"
         raise ConfigError(msg) from err

@@ -34,7 +34,7 @@ def flatten(msg: Any, prefix: str, max_array: int) -> Iterator[tuple[str, float 
 def _leaves(value: Any, path: str, max_array: int) -> Iterator[tuple[str, float | str | Any]]:
     if is_dataclass(value):
         if getattr(value, "__msgtype__", "") in _TIME_TYPES:
-            yield path, value.sec + value.nanosec * 1e-9
+            yield path, getattr(value, "sec") + getattr(value, "nanosec") * 1e-9  # noqa: B009
         else:
             yield from flatten(value, path + "/", max_array)
     elif isinstance(value, (bool, int, float, np.number, np.bool_)):

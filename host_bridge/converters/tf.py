@@ -39,7 +39,7 @@ def _static_items(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
         path = ctx.child_path(rr.escape_entity_path_part(t.child_frame_id.strip("/")))
         transform = rr.Transform3D(
             translation=xyz(t.transform.translation),
-            quaternion=xyzw(t.transform.rotation),
+            quaternion=rr.Quaternion(xyzw=xyzw(t.transform.rotation)),
             parent_frame=parent,
             child_frame=child,
         )
@@ -49,10 +49,10 @@ def _static_items(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
 
 def convert_tf_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
     if _is_static(ctxs[0]):
-        return [item for msg, ctx in zip(msgs, ctxs) for item in _static_items(msg, ctx)]
+        return [item for msg, ctx in zip(msgs, ctxs, strict=False) for item in _static_items(msg, ctx)]
     rows = [
         (t, ctx)
-        for msg, ctx in zip(msgs, ctxs)
+        for msg, ctx in zip(msgs, ctxs, strict=False)
         for t in msg.transforms
         if t.child_frame_id.strip("/") and t.header.frame_id.strip("/")
     ]
@@ -63,8 +63,8 @@ def convert_tf_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[
     columns = rr.Transform3D.columns(
         translation=np.array([xyz(t.transform.translation) for t, _ in rows], dtype=np.float64),
         quaternion=np.array([xyzw(t.transform.rotation) for t, _ in rows], dtype=np.float64),
-        parent_frame=[ctx0.frame(t.header.frame_id) for t, _ in rows],
-        child_frame=[ctx0.frame(t.child_frame_id) for t, _ in rows],
+        parent_frame=[ctx0.frame(t.header.frame_id) or "" for t, _ in rows],
+        child_frame=[ctx0.frame(t.child_frame_id) or "" for t, _ in rows],
     )
     times = time_columns([c for _, c in rows], ros_ns=[stamp_ns(t.header.stamp) for t, _ in rows])
     return [ColumnsItem(ctx0.entity_path, columns, times)]

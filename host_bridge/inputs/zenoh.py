@@ -195,11 +195,11 @@ class ZenohInput:
             pending, state.pending = state.pending, []
         if error is not None:
             self._put(InputProblem(robot, key, error))
-        for raw in pending:
-            info = known.get(raw.topic)
-            if info is not None and info.msgtype == raw.msgtype:
-                raw = dataclasses.replace(raw, definition=info.definition)
-            self._put(raw)
+        for waiting in pending:
+            info = known.get(waiting.topic)
+            if info is not None and info.msgtype == waiting.msgtype:
+                waiting = dataclasses.replace(waiting, definition=info.definition)  # noqa: PLW2901
+            self._put(waiting)
 
     # -- consumer side -----------------------------------------------------------------------
 

@@ -50,12 +50,13 @@ def test_truncated_cdr_is_warned_once_naming_the_topic_and_others_flow(
         dispatcher.dispatch(batch)
     warnings = [r.getMessage() for r in caplog.records]
     assert len(warnings) == 1
-    assert "/speed" in warnings[0] and "std_msgs/msg/Float64" in warnings[0]
+    assert "/speed" in warnings[0]
+    assert "std_msgs/msg/Float64" in warnings[0]
     counters = dispatcher.counters[("tb3", "/speed")]
     assert (counters.received, counters.converted, counters.dropped) == (4, 2, 2)
     dispatcher.sink.close()
     rows = entity_rows(tmp_path / "out.rrd")
-    assert [r["Scalars:scalars"] for r in rows["/tb3/speed/data"]] == [[1.5], [1.5]]
+    assert [r["Scalars:scalars"] for r in rows["/tb3/speed"]] == [[1.5], [1.5]]
     assert rows["/tb3/mode/data"][0]["TextLog:text"] == ["auto"]
     assert "/speed" in rows["/_swanky/warnings"][0]["TextLog:text"][0]
 
@@ -69,7 +70,8 @@ def test_unknown_type_without_definition_names_type_and_topic(
             raw("/mode", "std_msgs/msg/String", string_cdr("ok"), 2),
         ])
     [warning] = [r.getMessage() for r in caplog.records]
-    assert "/custom" in warning and "my_pkg/msg/Thing" in warning
+    assert "/custom" in warning
+    assert "my_pkg/msg/Thing" in warning
     assert dispatcher.counters[("tb3", "/mode")].converted == 1
 
 

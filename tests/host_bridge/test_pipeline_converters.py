@@ -72,7 +72,8 @@ def test_dynamic_tf_is_one_row_per_transform_with_prefixed_frames_and_own_stamps
     assert column(item, "Transform3D:translation")[0] == [[1.5, 0.0, 0.0]]
     qx, qy, qz, qw = column(item, "Transform3D:quaternion")[0][0]
     assert (qx, qy) == (0.0, 0.0)
-    assert qz == pytest.approx(math.sqrt(0.5)) and qw == pytest.approx(math.sqrt(0.5))
+    assert qz == pytest.approx(math.sqrt(0.5))
+    assert qw == pytest.approx(math.sqrt(0.5))
     assert item.times["ros_time"].tolist() == [10, 20]
     assert item.times["log_time"].tolist() == [6, 6]
 

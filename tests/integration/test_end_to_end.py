@@ -63,11 +63,12 @@ def test_relay_to_host_delivers_every_scan(shared_data: Path, tmp_path: Path) ->
     assert host_main(["--bag", str(bag), "--robot", "hokuyo", "--save", str(offline)]) == 0
     offline_rows = entity_rows(offline)["/hokuyo/scan"]
     assert scans(offline_rows) == expected
-    for live_row, offline_row in zip(rows[::37], offline_rows[::37]):
+    for live_row, offline_row in zip(rows[::37], offline_rows[::37], strict=False):
         assert live_row["Points3D:positions"] == offline_row["Points3D:positions"]
         assert live_row["log_time"] == offline_row["log_time"]
     first = np.asarray(offline_rows[0]["Points3D:positions"])
-    assert np.all(np.hypot(first[:, 0], first[:, 1]) > 0) and not np.isnan(first).any()
+    assert np.all(np.hypot(first[:, 0], first[:, 1]) > 0)
+    assert not np.isnan(first).any()
     assert math.isclose(float(first[:, 2].max()), 0.0)
 
 

@@ -71,8 +71,10 @@ def test_wrong_attachment_version_is_named_and_other_samples_flow(
     assert "swanky/tb3/data/chat" in str(problems[0].error)
     assert "wire version 7" in str(problems[0].error)
     assert len(messages) == 1
-    assert messages[0].data == data and messages[0].log_ns == 5
-    assert messages[0].topic == "/chat" and messages[0].sequence == 0
+    assert messages[0].data == data
+    assert messages[0].log_ns == 5
+    assert messages[0].topic == "/chat"
+    assert messages[0].sequence == 0
 
 
 def test_latched_topic_reaches_a_host_that_starts_late(

@@ -1,0 +1,113 @@
+"""sensor_msgs/Imu and MagneticField -> orientation, vector arrows and scalar plots.
+
+The orientation is a ``Transform3D`` from the sensor frame to the implicit frame of the
+``orientation`` sub-entity, never a named frame relation: /tf may already relate the sensor
+frame, and Rerun allows one parent per frame. The acceleration and angular-velocity arrows sit in
+that rotated frame, so they turn with the attitude the IMU estimates.
+
+Raw IMUs send no orientation: ROS marks that with ``orientation_covariance[0] == -1``, and many
+drivers (the phidgets bag) send the all-zero quaternion instead. Both become the identity
+rotation, never a normalised NaN, so the arrows stay attached to the sensor frame and the
+scalars are unaffected. Options: ``acceleration_scale`` (m of arrow per m/s^2, default 0.1),
+``angular_velocity_scale`` (m per rad/s, default 1.0), ``axis_length`` (m, default 0.2).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import rerun as rr
+
+from host_bridge.converters._common import time_columns, xyz
+from host_bridge.converters.scalars import (
+    SubPath,
+    Values,
+    scalar_columns,
+    series_names_once,
+    series_spec,
+)
+from host_bridge.registry import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
+
+XYZ = ("x", "y", "z")
+_VECTORS = ("linear_acceleration", "angular_velocity")
+_LEGENDS: dict[SubPath, Sequence[str]] = {(name,): XYZ for name in _VECTORS}
+# Arrow colours: acceleration amber, angular velocity violet (RGBA).
+_ARROW_COLORS = np.array([[255, 170, 0, 255], [170, 80, 255, 255]], dtype=np.uint8)
+_ARROW_LABELS = ["linear_acceleration", "angular_velocity"]
+_IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
+_MIN_NORM = 1e-6
+
+
+def orientations(
+    quaternions: npt.NDArray[np.float64], covariance0: npt.NDArray[np.float64]
+) -> npt.NDArray[np.float64]:
+    """Unit xyzw quaternions, shape (n, 4); identity where the message has no orientation."""
+    norms = np.linalg.norm(quaternions, axis=1)
+    valid = np.isfinite(norms) & (norms > _MIN_NORM) & (covariance0 != -1.0)
+    safe = np.where(valid, norms, 1.0)[:, None]
+    return np.where(valid[:, None], quaternions / safe, _IDENTITY)
+
+
+def _parent_frame(msg: Any, ctx: ConvertContext) -> str:
+    # Without a frame id the orientation hangs under the topic entity, as Rerun would default.
+    return ctx.frame(msg.header.frame_id) or f"tf#{ctx.entity_path}"
+
+
+def convert_imu_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
+    ctx0 = ctxs[0]
+    n = len(msgs)
+    times = time_columns(ctxs)
+    quaternions = np.array(
+        [
+            (m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w)
+            for m in msgs
+        ],
+        dtype=np.float64,
+    ).reshape(n, 4)
+    covariance0 = np.array([m.orientation_covariance[0] for m in msgs], dtype=np.float64)
+    vectors = {
+        name: np.array([xyz(getattr(m, name)) for m in msgs], dtype=np.float64).reshape(n, 3)
+        for name in _VECTORS
+    }
+    scales = np.array(
+        [
+            float(ctx0.options.get("acceleration_scale", 0.1)),
+            float(ctx0.options.get("angular_velocity_scale", 1.0)),
+        ]
+    )
+    arrows = np.stack([vectors[name] for name in _VECTORS], axis=1) * scales[None, :, None]
+    orientation_path = ctx0.child_path("orientation")
+    transform = rr.Transform3D.columns(
+        quaternion=orientations(quaternions, covariance0),
+        parent_frame=[_parent_frame(m, ctx) for m, ctx in zip(msgs, ctxs, strict=True)],
+    )
+    arrow_columns = rr.Arrows3D.columns(
+        vectors=arrows.reshape(-1, 3),
+        colors=np.tile(_ARROW_COLORS, (n, 1)),
+        labels=_ARROW_LABELS * n,
+    ).partition(np.full(n, len(_VECTORS)))
+    items: list[LogEntry] = series_names_once(ctx0, _LEGENDS)
+    if not ctx0.state.get("axes_logged"):
+        ctx0.state["axes_logged"] = True
+        axes = rr.TransformAxes3D(float(ctx0.options.get("axis_length", 0.2)))
+        items.append(LogItem(orientation_path, (axes,), static=True))
+    items.append(ColumnsItem(orientation_path, [*transform, *arrow_columns], times))
+    items.extend(scalar_columns(ctx0.child_path(name), vectors[name], times) for name in _VECTORS)
+    return items
+
+
+def convert_imu(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+    return convert_imu_run([msg], [ctx])
+
+
+def _magnetic_field(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
+    return {(): xyz(msg.magnetic_field)}
+
+
+CONVERTERS: dict[str, ConverterSpec] = {
+    "sensor_msgs/msg/Imu": ConverterSpec(convert=convert_imu, convert_run=convert_imu_run),
+    "sensor_msgs/msg/MagneticField": series_spec(_magnetic_field, {(): XYZ}),
+}

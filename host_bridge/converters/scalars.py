@@ -1,0 +1,169 @@
+"""Small numeric messages -> Scalars: std_msgs numbers and arrays, times, environment sensors,
+batteries and joint states.
+
+These are the high-rate small types, so each is described once by an *extractor* (message ->
+values per sub-entity) and both the per-message form (``rr.Scalars``) and the run form (one
+``send_columns`` per sub-entity) are built from it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import rerun as rr
+
+from host_bridge.converters._common import time_columns
+from host_bridge.errors import ConvertError
+from host_bridge.registry import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
+
+SubPath = tuple[str, ...]
+"""Entity path parts below the topic entity; ``()`` is the topic entity itself."""
+Values = float | Sequence[float] | npt.NDArray[Any]
+Extractor = Callable[[Any, str], Mapping[SubPath, Values]]
+"""(message, topic) -> values per sub-entity; several values make a multi-series plot."""
+
+
+def series_names_once(
+    ctx: ConvertContext, names: Mapping[SubPath, Sequence[str]]
+) -> list[LogEntry]:
+    """Static ``SeriesLines`` legends (x, y, z, ...), sent with the first message of a topic."""
+    if not names or ctx.state.get("series_named"):
+        return []
+    ctx.state["series_named"] = True
+    return [
+        LogItem(ctx.child_path(*sub), (rr.SeriesLines(names=list(labels)),), static=True)
+        for sub, labels in names.items()
+    ]
+
+
+def scalar_columns(
+    path: str, values: npt.ArrayLike, times: Mapping[str, npt.NDArray[np.int64]]
+) -> ColumnsItem:
+    """One row per entry of ``values`` (shape (n,) or (n, series))."""
+    columns = rr.Scalars.columns(scalars=np.asarray(values, np.float64))
+    return ColumnsItem(path, list(columns), times)
+
+
+def _rows_column(parts: list[Values]) -> list[Any]:
+    """A Scalars column with one row per part; rows may differ in length (a growing array)."""
+    try:
+        return list(rr.Scalars.columns(scalars=np.asarray(parts, np.float64)))
+    except ValueError:  # ragged rows
+        flat = [np.atleast_1d(np.asarray(p, np.float64)) for p in parts]
+        columns = rr.Scalars.columns(scalars=np.concatenate(flat))
+        return list(columns.partition([len(p) for p in flat]))
+
+
+def series_spec(
+    extract: Extractor, names: Mapping[SubPath, Sequence[str]] | None = None
+) -> ConverterSpec:
+    """Single and run converters for a type whose extractor yields its values."""
+    legends = names or {}
+
+    def convert(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+        items = series_names_once(ctx, legends)
+        items.extend(
+            LogItem(ctx.child_path(*sub), (rr.Scalars(np.asarray(values, np.float64)),))
+            for sub, values in extract(msg, ctx.topic).items()
+        )
+        return items
+
+    def convert_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
+        ctx0 = ctxs[0]
+        rows: dict[SubPath, list[int]] = {}
+        chunks: dict[SubPath, list[Values]] = {}
+        for i, msg in enumerate(msgs):
+            for sub, values in extract(msg, ctx0.topic).items():
+                rows.setdefault(sub, []).append(i)
+                chunks.setdefault(sub, []).append(values)
+        all_times = time_columns(ctxs)
+        items = series_names_once(ctx0, legends)
+        for sub, parts in chunks.items():
+            times = {name: column[rows[sub]] for name, column in all_times.items()}
+            items.append(ColumnsItem(ctx0.child_path(*sub), _rows_column(parts), times))
+        return items
+
+    return ConverterSpec(convert=convert, convert_run=convert_run)
+
+
+def _data(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
+    return {(): float(msg.data)}
+
+
+def _array(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
+    return {(): msg.data}
+
+
+def _seconds(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
+    return {(): float(msg.sec) + float(msg.nanosec) * 1e-9}
+
+
+def _field(name: str) -> Extractor:
+    def extract(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
+        return {(): float(getattr(msg, name))}
+
+    return extract
+
+
+def _battery(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
+    # ROS 1 (melodic) BatteryState has no temperature fields.
+    series: dict[SubPath, Values] = {
+        (name,): float(getattr(msg, name))
+        for name in ("voltage", "current", "charge", "percentage", "temperature")
+        if hasattr(msg, name)
+    }
+    for name in ("cell_voltage", "cell_temperature"):
+        cells = getattr(msg, name, ())
+        if len(cells):
+            series[(name,)] = cells
+    return series
+
+
+JOINT_QUANTITIES = ("position", "velocity", "effort")
+
+
+def _joints(msg: Any, topic: str) -> Mapping[SubPath, Values]:
+    names = [rr.escape_entity_path_part(name) for name in msg.name]
+    series: dict[SubPath, Values] = {}
+    for quantity in JOINT_QUANTITIES:
+        values = np.asarray(getattr(msg, quantity), np.float64)
+        if values.size == 0:
+            continue  # JointState leaves a quantity empty when the driver does not measure it
+        if values.size != len(names):
+            msg_ = (
+                f"{topic}: JointState has {len(names)} names but {values.size} {quantity} "
+                f"values; each of position/velocity/effort must be empty or one per name"
+            )
+            raise ConvertError(msg_)
+        pairs = zip(names, values.tolist(), strict=True)
+        series.update(((name, quantity), value) for name, value in pairs)
+    return series
+
+
+_NUMBERS = (
+    "Bool", "Byte", "Char", "Int8", "UInt8", "Int16", "UInt16", "Int32", "UInt32", "Int64",
+    "UInt64", "Float32", "Float64",
+)
+_ARRAYS = (
+    "Byte", "Int8", "UInt8", "Int16", "UInt16", "Int32", "UInt32", "Int64", "UInt64", "Float32",
+    "Float64",
+)
+_SENSORS = {
+    "Temperature": "temperature",
+    "FluidPressure": "fluid_pressure",
+    "Illuminance": "illuminance",
+    "RelativeHumidity": "relative_humidity",
+}
+
+CONVERTERS: dict[str, ConverterSpec] = {
+    **{f"std_msgs/msg/{name}": series_spec(_data) for name in _NUMBERS},
+    **{f"std_msgs/msg/{name}MultiArray": series_spec(_array) for name in _ARRAYS},
+    "builtin_interfaces/msg/Time": series_spec(_seconds),
+    "builtin_interfaces/msg/Duration": series_spec(_seconds),
+    **{f"sensor_msgs/msg/{name}": series_spec(_field(f)) for name, f in _SENSORS.items()},
+    "sensor_msgs/msg/BatteryState": series_spec(_battery),
+    "sensor_msgs/msg/JointState": series_spec(_joints),
+}

@@ -1,0 +1,101 @@
+"""Helpers for the sensor converter tests: contexts, ROS 2 messages, and reading back the values
+Rerun would receive from archetypes and columns (as numpy, through their arrow arrays)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from itertools import pairwise
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import rerun as rr
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+from host_bridge.registry import ColumnsItem, ConvertContext, LogEntry, LogItem
+
+ROBOT = "r"
+TYPES = get_typestore(Stores.ROS2_HUMBLE).types
+
+
+def make_ctx(
+    topic: str, options: dict[str, Any] | None = None, stamp_ns: int = 1_000_000_000
+) -> ConvertContext:
+    return ConvertContext(
+        robot=ROBOT,
+        topic=topic,
+        entity_path=f"/{ROBOT}{topic}",
+        times={"ros_time": stamp_ns},
+        options=options or {},
+    )
+
+
+def header(frame_id: str = "", stamp_ns: int = 1_000_000_000) -> Any:
+    stamp = TYPES["builtin_interfaces/msg/Time"](
+        sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000
+    )
+    return TYPES["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
+
+
+def msg(msgtype: str, **fields: Any) -> Any:
+    return TYPES[msgtype](**fields)
+
+
+def log_item(entries: Sequence[LogEntry], path: str) -> LogItem:
+    found = [e for e in entries if isinstance(e, LogItem) and e.path == path and not e.static]
+    assert len(found) == 1, f"expected one LogItem at {path}, got {entries}"
+    return found[0]
+
+
+def archetype(item: LogItem, kind: type[Any]) -> Any:
+    found = [a for a in item.archetypes if isinstance(a, kind)]
+    assert len(found) == 1, f"expected one {kind.__name__} in {item}"
+    return found[0]
+
+
+def columns_item(entries: Sequence[LogEntry], path: str) -> ColumnsItem:
+    found = [e for e in entries if isinstance(e, ColumnsItem) and e.path == path]
+    assert len(found) == 1, f"expected one ColumnsItem at {path}, got {[e.path for e in entries]}"
+    return found[0]
+
+
+def flat(batch: Any, width: int = 0) -> npt.NDArray[Any]:
+    """A component batch (or the values of a column) as numpy, (n, width) for vector types."""
+    array = batch.as_arrow_array() if hasattr(batch, "as_arrow_array") else batch
+    while hasattr(array, "flatten") and array.type.num_fields == 1:
+        array = array.flatten()
+    values: npt.NDArray[Any] = array.to_numpy(zero_copy_only=False)
+    return values.reshape(-1, width) if width else values
+
+
+def column_rows(item: ColumnsItem, component: str, width: int = 0) -> list[npt.NDArray[Any]]:
+    """Per-row values of one column, e.g. ``column_rows(item, "Scalars:scalars")``."""
+    found = [c for c in item.columns if c.component_descriptor().component == component]
+    assert len(found) == 1, f"{item.path} has no single {component} column"
+    lists = found[0].as_arrow_array()
+    offsets = lists.offsets.to_numpy()
+    values = flat(lists.values, width)
+    return [values[a:b] for a, b in pairwise(offsets)]
+
+
+def rgba(packed: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
+    """Rerun's 0xRRGGBBAA colours as (n, 4) uint8."""
+    words = np.asarray(packed, dtype=np.uint32)
+    return np.stack([(words >> s) & 0xFF for s in (24, 16, 8, 0)], axis=-1).astype(np.uint8)
+
+
+def read_topic(bag: Path, topic: str) -> Iterator[Any]:
+    with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        connections = [c for c in reader.connections if c.topic == topic]
+        for connection, _, raw in reader.messages(connections=connections):
+            yield reader.deserialize(raw, connection.msgtype)
+
+
+def stamp_ns(message: Any) -> int:
+    return int(message.header.stamp.sec) * 1_000_000_000 + int(message.header.stamp.nanosec)
+
+
+def scalars_of(item: LogItem) -> npt.NDArray[np.float64]:
+    return flat(archetype(item, rr.Scalars).scalars)

@@ -1,0 +1,290 @@
+"""PointCloud2 -> Points3D: positions and colours for many byte layouts, built byte by byte."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+import rerun as rr
+
+from host_bridge.colormap import apply_colormap
+from host_bridge.converters.pointcloud import CONVERTERS, convert_pointcloud2
+from host_bridge.errors import ConvertError
+from tests.host_bridge.sensor_test_support import (
+    archetype,
+    flat,
+    header,
+    log_item,
+    make_ctx,
+    msg,
+    read_topic,
+    rgba,
+)
+
+INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
+PATH = "/r/cloud"
+
+
+def field(name: str, offset: int, datatype: int, count: int = 1) -> Any:
+    return msg(
+        "sensor_msgs/msg/PointField", name=name, offset=offset, datatype=datatype, count=count
+    )
+
+
+def records(layout: dict[str, tuple[str, int]], itemsize: int, n: int) -> npt.NDArray[np.void]:
+    """Zeroed point records: name -> (numpy format, byte offset)."""
+    dtype = np.dtype(
+        {
+            "names": list(layout),
+            "formats": [f for f, _ in layout.values()],
+            "offsets": [o for _, o in layout.values()],
+            "itemsize": itemsize,
+        }
+    )
+    return np.zeros(n, dtype=dtype)
+
+
+def cloud(
+    data: bytes,
+    fields: list[Any],
+    width: int,
+    point_step: int,
+    *,
+    height: int = 1,
+    row_step: int | None = None,
+    bigendian: bool = False,
+    frame_id: str = "lidar",
+) -> Any:
+    return msg(
+        "sensor_msgs/msg/PointCloud2",
+        header=header(frame_id),
+        height=height,
+        width=width,
+        fields=fields,
+        is_bigendian=bigendian,
+        point_step=point_step,
+        row_step=width * point_step if row_step is None else row_step,
+        data=np.frombuffer(data, dtype=np.uint8),
+        is_dense=False,
+    )
+
+
+def convert(message: Any, **options: Any) -> tuple[npt.NDArray[Any], npt.NDArray[np.uint8], Any]:
+    """Positions (n, 3), colours (n, 4) and the Points3D of one converted cloud."""
+    item = log_item(convert_pointcloud2(message, make_ctx("/cloud", options)), PATH)
+    points = archetype(item, rr.Points3D)
+    return flat(points.positions, 3), rgba(flat(points.colors)), points
+
+
+XYZ = np.array([[1.5, -2.0, 0.25], [3.0, 4.0, -5.0], [-0.5, 0.0, 7.0]], dtype=np.float32)
+
+
+def test_padded_point_step_colours_by_intensity_and_sets_frame() -> None:
+    rec = records({"x": ("<f4", 0), "y": ("<f4", 4), "z": ("<f4", 8), "i": ("<f4", 16)}, 32, 3)
+    rec["x"], rec["y"], rec["z"] = XYZ.T
+    rec["i"] = [10.0, 30.0, 20.0]
+    raw = bytearray(rec.tobytes())
+    raw[12:16] = b"\xff\xff\xff\xff"  # padding between fields must never be read
+    fields = [
+        field("x", 0, FLOAT32),
+        field("y", 4, FLOAT32),
+        field("z", 8, FLOAT32),
+        field("intensity", 16, FLOAT32),
+    ]
+    message = cloud(bytes(raw), fields, 3, 32)
+    positions, colors, _ = convert(message)
+    np.testing.assert_array_equal(positions, XYZ)
+    np.testing.assert_array_equal(colors[:, :3], apply_colormap([10.0, 30.0, 20.0]))
+    item = log_item(convert_pointcloud2(message, make_ctx("/cloud")), PATH)
+    assert archetype(item, rr.CoordinateFrame).frame.as_arrow_array().to_pylist() == ["r/lidar"]
+
+
+def test_big_endian_float64_with_packed_uint32_rgb() -> None:
+    rec = records({"x": (">f8", 0), "y": (">f8", 8), "z": (">f8", 16), "rgb": (">u4", 24)}, 28, 3)
+    rec["x"], rec["y"], rec["z"] = XYZ.astype(np.float64).T
+    rec["rgb"] = [0x00FF0000, 0x0000FF00, 0x00123456]
+    fields = [
+        field("x", 0, FLOAT64),
+        field("y", 8, FLOAT64),
+        field("z", 16, FLOAT64),
+        field("rgb", 24, UINT32),
+    ]
+    positions, colors, _ = convert(cloud(rec.tobytes(), fields, 3, 28, bigendian=True))
+    np.testing.assert_array_equal(positions, XYZ)
+    np.testing.assert_array_equal(
+        colors, [[255, 0, 0, 255], [0, 255, 0, 255], [0x12, 0x34, 0x56, 255]]
+    )
+
+
+def test_int16_fields_and_colour_by_z_when_no_intensity() -> None:
+    rec = records({"x": ("<i2", 0), "y": ("<i2", 2), "z": ("<i2", 4)}, 6, 3)
+    rec["x"], rec["y"], rec["z"] = [-300, 0, 7], [1, 2, 3], [100, -100, 0]
+    fields = [field("x", 0, INT16), field("y", 2, INT16), field("z", 4, INT16)]
+    positions, colors, _ = convert(cloud(rec.tobytes(), fields, 3, 6))
+    np.testing.assert_array_equal(positions, [[-300, 1, 100], [0, 2, -100], [7, 3, 0]])
+    np.testing.assert_array_equal(colors[:, :3], apply_colormap([100, -100, 0]))
+
+
+def test_packed_rgb_declared_float32_gives_bgr_bytes_as_colour() -> None:
+    rec = records({"x": ("<f4", 0), "y": ("<f4", 4), "z": ("<f4", 8), "rgb": ("<u4", 16)}, 32, 2)
+    rec["x"], rec["y"], rec["z"] = XYZ[:2].T
+    rec["rgb"] = [0x00A0B0C0, 0x00010203]  # bytes in memory: B, G, R, 0 (PCL's packing)
+    fields = [
+        field("x", 0, FLOAT32),
+        field("y", 4, FLOAT32),
+        field("z", 8, FLOAT32),
+        field("rgb", 16, FLOAT32),
+    ]
+    positions, colors, _ = convert(cloud(rec.tobytes(), fields, 2, 32))
+    np.testing.assert_array_equal(positions, XYZ[:2])
+    np.testing.assert_array_equal(colors, [[0xA0, 0xB0, 0xC0, 255], [1, 2, 3, 255]])
+
+
+def test_packed_rgba_uint32_keeps_alpha() -> None:
+    rec = records({"x": ("<f4", 0), "y": ("<f4", 4), "z": ("<f4", 8), "rgba": ("<u4", 12)}, 16, 2)
+    rec["x"], rec["y"], rec["z"] = XYZ[:2].T
+    rec["rgba"] = [0x80FF8000, 0x10203040]
+    fields = [
+        field("x", 0, FLOAT32),
+        field("y", 4, FLOAT32),
+        field("z", 8, FLOAT32),
+        field("rgba", 12, UINT32),
+    ]
+    _, colors, _ = convert(cloud(rec.tobytes(), fields, 2, 16))
+    np.testing.assert_array_equal(colors, [[0xFF, 0x80, 0x00, 0x80], [0x20, 0x30, 0x40, 0x10]])
+
+
+def test_separate_uint8_channels_with_count_gt_1_field_between() -> None:
+    layout = {
+        "x": ("<f4", 0),
+        "y": ("<f4", 4),
+        "z": ("<f4", 8),
+        "normal": ("<3f4", 12),
+        "r": ("u1", 24),
+        "g": ("u1", 25),
+        "b": ("u1", 26),
+    }
+    rec = records(layout, 28, 3)
+    rec["x"], rec["y"], rec["z"] = XYZ.T
+    rec["normal"] = np.nan
+    rec["r"], rec["g"], rec["b"] = [10, 20, 30], [40, 50, 60], [70, 80, 90]
+    fields = [
+        field("x", 0, FLOAT32),
+        field("y", 4, FLOAT32),
+        field("z", 8, FLOAT32),
+        field("normal", 12, FLOAT32, 3),
+        field("r", 24, UINT8),
+        field("g", 25, UINT8),
+        field("b", 26, UINT8),
+    ]
+    message = cloud(rec.tobytes(), fields, 3, 28)
+    positions, colors, _ = convert(message)
+    np.testing.assert_array_equal(positions, XYZ)
+    np.testing.assert_array_equal(colors, [[10, 40, 70, 255], [20, 50, 80, 255], [30, 60, 90, 255]])
+    with pytest.raises(ConvertError, match=r"/cloud.*'normal'.*count > 1"):
+        convert(message, color_field="normal")
+
+
+def test_organised_2x3_cloud_with_row_padding() -> None:
+    rec = records({"x": ("<f4", 0), "y": ("<f4", 4), "z": ("<f4", 8)}, 12, 6)
+    grid = np.arange(18, dtype=np.float32).reshape(6, 3)
+    rec["x"], rec["y"], rec["z"] = grid.T
+    pad = b"\xff" * 8  # NaN-looking garbage at each row end
+    data = rec[:3].tobytes() + pad + rec[3:].tobytes() + pad
+    fields = [field("x", 0, FLOAT32), field("y", 4, FLOAT32), field("z", 8, FLOAT32)]
+    positions, _, _ = convert(cloud(data, fields, 3, 12, height=2, row_step=44))
+    np.testing.assert_array_equal(positions, grid)
+
+
+def test_nan_and_inf_points_dropped_with_colours_aligned() -> None:
+    rec = records({"x": ("<f4", 0), "y": ("<f4", 4), "z": ("<f4", 8), "rgb": ("<u4", 12)}, 16, 4)
+    rec["x"] = [1.0, np.nan, 3.0, 4.0]
+    rec["y"] = [0.0, 0.0, np.inf, 1.0]
+    rec["z"] = 2.0
+    rec["rgb"] = [0x00110000, 0x00220000, 0x00330000, 0x00440000]
+    fields = [
+        field("x", 0, FLOAT32),
+        field("y", 4, FLOAT32),
+        field("z", 8, FLOAT32),
+        field("rgb", 12, FLOAT32),
+    ]
+    positions, colors, _ = convert(cloud(rec.tobytes(), fields, 4, 16))
+    np.testing.assert_array_equal(positions, [[1.0, 0.0, 2.0], [4.0, 1.0, 2.0]])
+    np.testing.assert_array_equal(colors[:, 0], [0x11, 0x44])
+
+
+def test_colormap_over_kept_points_only_with_options() -> None:
+    rec = records(
+        {"x": ("<f4", 0), "y": ("<f4", 4), "z": ("<f4", 8), "intensity": ("<f4", 12)}, 16, 3
+    )
+    rec["x"] = [0.0, np.nan, 2.0]
+    rec["intensity"] = [5.0, 1000.0, 15.0]  # the dropped point must not stretch the range
+    fields = [
+        field("x", 0, FLOAT32),
+        field("y", 4, FLOAT32),
+        field("z", 8, FLOAT32),
+        field("intensity", 12, FLOAT32),
+    ]
+    message = cloud(rec.tobytes(), fields, 3, 16)
+    _, colors, points = convert(message, colormap="gray", radius=0.05)
+    np.testing.assert_array_equal(colors[:, :3], [[0, 0, 0], [255, 255, 255]])
+    np.testing.assert_allclose(flat(points.radii), [0.05])
+    _, by_x, _ = convert(message, color_field="x", colormap="gray", color_min=0.0, color_max=4.0)
+    np.testing.assert_array_equal(by_x[:, 0], [0, 127])
+
+
+def test_bad_layouts_raise_convert_error_naming_topic() -> None:
+    xy = [field("x", 0, FLOAT32), field("y", 4, FLOAT32)]
+    with pytest.raises(ConvertError, match=r"/cloud.*no z field"):
+        convert(cloud(bytes(8), xy, 1, 8))
+    xyz = [*xy, field("z", 8, FLOAT32)]
+    with pytest.raises(ConvertError, match=r"/cloud.*needs 24 bytes.*has 20"):
+        convert(cloud(bytes(20), xyz, 2, 12))
+    with pytest.raises(ConvertError, match=r"/cloud.*'z'.*does not fit in point_step 10"):
+        convert(cloud(bytes(10), xyz, 1, 10))
+    with pytest.raises(ConvertError, match=r"/cloud.*datatype 9"):
+        convert(cloud(bytes(12), [*xy, field("z", 8, 9)], 1, 12))
+    with pytest.raises(ConvertError, match=r"/cloud.*color_field 'rgb'.*x, y, z"):
+        convert(cloud(bytes(12), xyz, 1, 12), color_field="rgb")
+    with pytest.raises(ConvertError, match=r"/cloud: unknown colormap 'rainbow'"):
+        convert(cloud(bytes(12), xyz, 1, 12), colormap="rainbow")
+
+
+def test_empty_cloud_and_empty_frame_id() -> None:
+    xyz = [field("x", 0, FLOAT32), field("y", 4, FLOAT32), field("z", 8, FLOAT32)]
+    message = cloud(b"", xyz, 0, 12, frame_id="")
+    item = log_item(convert_pointcloud2(message, make_ctx("/cloud")), PATH)
+    assert [type(a) for a in item.archetypes] == [rr.Points3D]
+    assert flat(archetype(item, rr.Points3D).positions, 3).shape == (0, 3)
+
+
+def test_real_synthetic_cloud_matches_per_field_reference(shared_data: Path) -> None:
+    bag = shared_data / "ros_numpy_msgs_synthetic" / "ros_numpy_test.bag"
+    (message,) = read_topic(bag, "/pointcloud")
+    assert (message.width, message.height, message.point_step) == (100, 1, 15)
+    raw = message.data.tobytes()
+    offsets = {f.name: f.offset for f in message.fields}
+
+    rows = np.frombuffer(raw, dtype=np.uint8).reshape(100, 15)
+
+    def column(name: str, dtype: str) -> npt.NDArray[Any]:
+        size = np.dtype(dtype).itemsize
+        chunk = rows[:, offsets[name] : offsets[name] + size].copy()
+        return np.frombuffer(chunk.tobytes(), dtype=dtype)
+
+    expected_xyz = np.stack([column(a, "<f4") for a in "xyz"], axis=-1)
+    expected_rgb = np.stack([column(c, "u1") for c in "rgb"], axis=-1)
+    keep = np.isfinite(expected_xyz).all(axis=1)
+    positions, colors, _ = convert(message)
+    np.testing.assert_array_equal(positions, expected_xyz[keep])
+    np.testing.assert_array_equal(colors[:, :3], expected_rgb[keep])
+    assert keep.sum() == len(positions) > 0
+    item = log_item(convert_pointcloud2(message, make_ctx("/cloud")), PATH)
+    assert not any(isinstance(a, rr.CoordinateFrame) for a in item.archetypes)  # empty frame_id
+
+
+def test_registered_type() -> None:
+    assert list(CONVERTERS) == ["sensor_msgs/msg/PointCloud2"]
