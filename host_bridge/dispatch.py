@@ -206,5 +206,5 @@ class Dispatcher:
             for (robot, topic), c in sorted(self.counters.items())
         ]
         widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
-        return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(r, widths)) for r in rows)
+        return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(r, widths, strict=False)) for r in rows)
 

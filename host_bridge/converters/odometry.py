@@ -57,7 +57,7 @@ def convert_odometry_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) ->
         ColumnsItem(ctx0.child_path("twist", name), rr.Scalars.columns(scalars=twist[:, i]), times)
         for i, name in enumerate(TWIST_SERIES)
     )
-    for msg, ctx in zip(msgs, ctxs):
+    for msg, ctx in zip(msgs, ctxs, strict=False):
         items.extend(_trail_items(msg, ctx))
     return items
 

@@ -91,7 +91,7 @@ def test_custom_type_decodes_from_the_definition_it_came_with(dispatcher: Dispat
 
 def test_strict_mode_re_raises(tmp_path: Path) -> None:
     strict = Dispatcher(RerunSink(SinkOptions(save=tmp_path / "s.rrd")), strict=True)
-    with pytest.raises(DecodeError, match="/speed"):
+    with pytest.raises(DecodeError, match="std_msgs/msg/Float64 payload does not deserialize"):
         strict.dispatch([raw("/speed", "std_msgs/msg/Float64", b"\x00\x01", 1)])
 
 
