@@ -12,7 +12,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from host_bridge.dispatch import Dispatcher
-from host_bridge.errors import HostError
+from host_bridge.errors import HostError, PartialConvertError
+from host_bridge.resources import ResourceResolver, parse_package_path
 from host_bridge.sink import RerunSink, SinkOptions
 from robot_relay.errors import RelayError
 from robot_relay.session import add_zenoh_arguments
@@ -57,6 +58,16 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "--until-idle", type=float, metavar="SECONDS",
         help="stop once no data arrived for this long",
     )
+    model = parser.add_argument_group("robot model")
+    model.add_argument(
+        "--urdf", type=Path, metavar="PATH",
+        help="robot model for --robot from a file (xacro expanded), instead of /robot_description",
+    )
+    model.add_argument(
+        "--package-path", action="append", default=[], metavar="NAME=DIR",
+        help="where package://NAME/... meshes are (repeatable); then ROS_PACKAGE_PATH, "
+        "AMENT_PREFIX_PATH",
+    )
     parser.add_argument(
         "--strict", action="store_true", help="stop on the first bad message instead of warning"
     )
@@ -75,6 +86,28 @@ def sink_options(args: argparse.Namespace) -> SinkOptions:
     if not options.any:
         options = SinkOptions(spawn=True)
     return options
+
+
+def resolver(args: argparse.Namespace) -> ResourceResolver:
+    env = ResourceResolver.from_env()
+    packages = dict(parse_package_path(option) for option in args.package_path)
+    return ResourceResolver(packages, env.search_paths)
+
+
+def log_urdf_file(args: argparse.Namespace, dispatcher: Dispatcher) -> None:
+    """The --urdf model of robot --robot, logged once (static) before any data."""
+    from host_bridge.converters.urdf import model_items_from_file
+    from host_bridge.registry import ConvertContext
+
+    ctx = ConvertContext(
+        robot=args.robot, topic="/robot_description", entity_path=f"/{args.robot}/robot_model",
+        times={}, robot_state=dispatcher.robot_state(args.robot),
+    )
+    try:
+        dispatcher.sink.log(model_items_from_file(args.urdf, ctx), {})
+    except PartialConvertError as err:
+        dispatcher.sink.log(err.items, {})
+        dispatcher.warn(args.robot, str(args.urdf), err)
 
 
 def convert_bag(args: argparse.Namespace, dispatcher: Dispatcher, stop: threading.Event) -> None:
@@ -141,7 +174,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         sink = RerunSink(sink_options(args))
         if sink.web_url:
             print(f"Rerun web viewer: {sink.web_url}", flush=True)
-        dispatcher = Dispatcher(sink, strict=args.strict)
+        dispatcher = Dispatcher(
+            sink, strict=args.strict, robot_state={"resolver": resolver(args)}
+        )
+        if args.urdf is not None:
+            log_urdf_file(args, dispatcher)
         if args.bag is not None:
             convert_bag(args, dispatcher, stop)
         elif args.demo:

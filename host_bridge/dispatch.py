@@ -16,7 +16,7 @@ from typing import Any
 import rerun as rr
 
 from host_bridge.decode import Decoder
-from host_bridge.errors import HostError
+from host_bridge.errors import HostError, PartialConvertError
 from host_bridge.registry import (
     TIMELINE_LOG,
     TIMELINE_RECEIVE,
@@ -83,6 +83,7 @@ class Dispatcher:
         decoder: Decoder | None = None,
         options: OptionsLookup = no_options,
         strict: bool = False,
+        robot_state: Mapping[str, Any] | None = None,
     ) -> None:
         self.sink = sink
         self.registry = registry or default_registry()
@@ -92,7 +93,15 @@ class Dispatcher:
         self.counters: dict[tuple[str, str], TopicCounters] = {}
         self._topics: dict[tuple[str, str], _Topic] = {}
         self._robot_state: dict[str, dict[str, Any]] = {}
+        # Host-wide defaults every robot's state starts with (the mesh resolver).
+        self._robot_state_defaults = dict(robot_state or {})
         self._warned: set[tuple[str, str, str]] = set()
+
+    def robot_state(self, robot: str) -> dict[str, Any]:
+        state = self._robot_state.get(robot)
+        if state is None:
+            state = self._robot_state[robot] = dict(self._robot_state_defaults)
+        return state
 
     def _topic(self, raw: RawMessage) -> _Topic:
         key = (raw.robot, raw.topic)
@@ -143,7 +152,7 @@ class Dispatcher:
     def _dispatch_run(self, run: list[RawMessage]) -> None:
         first = run[0]
         topic = self._topic(first)
-        robot_state = self._robot_state.setdefault(first.robot, {})
+        robot_state = self.robot_state(first.robot)
         decoded: list[tuple[Any, ConvertContext, RawMessage]] = []
         for raw in run:
             counters = self._count(raw)
@@ -170,7 +179,7 @@ class Dispatcher:
 
     def _convert(self, decoded: list[tuple[Any, ConvertContext, RawMessage]]) -> None:
         msgtype = decoded[0][2].msgtype
-        spec = self.registry.get(msgtype)
+        spec = self.registry.get(msgtype, decoded[0][2].topic)
         counters = self.counters[(decoded[0][2].robot, decoded[0][2].topic)]
         started = time.perf_counter()
         if spec.convert_run is not None and len(decoded) > 1:
@@ -187,6 +196,13 @@ class Dispatcher:
         for msg, ctx, raw in decoded:
             try:
                 entries = spec.convert(msg, ctx)
+            except PartialConvertError as err:
+                if self.strict:
+                    raise
+                self.sink.log(err.items, ctx.times)
+                self.warn(raw.robot, raw.topic, err)
+                counters.converted += 1
+                continue
             except Exception as err:
                 counters.dropped += 1
                 if self.strict:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 
 class HostError(Exception):
     """Base of every error the host raises on purpose."""
@@ -17,6 +19,15 @@ class UnknownTypeError(HostError):
 
 class ConvertError(HostError):
     """A decoded message cannot be converted (unsupported encoding, inconsistent sizes)."""
+
+
+class PartialConvertError(ConvertError):
+    """Part of a message converted (e.g. a model with one missing mesh): ``items`` are logged,
+    then the error is reported."""
+
+    def __init__(self, message: str, items: list[Any]) -> None:
+        super().__init__(message)
+        self.items = items
 
 
 class RegistryError(HostError):

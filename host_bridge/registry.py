@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.errors import RegistryError
+from host_bridge.errors import ConvertError, PartialConvertError, RegistryError
 
 TIMELINE_ROS = "ros_time"
 TIMELINE_RECEIVE = "receive_time"
@@ -88,12 +88,46 @@ class ConverterSpec:
     convert_run: RunConverter | None = None
 
 
+def combine(*specs: ConverterSpec) -> ConverterSpec:
+    """One spec running several converters on the same message (JointState: the robot's
+    kinematics and the joint plots); a part that fails does not cost the others' output."""
+
+    def gather(parts: Sequence[Callable[[], list[LogEntry]]]) -> list[LogEntry]:
+        entries: list[LogEntry] = []
+        errors: list[ConvertError] = []
+        for part in parts:
+            try:
+                entries.extend(part())
+            except PartialConvertError as err:
+                entries.extend(err.items)
+                errors.append(err)
+            except ConvertError as err:
+                errors.append(err)
+        if errors:
+            raise PartialConvertError("; ".join(str(e) for e in errors), entries)
+        return entries
+
+    def convert(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+        return gather([lambda s=s: s.convert(msg, ctx) for s in specs])  # type: ignore[misc]
+
+    def convert_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
+        def run_of(spec: ConverterSpec) -> list[LogEntry]:
+            if spec.convert_run is not None:
+                return spec.convert_run(msgs, ctxs)
+            return [e for m, c in zip(msgs, ctxs, strict=True) for e in spec.convert(m, c)]
+
+        return gather([lambda s=s: run_of(s) for s in specs])  # type: ignore[misc]
+
+    return ConverterSpec(convert, convert_run)
+
+
 class Registry:
     """Map from full ROS type name (``sensor_msgs/msg/LaserScan``) to its converter."""
 
     def __init__(self, fallback: ConverterSpec) -> None:
         self._fallback = fallback
         self._specs: dict[str, ConverterSpec] = {}
+        self._topic_specs: list[tuple[str, Callable[[str], bool], ConverterSpec]] = []
 
     def add(self, msgtype: str, spec: ConverterSpec) -> None:
         if msgtype in self._specs:
@@ -105,7 +139,16 @@ class Registry:
         for msgtype, spec in specs.items():
             self.add(msgtype, spec)
 
-    def get(self, msgtype: str) -> ConverterSpec:
+    def add_for_topics(
+        self, msgtype: str, topics: Callable[[str], bool], spec: ConverterSpec
+    ) -> None:
+        """A converter for some topics of a type only (/robot_description is a String)."""
+        self._topic_specs.append((msgtype, topics, spec))
+
+    def get(self, msgtype: str, topic: str = "") -> ConverterSpec:
+        for special_type, accepts, spec in self._topic_specs:
+            if special_type == msgtype and accepts(topic):
+                return spec
         return self._specs.get(msgtype, self._fallback)
 
     def types(self) -> list[str]:
@@ -114,20 +157,36 @@ class Registry:
 
 def default_registry() -> Registry:
     from host_bridge.converters import (
+        camera,
+        diagnostics,
         generic,
         geo,
+        geometry,
+        images,
         imu,
+        joints,
         laser,
+        logs,
         markers,
+        nav,
         odometry,
         pointcloud,
         proximity,
         scalars,
         tf,
+        urdf,
         vision,
     )
 
     registry = Registry(generic.SPEC)
-    for module in (tf, laser, odometry, pointcloud, imu, geo, proximity, scalars, markers, vision):
+    plots = dict(scalars.CONVERTERS)
+    kinematics = dict(joints.CONVERTERS)
+    joint_state = "sensor_msgs/msg/JointState"
+    registry.add(joint_state, combine(kinematics.pop(joint_state), plots.pop(joint_state)))
+    registry.add_all(plots)
+    registry.add_all(kinematics)
+    for module in (tf, laser, odometry, pointcloud, imu, geo, proximity, markers, vision, images,
+                   camera, geometry, nav, logs, diagnostics):
         registry.add_all(module.CONVERTERS)
+    registry.add_for_topics("std_msgs/msg/String", urdf.is_robot_description, urdf.SPEC)
     return registry

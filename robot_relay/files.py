@@ -31,7 +31,7 @@ if TYPE_CHECKING:
 PACKAGE_SCHEME = "package://"
 FILE_SCHEME = "file://"
 _PACKAGE_URI = re.compile(r"package://([^/\"'\s<>]+)/")
-_SHARE_PATH = re.compile(r"file://[^\"'\s<>]*?/share/([^/\"'\s<>]+)/")
+_SHARE_PATH = re.compile(r"file://[^\"'\s<>]*/share/([^/\"'\s<>]+)/")
 
 
 class FileAccessError(RelayError):
@@ -110,9 +110,7 @@ class FileServer:
         path = PurePosixPath(request)
         if ".." in path.parts:
             raise FileAccessError("traversal", f"{request!r}: '..' is not allowed in a request")
-        package, candidate = (
-            self._absolute(path) if path.is_absolute() else self._in_package(request, path)
-        )
+        package, candidate = self._absolute(path) if path.is_absolute() else self._in_package(request, path)
         real = candidate.resolve()
         if not real.is_relative_to(self._real_roots[package]):
             msg = f"{request!r}: a symlink leads out of package {package!r} (to {real})"

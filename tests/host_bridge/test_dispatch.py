@@ -57,7 +57,7 @@ def test_truncated_cdr_is_warned_once_naming_the_topic_and_others_flow(
     dispatcher.sink.close()
     rows = entity_rows(tmp_path / "out.rrd")
     assert [r["Scalars:scalars"] for r in rows["/tb3/speed"]] == [[1.5], [1.5]]
-    assert rows["/tb3/mode/data"][0]["TextLog:text"] == ["auto"]
+    assert rows["/tb3/mode"][0]["TextLog:text"] == ["auto"]
     assert "/speed" in rows["/_swanky/warnings"][0]["TextLog:text"][0]
 
 

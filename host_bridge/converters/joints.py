@@ -1,0 +1,304 @@
+"""JointState and JointTrajectory -> the link transforms of the robot model.
+
+The kinematic table (:class:`RobotModel`) is put into ``ctx.robot_state["urdf"]`` by the URDF
+converter; without it joint values mean nothing and messages are dropped with a ConvertError.
+Each movable joint (revolute, continuous, prismatic) becomes one ``Transform3D(parent_frame=
+<robot>/<parent link>, child_frame=<robot>/<child link>)`` at ``/<robot>/robot_model/joints/
+<joint>``: joint origin times joint motion, the same relation robot_state_publisher would put on
+/tf. Mimic joints follow their driver (``multiplier * driver + offset``) whenever the driver is in
+the message, as robot_state_publisher does, even if the mimic joint is published too.
+
+/tf wins: Rerun refuses one frame relation logged on two entities, so a joint whose child link
+already arrived as a TF child frame (``ctx.robot_state["tf_children"]``, filled by the TF
+converter, holding ROS ids or prefixed frame names) is left to /tf.
+
+JointTrajectory drives the model with its first point: a trajectory starts at the robot's
+current configuration, so that point is where the robot is when the command is issued; later
+points are plans, not states, and would fight with /joint_states on the same entities.
+
+Joint names the model lacks are ignored; they are reported once per topic through a
+:class:`PartialConvertError` that still carries the transforms of the known joints.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import rerun as rr
+
+from host_bridge.errors import ConvertError, PartialConvertError
+from host_bridge.registry import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
+
+ROBOT_MODEL_KEY = "urdf"
+TF_CHILDREN_KEY = "tf_children"
+_REPORTED_KEY = "reported_unknown_joints"
+
+MOVABLE_TYPES = frozenset({"revolute", "continuous", "prismatic"})
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class MimicModel:
+    joint: str
+    multiplier: float
+    offset: float
+
+
+@dataclass(frozen=True, slots=True)
+class JointModel:
+    """One URDF joint: origin pose (parent link -> joint frame), unit axis, mimic rule."""
+
+    name: str
+    type: str
+    parent: str
+    child: str
+    translation: FloatArray
+    rotation: FloatArray
+    quaternion: FloatArray
+    axis: FloatArray
+    mimic: MimicModel | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class RobotModel:
+    """The kinematics of one URDF, enough to turn joint values into link transforms."""
+
+    name: str
+    joints: Mapping[str, JointModel]
+    mimic_order: tuple[str, ...]
+
+
+def pose_of_matrix(matrix: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Translation and unit quaternion (x, y, z, w) of a 4x4 rigid transform."""
+    r = matrix[:3, :3]
+    # Shepperd: take the square root of the largest of 4w², 4x², 4y², 4z² for stability.
+    diagonal = np.array([np.trace(r), r[0, 0], r[1, 1], r[2, 2]])
+    k = int(np.argmax(diagonal))
+    if k == 0:
+        w = 0.5 * np.sqrt(1.0 + diagonal[0])
+        q = [
+            (r[2, 1] - r[1, 2]) / (4 * w),
+            (r[0, 2] - r[2, 0]) / (4 * w),
+            (r[1, 0] - r[0, 1]) / (4 * w),
+            w,
+        ]
+    else:
+        i, j, m = k - 1, k % 3, (k + 1) % 3
+        v = 0.5 * np.sqrt(1.0 + r[i, i] - r[j, j] - r[m, m])
+        q = [0.0, 0.0, 0.0, (r[m, j] - r[j, m]) / (4 * v)]
+        q[i] = v
+        q[j] = (r[j, i] + r[i, j]) / (4 * v)
+        q[m] = (r[m, i] + r[i, m]) / (4 * v)
+    quaternion = np.asarray(q, dtype=np.float64)
+    return np.asarray(matrix[:3, 3], dtype=np.float64), quaternion / np.linalg.norm(quaternion)
+
+
+def robot_model(name: str, joints: Iterable[JointModel]) -> RobotModel:
+    table = {joint.name: joint for joint in joints}
+    return RobotModel(name=name, joints=table, mimic_order=_mimic_order(table))
+
+
+def _mimic_order(joints: Mapping[str, JointModel]) -> tuple[str, ...]:
+    """Mimic joints with each driver before the joints that follow it (mimic chains)."""
+    order: list[str] = []
+    placed: set[str] = set()
+
+    def place(name: str, seen: frozenset[str]) -> None:
+        mimic = joints[name].mimic
+        if name in placed or mimic is None or name in seen:
+            return
+        if mimic.joint in joints:
+            place(mimic.joint, seen | {name})
+        placed.add(name)
+        order.append(name)
+
+    for name in joints:
+        place(name, frozenset())
+    return tuple(order)
+
+
+def joint_entity_path(robot: str, joint: str) -> str:
+    return f"/{robot}/robot_model/joints/{rr.escape_entity_path_part(joint)}"
+
+
+def link_frame(ctx: ConvertContext, link: str) -> str:
+    frame = ctx.frame(link)
+    if frame is None:
+        msg = f"{ctx.topic}: the robot model has a link with an empty name; name every link"
+        raise ConvertError(msg)
+    return frame
+
+
+def tf_carries(ctx: ConvertContext, link: str) -> bool:
+    children = ctx.robot_state.get(TF_CHILDREN_KEY) or ()
+    return link in children or ctx.frame(link) in children
+
+
+def joint_motion(joint: JointModel, values: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Translations (n, 3) and quaternions (n, 4, xyzw) of parent -> child at ``values``."""
+    count = len(values)
+    translations = np.tile(joint.translation, (count, 1))
+    quaternions = np.tile(joint.quaternion, (count, 1))
+    if joint.type == "prismatic":
+        translations += values[:, None] * (joint.rotation @ joint.axis)
+    elif joint.type in ("revolute", "continuous"):
+        half = values / 2.0
+        motion = np.column_stack([np.outer(np.sin(half), joint.axis), np.cos(half)])
+        quaternions = _quaternion_product(quaternions, motion)
+    return translations, quaternions
+
+
+def _quaternion_product(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Row-wise Hamilton product of (n, 4) xyzw quaternions."""
+    ax, ay, az, aw = a.T
+    bx, by, bz, bw = b.T
+    return np.column_stack(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ]
+    )
+
+
+def joint_transform(ctx: ConvertContext, joint: JointModel, value: float) -> rr.Transform3D:
+    translations, quaternions = joint_motion(joint, np.array([value]))
+    return rr.Transform3D(
+        translation=translations[0],
+        quaternion=rr.Quaternion(xyzw=quaternions[0]),
+        parent_frame=link_frame(ctx, joint.parent),
+        child_frame=link_frame(ctx, joint.child),
+    )
+
+
+def _require_model(ctx: ConvertContext) -> RobotModel:
+    model = ctx.robot_state.get(ROBOT_MODEL_KEY)
+    if not isinstance(model, RobotModel):
+        msg = (
+            f"{ctx.topic}: robot {ctx.robot!r} has no robot model yet, so joint values cannot "
+            "move its links; publish /robot_description (latched) or pass --urdf PATH"
+        )
+        raise ConvertError(msg)
+    return model
+
+
+def _joint_values(
+    model: RobotModel, names: Sequence[str], positions: Any, ctx: ConvertContext, field: str
+) -> tuple[dict[str, float], list[str]]:
+    """Values of the joints this converter publishes, and the names the model lacks."""
+    values_in = np.asarray(positions, dtype=np.float64)
+    if len(values_in) == 0:
+        return {}, []
+    if len(values_in) != len(names):
+        msg = (
+            f"{ctx.topic}: {field} has {len(values_in)} values for {len(names)} joint names; "
+            "the publisher must give one position per name"
+        )
+        raise ConvertError(msg)
+    values = {
+        name: float(value)
+        for name, value in zip(names, values_in, strict=True)
+        if name in model.joints and np.isfinite(value)
+    }
+    unknown = [name for name in names if name not in model.joints]
+    for name in model.mimic_order:
+        mimic = model.joints[name].mimic
+        if mimic is not None and mimic.joint in values:
+            values[name] = mimic.multiplier * values[mimic.joint] + mimic.offset
+    published = {
+        name: value
+        for name, value in values.items()
+        if model.joints[name].type in MOVABLE_TYPES and not tf_carries(ctx, model.joints[name].child)
+    }
+    return published, unknown
+
+
+def _report_unknown(
+    ctx: ConvertContext, model: RobotModel, unknown: Iterable[str], items: list[LogEntry]
+) -> list[LogEntry]:
+    reported: set[str] = ctx.state.setdefault(_REPORTED_KEY, set())
+    new = sorted(set(unknown) - reported)
+    if not new:
+        return items
+    reported.update(new)
+    msg = (
+        f"{ctx.topic}: joints {new} are not in the URDF {model.name!r} of robot {ctx.robot!r} "
+        f"and are ignored (it has {sorted(model.joints)}); check that /robot_description "
+        "describes the robot publishing these joints"
+    )
+    raise PartialConvertError(msg, items)
+
+
+def _transform_items(ctx: ConvertContext, model: RobotModel, values: Mapping[str, float]) -> list[LogEntry]:
+    return [
+        LogItem(
+            joint_entity_path(ctx.robot, name),
+            (joint_transform(ctx, model.joints[name], value),),
+        )
+        for name, value in values.items()
+    ]
+
+
+def convert_joint_state(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+    model = _require_model(ctx)
+    values, unknown = _joint_values(model, msg.name, msg.position, ctx, "position")
+    return _report_unknown(ctx, model, unknown, _transform_items(ctx, model, values))
+
+
+def convert_joint_state_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
+    """One Transform3D column per joint over the run; a row per message that moves the joint."""
+    ctx = ctxs[0]
+    model = _require_model(ctx)
+    rows: dict[str, tuple[list[int], list[float]]] = {}
+    unknown: set[str] = set()
+    for row, (msg, msg_ctx) in enumerate(zip(msgs, ctxs, strict=True)):
+        values, missing = _joint_values(model, msg.name, msg.position, msg_ctx, "position")
+        unknown.update(missing)
+        for name, value in values.items():
+            indices, joint_values = rows.setdefault(name, ([], []))
+            indices.append(row)
+            joint_values.append(value)
+    timelines = set.intersection(*(set(c.times) for c in ctxs))
+    times = {name: np.array([c.times[name] for c in ctxs], dtype=np.int64) for name in timelines}
+    items: list[LogEntry] = []
+    for name, (indices, joint_values) in rows.items():
+        joint = model.joints[name]
+        translations, quaternions = joint_motion(joint, np.array(joint_values))
+        columns = rr.Transform3D.columns(
+            translation=translations,
+            quaternion=quaternions,
+            parent_frame=[link_frame(ctx, joint.parent)] * len(indices),
+            child_frame=[link_frame(ctx, joint.child)] * len(indices),
+        )
+        items.append(
+            ColumnsItem(
+                joint_entity_path(ctx.robot, name),
+                list(columns),
+                {timeline: stamps[indices] for timeline, stamps in times.items()},
+            )
+        )
+    return _report_unknown(ctx, model, unknown, items)
+
+
+def convert_joint_trajectory(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+    model = _require_model(ctx)
+    if len(msg.points) == 0:
+        return []
+    values, unknown = _joint_values(
+        model, msg.joint_names, msg.points[0].positions, ctx, "points[0].positions"
+    )
+    return _report_unknown(ctx, model, unknown, _transform_items(ctx, model, values))
+
+
+CONVERTERS: dict[str, ConverterSpec] = {
+    "sensor_msgs/msg/JointState": ConverterSpec(
+        convert=convert_joint_state, convert_run=convert_joint_state_run
+    ),
+    "trajectory_msgs/msg/JointTrajectory": ConverterSpec(convert=convert_joint_trajectory),
+}

@@ -1,0 +1,83 @@
+"""Text topics: /rosout (ROS 2 rcl_interfaces/Log, ROS 1 rosgraph_msgs/Log) and std_msgs/String.
+
+/rosout of a busy graph carries hundreds of lines a second, so every type converts a run of
+messages into one TextLog column; a single message is a run of one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import rerun as rr
+
+from host_bridge.converters._common import stamp_ns, time_columns
+from host_bridge.registry import ColumnsItem, ConvertContext, ConverterSpec, LogEntry
+
+# Rerun levels from least to most severe; a ROS level at or above threshold i maps to entry i+1.
+_RR_LEVELS = np.array(
+    [
+        str(level)
+        for level in (
+            rr.TextLogLevel.TRACE,
+            rr.TextLogLevel.DEBUG,
+            rr.TextLogLevel.INFO,
+            rr.TextLogLevel.WARN,
+            rr.TextLogLevel.ERROR,
+            rr.TextLogLevel.CRITICAL,
+        )
+    ],
+)
+_INFO = str(rr.TextLogLevel.INFO)
+# DEBUG INFO WARN ERROR FATAL: rcl_interfaces/Log uses 10..50, rosgraph_msgs/Log a bit mask.
+ROS2_THRESHOLDS = np.array([10, 20, 30, 40, 50])
+ROS1_THRESHOLDS = np.array([1, 2, 4, 8, 16])
+
+
+def rerun_levels(levels: npt.ArrayLike, thresholds: npt.NDArray[np.int_]) -> list[str]:
+    """Rerun level names for ROS levels; in-between values round down, 0 (unset) is TRACE."""
+    index = np.searchsorted(thresholds, np.asarray(levels), side="right")
+    return [str(level) for level in _RR_LEVELS[index]]
+
+
+def _text_spec(
+    text: Callable[[Any], str],
+    levels: Callable[[Sequence[Any]], list[str]],
+    stamp: Callable[[Any], Any] | None = None,
+) -> ConverterSpec:
+    """Converter pair for a text type.
+
+    ``stamp`` reads a top-level stamp: rcl_interfaces/Log has no header, so the message time
+    the dispatcher derives from headers would be missing or the receive time.
+    """
+
+    def convert_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
+        if not msgs:
+            return []
+        columns = rr.TextLog.columns(text=[text(m) for m in msgs], level=levels(msgs))
+        ros_ns = None if stamp is None else [stamp_ns(stamp(m)) for m in msgs]
+        return [ColumnsItem(ctxs[0].entity_path, list(columns), time_columns(ctxs, ros_ns))]
+
+    def convert(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+        return convert_run([msg], [ctx])
+
+    return ConverterSpec(convert=convert, convert_run=convert_run)
+
+
+def _log_text(msg: Any) -> str:
+    return f"[{msg.name}] {msg.msg}"
+
+
+def _log_levels(thresholds: npt.NDArray[np.int_]) -> Callable[[Sequence[Any]], list[str]]:
+    return lambda msgs: rerun_levels([m.level for m in msgs], thresholds)
+
+
+CONVERTERS: dict[str, ConverterSpec] = {
+    "rcl_interfaces/msg/Log": _text_spec(
+        _log_text, _log_levels(ROS2_THRESHOLDS), stamp=lambda m: m.stamp,
+    ),
+    "rosgraph_msgs/msg/Log": _text_spec(_log_text, _log_levels(ROS1_THRESHOLDS)),
+    "std_msgs/msg/String": _text_spec(lambda m: str(m.data), lambda msgs: [_INFO] * len(msgs)),
+}

@@ -1,0 +1,456 @@
+"""geometry_msgs converters: the values Rerun receives (poses, trails, ellipsoids, arrows)."""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+import rerun as rr
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+from host_bridge.converters.geometry import CONVERTERS
+from host_bridge.registry import ColumnsItem, ConvertContext, LogEntry
+from tests.host_bridge.sensor_test_support import TYPES as T
+from tests.host_bridge.sensor_test_support import archetype, header, log_item
+
+POSE_STAMPED = CONVERTERS["geometry_msgs/msg/PoseStamped"]
+NS = 1_000_000_000
+
+
+def _vec(xyz: Sequence[float], kind: str = "Vector3") -> Any:
+    x, y, z = xyz
+    return T[f"geometry_msgs/msg/{kind}"](x=x, y=y, z=z)
+
+
+def _pose(position: Sequence[float], xyzw: Sequence[float] = (0.0, 0.0, 0.0, 1.0)) -> Any:
+    x, y, z, w = xyzw
+    return T["geometry_msgs/msg/Pose"](
+        position=_vec(position, kind="Point"),
+        orientation=T["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w),
+    )
+
+
+def _pose_stamped(position: Sequence[float], frame_id: str = "map", ns: int = 0) -> Any:
+    return T["geometry_msgs/msg/PoseStamped"](header=header(frame_id, ns), pose=_pose(position))
+
+
+def _ctx(
+    topic: str = "/goal",
+    ns: int = 0,
+    state: dict[str, Any] | None = None,
+    options: dict[str, Any] | None = None,
+) -> ConvertContext:
+    return ConvertContext(
+        robot="tb3",
+        topic=topic,
+        entity_path=f"/tb3{topic}",
+        times={"ros_time": ns},
+        options=options or {},
+        state={} if state is None else state,
+    )
+
+
+def _at(entries: Sequence[LogEntry], path: str) -> list[LogEntry]:
+    return [e for e in entries if e.path == path]
+
+
+def _column(item: LogEntry, component: str) -> list[Any] | None:
+    """Rows of one component column ("Transform3D:translation"); None when it was not sent."""
+    assert isinstance(item, ColumnsItem)
+    for column in item.columns:
+        if column.component_descriptor().component == component:
+            return list(column.as_arrow_array().to_pylist())
+    return None
+
+
+def _values(batch: Any) -> npt.NDArray[np.float64]:
+    return np.array(batch.as_arrow_array().to_pylist(), dtype=np.float64)
+
+
+def _trail_rows(entries: Sequence[LogEntry], path: str = "/tb3/goal/trail") -> list[Any]:
+    trail = _at(entries, path)
+    return [] if not trail else _column(trail[0], "LineStrips3D:strips") or []
+
+
+# --- PoseStamped -----------------------------------------------------------------------------
+
+
+def test_pose_stamped_is_a_transform_under_the_header_frame() -> None:
+    msg = T["geometry_msgs/msg/PoseStamped"](
+        header=header("map", 5 * NS + 7),
+        pose=_pose((1.0, 2.0, 3.0), (0.1, 0.2, 0.3, 0.9)),
+    )
+    entries = POSE_STAMPED.convert(msg, _ctx(ns=5 * NS + 7))
+    (pose,) = _at(entries, "/tb3/goal")
+    assert _column(pose, "Transform3D:translation") == [[[1.0, 2.0, 3.0]]]
+    quaternion = _column(pose, "Transform3D:quaternion")
+    assert quaternion is not None
+    np.testing.assert_allclose(quaternion[0][0], [0.1, 0.2, 0.3, 0.9], rtol=1e-6)  # xyzw
+    assert _column(pose, "Transform3D:parent_frame") == [["tb3/map"]]
+    assert _column(pose, "Transform3D:child_frame") is None  # never collides with /tf
+    assert _column(pose, "CoordinateFrame:frame") is None  # the entity IS the pose frame
+    assert _column(pose, "TransformAxes3D:axis_length") == [[pytest.approx(0.3)]]
+    assert isinstance(pose, ColumnsItem)
+    assert pose.times["ros_time"].tolist() == [5 * NS + 7]
+    (trail,) = _at(entries, "/tb3/goal/trail")
+    assert _column(trail, "LineStrips3D:strips") == [[[[1.0, 2.0, 3.0]]]]
+    assert _column(trail, "CoordinateFrame:frame") == [["tb3/map"]]
+
+
+def test_pose_stamped_with_empty_frame_has_no_frame_names() -> None:
+    entries = POSE_STAMPED.convert(_pose_stamped((1.0, 0.0, 0.0), frame_id=""), _ctx())
+    (pose,) = _at(entries, "/tb3/goal")
+    assert _column(pose, "Transform3D:parent_frame") is None
+    assert _column(pose, "CoordinateFrame:frame") is None
+    # The trail sits in the pose's (implicit) parent frame, so it does not ride on the pose.
+    (trail,) = _at(entries, "/tb3/goal/trail")
+    assert _column(trail, "CoordinateFrame:frame") == [["tf#/tb3"]]
+
+
+def test_all_zero_quaternion_becomes_identity() -> None:
+    msg = T["geometry_msgs/msg/PoseStamped"](
+        header=header("map"),
+        pose=_pose((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0)),
+    )
+    (pose, _) = POSE_STAMPED.convert(msg, _ctx())
+    assert _column(pose, "Transform3D:quaternion") == [[[0.0, 0.0, 0.0, 1.0]]]
+
+
+def test_trail_grows_only_when_the_pose_moved_more_than_1cm() -> None:
+    state: dict[str, Any] = {}
+    xs = [0.0, 0.005, 0.0105, 0.019, 0.5, 0.5]
+    grown = [
+        _trail_rows(POSE_STAMPED.convert(_pose_stamped((x, 0.0, 0.0)), _ctx(state=state)))
+        for x in xs
+    ]
+    assert [len(rows) for rows in grown] == [1, 0, 1, 0, 1, 0]
+    last = np.array(grown[4][0][0])
+    np.testing.assert_allclose(last[:, 0], [0.0, 0.0105, 0.5])
+
+
+def test_trail_keeps_the_last_trail_length_points_and_restarts_on_frame_change() -> None:
+    state: dict[str, Any] = {}
+    options = {"trail_length": 3}
+    for x in range(5):
+        entries = POSE_STAMPED.convert(
+            _pose_stamped((float(x), 0.0, 0.0)),
+            _ctx(state=state, options=options),
+        )
+    assert np.array(_trail_rows(entries)[0][0])[:, 0].tolist() == [2.0, 3.0, 4.0]
+    entries = POSE_STAMPED.convert(
+        _pose_stamped((9.0, 0.0, 0.0), frame_id="odom"),
+        _ctx(state=state, options=options),
+    )
+    (trail,) = _at(entries, "/tb3/goal/trail")
+    assert _column(trail, "LineStrips3D:strips") == [[[[9.0, 0.0, 0.0]]]]
+    assert _column(trail, "CoordinateFrame:frame") == [["tb3/odom"]]
+
+
+def test_trail_length_zero_disables_the_trail() -> None:
+    entries = POSE_STAMPED.convert(
+        _pose_stamped((1.0, 0.0, 0.0)),
+        _ctx(options={"trail_length": 0}),
+    )
+    assert [e.path for e in entries] == ["/tb3/goal"]
+
+
+def test_pose_run_splits_rows_by_frame_and_stamps_trail_rows() -> None:
+    assert POSE_STAMPED.convert_run is not None
+    msgs = [
+        _pose_stamped((0.0, 0.0, 0.0), "map"),
+        _pose_stamped((1.0, 0.0, 0.0), ""),
+        _pose_stamped((1.001, 0.0, 0.0), ""),
+        _pose_stamped((2.0, 0.0, 0.0), "map"),
+    ]
+    state: dict[str, Any] = {}
+    ctxs = [_ctx(ns=i * NS, state=state) for i in range(len(msgs))]
+    entries = POSE_STAMPED.convert_run(msgs, ctxs)
+    with_frame, without_frame = _at(entries, "/tb3/goal")
+    assert isinstance(with_frame, ColumnsItem)
+    assert isinstance(without_frame, ColumnsItem)
+    assert with_frame.times["ros_time"].tolist() == [0, 3 * NS]
+    assert _column(with_frame, "Transform3D:parent_frame") == [["tb3/map"], ["tb3/map"]]
+    assert without_frame.times["ros_time"].tolist() == [NS, 2 * NS]
+    assert _column(without_frame, "Transform3D:parent_frame") is None
+    (trail,) = _at(entries, "/tb3/goal/trail")
+    assert isinstance(trail, ColumnsItem)
+    # The frame changes twice (trail restarts), the 1 mm step is ignored.
+    assert trail.times["ros_time"].tolist() == [0, NS, 3 * NS]
+    assert _column(trail, "CoordinateFrame:frame") == [["tb3/map"], ["tf#/tb3"], ["tb3/map"]]
+    assert _column(trail, "LineStrips3D:strips") == [
+        [[[0.0, 0.0, 0.0]]],
+        [[[1.0, 0.0, 0.0]]],
+        [[[2.0, 0.0, 0.0]]],
+    ]
+
+
+# --- PoseWithCovarianceStamped ---------------------------------------------------------------
+
+
+def _with_covariance(position: Sequence[float], cov3: npt.NDArray[np.float64]) -> Any:
+    covariance = np.zeros((6, 6))
+    covariance[:3, :3] = cov3
+    covariance[3:, 3:] = np.eye(3) * 7.0  # orientation part: must not leak into the ellipsoid
+    inner = T["geometry_msgs/msg/PoseWithCovariance"](
+        pose=_pose(position),
+        covariance=covariance.ravel(),
+    )
+    return T["geometry_msgs/msg/PoseWithCovarianceStamped"](header=header("map"), pose=inner)
+
+
+def _ellipsoid(entries: Sequence[LogEntry], path: str = "/tb3/goal/covariance") -> Any:
+    item = log_item(entries, path)
+    frame = archetype(item, rr.CoordinateFrame)
+    assert frame.frame.as_arrow_array().to_pylist() == ["tb3/map"]
+    return archetype(item, rr.Ellipsoids3D)
+
+
+def _rotation(xyzw: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    x, y, z, w = xyzw / np.linalg.norm(xyzw)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ],
+    )
+
+
+def test_diagonal_covariance_gives_sqrt_half_sizes_and_no_rotation() -> None:
+    spec = CONVERTERS["geometry_msgs/msg/PoseWithCovarianceStamped"]
+    msg = _with_covariance((1.0, 2.0, 0.0), np.diag([4.0, 1.0, 0.25]))
+    entries = spec.convert(msg, _ctx())
+    ellipsoid = _ellipsoid(entries)
+    np.testing.assert_allclose(_values(ellipsoid.half_sizes), [[2.0, 1.0, 0.5]], rtol=1e-6)
+    np.testing.assert_allclose(_values(ellipsoid.centers), [[1.0, 2.0, 0.0]])
+    np.testing.assert_allclose(np.abs(_values(ellipsoid.quaternions)), [[0, 0, 0, 1]], atol=1e-7)
+    # The pose itself is there too, with its trail.
+    assert [e.path for e in entries] == ["/tb3/goal", "/tb3/goal/trail", "/tb3/goal/covariance"]
+    doubled = _ellipsoid(spec.convert(msg, _ctx(options={"sigma": 2.0})))
+    np.testing.assert_allclose(_values(doubled.half_sizes), [[4.0, 2.0, 1.0]], rtol=1e-6)
+
+
+def test_rotated_covariance_ellipsoid_reproduces_the_covariance() -> None:
+    yaw, roll = math.radians(30.0), math.radians(-50.0)
+    cy, sy, cr, sr = math.cos(yaw), math.sin(yaw), math.cos(roll), math.sin(roll)
+    axes = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ np.array(
+        [[1, 0, 0], [0, cr, -sr], [0, sr, cr]],
+    )
+    cov = axes @ np.diag([9.0, 4.0, 1.0]) @ axes.T
+    spec = CONVERTERS["geometry_msgs/msg/PoseWithCovarianceStamped"]
+    ellipsoid = _ellipsoid(spec.convert(_with_covariance((0.0, 0.0, 0.0), cov), _ctx()))
+    half = _values(ellipsoid.half_sizes)[0]
+    np.testing.assert_allclose(half, [3.0, 2.0, 1.0], rtol=1e-5)
+    rotation = _rotation(_values(ellipsoid.quaternions)[0])
+    np.testing.assert_allclose(np.linalg.det(rotation), 1.0, atol=1e-6)
+    np.testing.assert_allclose(rotation @ np.diag(half**2) @ rotation.T, cov, atol=1e-5)
+    # The longest axis (3 sigma) points along the first rotated axis, up to sign.
+    np.testing.assert_allclose(np.abs(rotation[:, 0]), np.abs(axes[:, 0]), atol=1e-6)
+
+
+def test_non_finite_covariance_keeps_the_pose_without_ellipsoid() -> None:
+    spec = CONVERTERS["geometry_msgs/msg/PoseWithCovarianceStamped"]
+    entries = spec.convert(_with_covariance((1.0, 0.0, 0.0), np.full((3, 3), np.nan)), _ctx())
+    assert [e.path for e in entries] == ["/tb3/goal", "/tb3/goal/trail"]
+
+
+# --- PoseArray, vectors, points, polygons ----------------------------------------------------
+
+
+def test_pose_array_draws_one_arrow_along_each_x_axis() -> None:
+    half = math.sqrt(0.5)
+    msg = T["geometry_msgs/msg/PoseArray"](
+        header=header("map"),
+        # identity, yaw +90 degrees, and the invalid all-zero quaternion (drawn as identity)
+        poses=[
+            _pose((0, 0, 0)),
+            _pose((1, 2, 0), (0, 0, half, half)),
+            _pose((0, 0, 1), (0, 0, 0, 0)),
+        ],
+    )
+    spec = CONVERTERS["geometry_msgs/msg/PoseArray"]
+    item = log_item(spec.convert(msg, _ctx(options={"arrow_length": 2.0})), "/tb3/goal")
+    arrows = archetype(item, rr.Arrows3D)
+    np.testing.assert_allclose(_values(arrows.origins), [[0, 0, 0], [1, 2, 0], [0, 0, 1]])
+    np.testing.assert_allclose(
+        _values(arrows.vectors),
+        [[2, 0, 0], [0, 2, 0], [2, 0, 0]],
+        atol=1e-6,
+    )
+    assert archetype(item, rr.CoordinateFrame).frame.as_arrow_array().to_pylist() == ["tb3/map"]
+
+
+def _twist(linear: Sequence[float], angular: Sequence[float], frame_id: str = "base_link") -> Any:
+    twist = T["geometry_msgs/msg/Twist"](linear=_vec(linear), angular=_vec(angular))
+    return T["geometry_msgs/msg/TwistStamped"](header=header(frame_id), twist=twist)
+
+
+def test_twist_stamped_arrows_and_per_component_scalars() -> None:
+    spec = CONVERTERS["geometry_msgs/msg/TwistStamped"]
+    entries = spec.convert(_twist((0.5, 0.0, 0.0), (0.0, 0.0, -0.25)), _ctx("/cmd"))
+    arrows, frame = _at(entries, "/tb3/cmd")
+    assert _column(arrows, "Arrows3D:vectors") == [[[0.5, 0.0, 0.0], [0.0, 0.0, -0.25]]]
+    assert _column(arrows, "Arrows3D:origins") == [[[0.0, 0.0, 0.0]] * 2]
+    assert _column(arrows, "Arrows3D:labels") == [["linear", "angular"]]
+    assert _column(frame, "CoordinateFrame:frame") == [["tb3/base_link"]]
+    scalars = {e.path: _column(e, "Scalars:scalars") for e in entries if e.path != "/tb3/cmd"}
+    assert scalars == {
+        "/tb3/cmd/linear/x": [[0.5]],
+        "/tb3/cmd/linear/y": [[0.0]],
+        "/tb3/cmd/linear/z": [[0.0]],
+        "/tb3/cmd/angular/x": [[0.0]],
+        "/tb3/cmd/angular/y": [[0.0]],
+        "/tb3/cmd/angular/z": [[-0.25]],
+    }
+
+
+def test_wrench_and_vector3_use_their_field_names() -> None:
+    wrench = T["geometry_msgs/msg/WrenchStamped"](
+        header=header(""),
+        wrench=T["geometry_msgs/msg/Wrench"](force=_vec((1, 2, 3)), torque=_vec((4, 5, 6))),
+    )
+    entries = CONVERTERS["geometry_msgs/msg/WrenchStamped"].convert(wrench, _ctx("/ft"))
+    (arrows,) = _at(entries, "/tb3/ft")  # empty frame_id: no CoordinateFrame item
+    assert _column(arrows, "Arrows3D:vectors") == [[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]]
+    assert _column(_at(entries, "/tb3/ft/torque/y")[0], "Scalars:scalars") == [[5.0]]
+    vector = T["geometry_msgs/msg/Vector3Stamped"](header=header("imu"), vector=_vec((0, -9.8, 0)))
+    entries = CONVERTERS["geometry_msgs/msg/Vector3Stamped"].convert(vector, _ctx("/g"))
+    assert _column(_at(entries, "/tb3/g")[0], "Arrows3D:labels") == [["vector"]]
+    assert _column(_at(entries, "/tb3/g/vector/y")[0], "Scalars:scalars") == [[pytest.approx(-9.8)]]
+
+
+def test_point_stamped_and_closed_polygon() -> None:
+    point = T["geometry_msgs/msg/PointStamped"](
+        header=header("map"),
+        point=_vec((1, 2, 3), "Point"),
+    )
+    point_spec = CONVERTERS["geometry_msgs/msg/PointStamped"]
+    item = log_item(point_spec.convert(point, _ctx("/clicked")), "/tb3/clicked")
+    np.testing.assert_allclose(_values(archetype(item, rr.Points3D).positions), [[1, 2, 3]])
+    square = [_vec((x, y, 0.0), "Point32") for x, y in [(0, 0), (1, 0), (1, 1), (0, 1)]]
+    polygon = T["geometry_msgs/msg/PolygonStamped"](
+        header=header("base_link"),
+        polygon=T["geometry_msgs/msg/Polygon"](points=square),
+    )
+    polygon_spec = CONVERTERS["geometry_msgs/msg/PolygonStamped"]
+    item = log_item(polygon_spec.convert(polygon, _ctx("/footprint")), "/tb3/footprint")
+    strips = archetype(item, rr.LineStrips3D).strips.as_arrow_array().to_pylist()
+    assert strips == [[[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 0]]]
+    assert archetype(item, rr.CoordinateFrame).frame.as_arrow_array().to_pylist() == [
+        "tb3/base_link",
+    ]
+    empty = T["geometry_msgs/msg/PolygonStamped"](
+        header=header("base_link"),
+        polygon=T["geometry_msgs/msg/Polygon"](points=[]),
+    )
+    item = log_item(polygon_spec.convert(empty, _ctx("/footprint")), "/tb3/footprint")
+    assert archetype(item, rr.LineStrips3D).strips.as_arrow_array().to_pylist() == []
+
+
+# --- the real bag: /location (empty frame_id) and /velocity, through the run forms ----------
+
+
+@pytest.fixture(scope="module")
+def amr_bag(shared_data: Path) -> dict[str, list[tuple[int, Any]]]:
+    """/location and /velocity of the TurtleBot3 nav bag: topic -> [(log_time ns, msg)]."""
+    path = shared_data / "tb3_nav_sim_paths_amr" / "rosbag_demo.bag"
+    by_topic: dict[str, list[tuple[int, Any]]] = {"/location": [], "/velocity": []}
+    with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        connections = [c for c in reader.connections if c.topic in by_topic]
+        for conn, log_ns, raw in reader.messages(connections=connections):
+            by_topic[conn.topic].append((log_ns, reader.deserialize(raw, conn.msgtype)))
+    return by_topic
+
+
+def _bag_ctxs(topic: str, rows: list[tuple[int, Any]]) -> list[ConvertContext]:
+    state: dict[str, Any] = {}
+    return [
+        ConvertContext(
+            robot="tb3",
+            topic=topic,
+            entity_path=f"/tb3{topic}",
+            state=state,
+            times={
+                "ros_time": int(m.header.stamp.sec) * NS + int(m.header.stamp.nanosec),
+                "log_time": log_ns,
+            },
+        )
+        for log_ns, m in rows
+    ]
+
+
+def _send(entries: Sequence[LogEntry]) -> None:
+    """Hand everything to a real (in-memory) recording, as the sink will."""
+    recording = rr.RecordingStream("swanky_test_geometry")
+    recording.memory_recording()
+    for entry in entries:
+        assert isinstance(entry, ColumnsItem)
+        indexes = [
+            rr.TimeColumn(name, timestamp=values.astype("datetime64[ns]"))
+            for name, values in entry.times.items()
+        ]
+        rr.send_columns(entry.path, indexes=indexes, columns=entry.columns, recording=recording)
+
+
+def test_real_location_and_velocity_convert_as_runs(
+    amr_bag: dict[str, list[tuple[int, Any]]],
+) -> None:
+    location, velocity = amr_bag["/location"], amr_bag["/velocity"]
+    assert (len(location), len(velocity)) == (5273, 5270)
+    pose_run = POSE_STAMPED.convert_run
+    twist_run = CONVERTERS["geometry_msgs/msg/TwistStamped"].convert_run
+    assert pose_run is not None
+    assert twist_run is not None
+    started = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        poses = pose_run([m for _, m in location], _bag_ctxs("/location", location))
+        twists = twist_run([m for _, m in velocity], _bag_ctxs("/velocity", velocity))
+        _send([*poses, *twists])
+    assert time.perf_counter() - started < 10.0  # run forms; per message takes ~8 s here
+
+    # /location: empty frame_id -> one row group, no frame names, translation as recorded.
+    (pose,) = _at(poses, "/tb3/location")
+    assert isinstance(pose, ColumnsItem)
+    assert _column(pose, "Transform3D:parent_frame") is None
+    expected = np.array(
+        [(m.pose.position.x, m.pose.position.y, m.pose.position.z) for _, m in location],
+        dtype=np.float32,
+    )
+    translation = _column(pose, "Transform3D:translation")
+    assert translation is not None
+    np.testing.assert_array_equal(np.array(translation, dtype=np.float32)[:, 0], expected)
+    assert pose.times["log_time"].tolist() == [log_ns for log_ns, _ in location]
+
+    (trail,) = _at(poses, "/tb3/location/trail")
+    strips = _column(trail, "LineStrips3D:strips")
+    assert strips is not None
+    assert 0 < len(strips) < len(location)
+    final = np.array(strips[-1][0])
+    assert 1 < len(final) <= 500
+    assert (np.linalg.norm(np.diff(final, axis=0), axis=1) > 0.01).all()
+    assert _column(trail, "CoordinateFrame:frame") == [["tf#/tb3"]] * len(strips)
+
+    # /velocity: every component plotted, one row per message; no CoordinateFrame (empty id).
+    linear_x = _at(twists, "/tb3/velocity/linear/x")[0]
+    values = _column(linear_x, "Scalars:scalars")
+    assert values is not None
+    np.testing.assert_array_equal(
+        np.array(values)[:, 0],
+        [m.twist.linear.x for _, m in velocity],
+    )
+    arrows = _at(twists, "/tb3/velocity")
+    assert len(arrows) == 1
+    vectors = _column(arrows[0], "Arrows3D:vectors")
+    assert vectors is not None
+    assert len(vectors) == 5270
+    assert all(len(row) == 2 for row in vectors)
+    assert len(twists) == 1 + 6

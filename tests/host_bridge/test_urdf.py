@@ -1,0 +1,402 @@
+"""Robot model: TurtleBot3 URDFs with their STL meshes, primitives, resolution, errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+import rerun as rr
+import trimesh
+import trimesh.transformations as tra
+from PIL import Image
+
+from host_bridge.converters import urdf
+from host_bridge.converters.joints import RobotModel
+from host_bridge.errors import ConfigError, ConvertError, PartialConvertError
+from host_bridge.registry import ConvertContext, LogEntry, LogItem
+from host_bridge.resources import ResourceResolver, parse_package_path
+
+PACKAGE = "turtlebot3_description"
+MESHES = {
+    "burger": {
+        "base_link": "bases/burger_base.stl",
+        "wheel_left_link": "wheels/left_tire.stl",
+        "wheel_right_link": "wheels/right_tire.stl",
+        "base_scan": "sensors/lds.stl",
+    },
+    "waffle_pi": {
+        "base_link": "bases/waffle_pi_base.stl",
+        "wheel_left_link": "wheels/left_tire.stl",
+        "wheel_right_link": "wheels/right_tire.stl",
+        "base_scan": "sensors/lds.stl",
+    },
+}
+
+
+@pytest.fixture
+def tb3(shared_data: Path) -> Path:
+    """The directory holding the turtlebot3_description package (a ROS_PACKAGE_PATH entry)."""
+    return shared_data / PACKAGE
+
+
+def urdf_text(tb3: Path, model: str) -> str:
+    return (tb3 / PACKAGE / "urdf" / f"turtlebot3_{model}.urdf").read_text()
+
+
+def make_ctx(robot: str, resolver: ResourceResolver | None = None) -> ConvertContext:
+    ctx = ConvertContext(
+        robot=robot,
+        topic="/robot_description",
+        entity_path=f"/{robot}/robot_description",
+        times={"ros_time": 0},
+    )
+    if resolver is not None:
+        ctx.robot_state["resolver"] = resolver
+    return ctx
+
+
+def convert(xml: str, ctx: ConvertContext) -> list[LogEntry]:
+    return urdf.convert(SimpleNamespace(data=xml), ctx)
+
+
+def by_path(items: list[LogEntry]) -> dict[str, LogItem]:
+    return {item.path: item for item in items if isinstance(item, LogItem)}
+
+
+def archetype(item: LogItem, kind: type[Any]) -> Any:
+    (found,) = [a for a in item.archetypes if isinstance(a, kind)]
+    return found
+
+
+def values(batch: Any) -> npt.NDArray[Any]:
+    return np.asarray(batch.as_arrow_array().to_pylist())
+
+
+def packed(rgba: list[int]) -> int:
+    r, g, b, a = rgba
+    return (r << 24) | (g << 16) | (b << 8) | a
+
+
+def rotation(quaternion_xyzw: npt.NDArray[Any]) -> npt.NDArray[np.float64]:
+    x, y, z, w = quaternion_xyzw
+    matrix: npt.NDArray[np.float64] = tra.quaternion_matrix([w, x, y, z])  # type: ignore[no-untyped-call]
+    return matrix[:3, :3]
+
+
+def load_mesh(path: Path) -> trimesh.Trimesh:
+    mesh = trimesh.load(path, force="mesh")
+    assert isinstance(mesh, trimesh.Trimesh)
+    return mesh
+
+
+@pytest.mark.parametrize("model", ["burger", "waffle_pi"])
+def test_turtlebot_meshes_match_trimesh_in_metres(tb3: Path, model: str) -> None:
+    items = by_path(convert(urdf_text(tb3, model), make_ctx("tb1", ResourceResolver(search_paths=[tb3]))))
+    meshes = {path: item for path, item in items.items() if "/joints/" not in path}
+    assert sorted(meshes) == sorted(f"/tb1/robot_model/{link}/visual_0" for link in MESHES[model])
+    for link, relpath in MESHES[model].items():
+        item = meshes[f"/tb1/robot_model/{link}/visual_0"]
+        assert item.static
+        reference = load_mesh(tb3 / PACKAGE / "meshes" / relpath)
+        mesh = archetype(item, rr.Mesh3D)
+        positions = values(mesh.vertex_positions)
+        assert len(positions) == len(reference.vertices)
+        assert len(values(mesh.triangle_indices)) == len(reference.faces)
+        np.testing.assert_allclose(positions, reference.vertices * 0.001, rtol=1e-6, atol=1e-7)
+        # A uniform scale leaves trimesh's normals as they are.
+        np.testing.assert_allclose(values(mesh.vertex_normals), reference.vertex_normals, atol=1e-5)
+        assert values(archetype(item, rr.CoordinateFrame).frame).tolist() == [f"tb1/{link}"]
+    base = values(archetype(meshes["/tb1/robot_model/base_link/visual_0"], rr.Mesh3D).vertex_positions)
+    base_extent = np.ptp(base, axis=0)
+    expected_width = {"burger": 0.1375, "waffle_pi": 0.2655}[model]
+    assert base_extent[0] == pytest.approx(expected_width, abs=1e-3)
+    tire = values(archetype(meshes["/tb1/robot_model/wheel_left_link/visual_0"], rr.Mesh3D).vertex_positions)
+    assert np.ptp(tire, axis=0) == pytest.approx([0.066, 0.0182, 0.066], abs=1e-4)
+
+
+def test_visual_origin_and_material_colour(tb3: Path) -> None:
+    items = by_path(convert(urdf_text(tb3, "burger"), make_ctx("tb1", ResourceResolver(search_paths=[tb3]))))
+    base = items["/tb1/robot_model/base_link/visual_0"]
+    pose = archetype(base, rr.InstancePoses3D)
+    np.testing.assert_allclose(values(pose.translations), [[-0.032, 0.0, 0.0]], atol=1e-7)
+    np.testing.assert_allclose(values(pose.quaternions), [[0.0, 0.0, 0.0, 1.0]], atol=1e-7)
+    # light_black is a named top-level material: 0.4 grey.
+    assert values(archetype(base, rr.Mesh3D).albedo_factor).tolist() == [packed([102, 102, 102, 255])]
+    wheel = archetype(items["/tb1/robot_model/wheel_left_link/visual_0"], rr.InstancePoses3D)
+    (quaternion,) = values(wheel.quaternions)
+    expected: npt.NDArray[np.float64] = tra.euler_matrix(1.57, 0, 0)  # type: ignore[no-untyped-call]
+    np.testing.assert_allclose(rotation(quaternion), expected[:3, :3], atol=1e-6)
+
+
+def test_fixed_joints_static_movable_left_out(tb3: Path) -> None:
+    ctx = make_ctx("tb1", ResourceResolver(search_paths=[tb3]))
+    items = by_path(convert(urdf_text(tb3, "burger"), ctx))
+    joints = sorted(path for path in items if "/joints/" in path)
+    assert joints == [
+        f"/tb1/robot_model/joints/{name}"
+        for name in ("base_joint", "caster_back_joint", "imu_joint", "scan_joint")
+    ]
+    scan = items["/tb1/robot_model/joints/scan_joint"]
+    assert scan.static
+    transform = archetype(scan, rr.Transform3D)
+    assert values(transform.parent_frame).tolist() == ["tb1/base_link"]
+    assert values(transform.child_frame).tolist() == ["tb1/base_scan"]
+    np.testing.assert_allclose(values(transform.translation), [[-0.032, 0.0, 0.172]], atol=1e-7)
+    model = ctx.robot_state["urdf"]
+    assert isinstance(model, RobotModel)
+    assert model.joints["wheel_left_joint"].type == "continuous"
+
+
+def test_fixed_joint_already_on_tf_is_left_to_tf(tb3: Path) -> None:
+    ctx = make_ctx("tb1", ResourceResolver(search_paths=[tb3]))
+    ctx.robot_state["tf_children"] = {"base_scan", "tb1/imu_link"}
+    joints = sorted(path for path in by_path(convert(urdf_text(tb3, "burger"), ctx)) if "/joints/" in path)
+    assert joints == [
+        "/tb1/robot_model/joints/base_joint",
+        "/tb1/robot_model/joints/caster_back_joint",
+    ]
+
+
+def test_missing_mesh_one_error_rest_logged(tb3: Path) -> None:
+    missing = f"package://{PACKAGE}/meshes/sensors/no_such_lidar.stl"
+    xml = urdf_text(tb3, "burger").replace(f"package://{PACKAGE}/meshes/sensors/lds.stl", missing)
+    with pytest.raises(PartialConvertError) as caught:
+        convert(xml, make_ctx("tb1", ResourceResolver(search_paths=[tb3])))
+    message = str(caught.value)
+    assert missing in message
+    assert "'base_scan'" in message
+    assert message.count("package://") == 1
+    logged = by_path(caught.value.items)
+    assert sorted(path for path in logged if "/joints/" not in path) == [
+        "/tb1/robot_model/base_link/visual_0",
+        "/tb1/robot_model/wheel_left_link/visual_0",
+        "/tb1/robot_model/wheel_right_link/visual_0",
+    ]
+    assert "/tb1/robot_model/joints/scan_joint" in logged
+
+
+def test_two_robots_never_share_paths_or_frames(tb3: Path) -> None:
+    resolver = ResourceResolver(search_paths=[tb3])
+    xml = urdf_text(tb3, "burger")
+    tb1, tb2 = make_ctx("tb1", resolver), make_ctx("tb2", resolver)
+    first, second = by_path(convert(xml, tb1)), by_path(convert(xml, tb2))
+    assert all(path.startswith("/tb1/robot_model/") for path in first)
+    assert all(path.startswith("/tb2/robot_model/") for path in second)
+    assert {p.replace("/tb1/", "/tb2/", 1) for p in first} == set(second)
+    frame = archetype(second["/tb2/robot_model/base_scan/visual_0"], rr.CoordinateFrame)
+    assert values(frame.frame).tolist() == ["tb2/base_scan"]
+    scan = archetype(second["/tb2/robot_model/joints/scan_joint"], rr.Transform3D)
+    assert values(scan.parent_frame).tolist() == ["tb2/base_link"]
+    assert tb1.robot_state["urdf"] is not tb2.robot_state["urdf"]
+
+
+PRIMITIVES = """<?xml version="1.0" encoding="utf-8"?>
+<robot name="shapes">
+  <material name="blue"><color rgba="0 0 1 1"/></material>
+  <link name="base">
+    <visual>
+      <origin xyz="1 2 3" rpy="0 0 1.5707963267948966"/>
+      <geometry><box size="0.2 0.4 0.6"/></geometry>
+      <material name="blue"/>
+    </visual>
+    <visual>
+      <geometry><cylinder radius="0.05" length="0.3"/></geometry>
+      <material name="inline"><color rgba="1 0.5 0 0.5"/></material>
+    </visual>
+  </link>
+  <link name="head">
+    <visual><geometry><sphere radius="0.1"/></geometry></visual>
+  </link>
+  <joint name="neck" type="fixed">
+    <parent link="base"/><child link="head"/><origin xyz="0 0 0.5"/>
+  </joint>
+</robot>
+"""
+
+
+def test_primitives_colours_and_origins() -> None:
+    items = by_path(convert(PRIMITIVES, make_ctx("bot", ResourceResolver())))
+    box_item = items["/bot/robot_model/base/visual_0"]
+    box = archetype(box_item, rr.Boxes3D)
+    np.testing.assert_allclose(values(box.half_sizes), [[0.1, 0.2, 0.3]], atol=1e-7)
+    assert values(box.colors).tolist() == [packed([0, 0, 255, 255])]
+    assert values(box.fill_mode).tolist() == [rr.components.FillMode.Solid.value]
+    pose = archetype(box_item, rr.InstancePoses3D)
+    np.testing.assert_allclose(values(pose.translations), [[1.0, 2.0, 3.0]])
+    np.testing.assert_allclose(values(pose.quaternions), [[0, 0, np.sqrt(0.5), np.sqrt(0.5)]], atol=1e-7)
+    cylinder = archetype(items["/bot/robot_model/base/visual_1"], rr.Cylinders3D)
+    np.testing.assert_allclose(values(cylinder.radii), [0.05])
+    np.testing.assert_allclose(values(cylinder.lengths), [0.3])
+    assert values(cylinder.colors).tolist() == [packed([255, 128, 0, 128])]
+    sphere_item = items["/bot/robot_model/head/visual_0"]
+    np.testing.assert_allclose(values(archetype(sphere_item, rr.Ellipsoids3D).half_sizes), [[0.1] * 3])
+    assert values(archetype(sphere_item, rr.CoordinateFrame).frame).tolist() == ["bot/head"]
+    neck = archetype(items["/bot/robot_model/joints/neck"], rr.Transform3D)
+    np.testing.assert_allclose(values(neck.translation), [[0.0, 0.0, 0.5]])
+
+
+def mesh_urdf(*meshes: tuple[str, str]) -> str:
+    """One link per (filename, scale)."""
+    links = "".join(
+        f'<link name="l{i}"><visual><geometry><mesh filename="{name}" scale="{scale}"/>'
+        "</geometry></visual></link>"
+        for i, (name, scale) in enumerate(meshes)
+    )
+    return f'<robot name="meshes">{links}</robot>'
+
+
+def write_box(path: Path) -> None:
+    box = trimesh.creation.box(extents=[1.0, 2.0, 4.0])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    box.export(path)
+
+
+def mesh_of(items: dict[str, LogItem], link: str) -> Any:
+    return archetype(items[f"/r/robot_model/{link}/visual_0"], rr.Mesh3D)
+
+
+def test_file_form_relative_file_uri_and_formats(tmp_path: Path) -> None:
+    write_box(tmp_path / "meshes" / "box.stl")
+    write_box(tmp_path / "meshes" / "box.obj")
+    write_box(tmp_path / "elsewhere" / "box.dae")
+    description = tmp_path / "robot.urdf"
+    description.write_text(
+        mesh_urdf(
+            ("meshes/box.stl", "0.5 0.5 0.5"),
+            ("meshes/box.obj", "1 1 1"),
+            (f"file://{tmp_path}/elsewhere/box.dae", "-1 1 1"),
+        )
+    )
+    items = by_path(urdf.model_items_from_file(description, make_ctx("r", ResourceResolver())))
+    stl = mesh_of(items, "l0")
+    assert np.ptp(values(stl.vertex_positions), axis=0) == pytest.approx([0.5, 1.0, 2.0])
+    for link, name in (("l1", "meshes/box.obj"), ("l2", "elsewhere/box.dae")):
+        reference = load_mesh(tmp_path / name)
+        assert len(values(mesh_of(items, link).vertex_positions)) == len(reference.vertices)
+    # A mirroring scale flips the winding so faces stay outward.
+    dae = mesh_of(items, "l2")
+    reference = load_mesh(tmp_path / "elsewhere" / "box.dae")
+    np.testing.assert_array_equal(values(dae.triangle_indices), reference.faces[:, ::-1])
+    np.testing.assert_allclose(values(dae.vertex_positions)[:, 0], -reference.vertices[:, 0])
+
+
+def test_unreadable_urdf_file_is_a_convert_error(tmp_path: Path) -> None:
+    with pytest.raises(ConvertError, match="--urdf"):
+        urdf.model_items_from_file(tmp_path / "absent.urdf", make_ctx("r"))
+
+
+@pytest.mark.parametrize(
+    ("xml", "match"),
+    [
+        ("", "not well-formed"),
+        ("<robot name='x'><link name='a'>", "not well-formed"),
+        ("<sdf version='1.6'/>", "not <robot>"),
+        (
+            "<robot name='x'><joint name='j' type='fixed'><child link='a'/></joint></robot>",
+            "not a valid URDF",
+        ),
+    ],
+)
+def test_bad_descriptions_are_convert_errors(xml: str, match: str) -> None:
+    with pytest.raises(ConvertError, match=match):
+        convert(xml, make_ctx("r", ResourceResolver()))
+
+
+def test_package_path_beats_search_paths_and_fetch_is_the_fallback(tmp_path: Path) -> None:
+    box_bytes = trimesh.creation.box(extents=[1.0, 1.0, 1.0]).export(file_type="stl")
+    write_box(tmp_path / "explicit" / "meshes" / "a.stl")
+    write_box(tmp_path / "search" / "pkg" / "meshes" / "a.stl")
+    asked: list[str] = []
+
+    def fetch(uri: str) -> bytes | None:
+        asked.append(uri)
+        return box_bytes if uri == "package://remote_pkg/meshes/b.stl" else None
+
+    resolver = ResourceResolver(
+        package_paths=dict([parse_package_path(f"pkg={tmp_path / 'explicit'}")]),
+        search_paths=[tmp_path / "search"],
+        fetch=fetch,
+    )
+    assert resolver.locate("package://pkg/meshes/a.stl") == tmp_path / "explicit" / "meshes" / "a.stl"
+    xml = mesh_urdf(("package://pkg/meshes/a.stl", "1 1 1"), ("package://remote_pkg/meshes/b.stl", "1 1 1"))
+    items = by_path(convert(xml, make_ctx("r", resolver)))
+    assert np.ptp(values(mesh_of(items, "l0").vertex_positions), axis=0) == pytest.approx([1, 2, 4])
+    assert np.ptp(values(mesh_of(items, "l1").vertex_positions), axis=0) == pytest.approx([1, 1, 1])
+    assert asked == ["package://remote_pkg/meshes/b.stl"]
+
+
+def test_robot_share_paths_resolve_as_packages(tb3: Path) -> None:
+    xml = urdf_text(tb3, "burger").replace(
+        f"package://{PACKAGE}/", f"file:///opt/ros/humble/share/{PACKAGE}/"
+    )
+    items = by_path(convert(xml, make_ctx("tb1", ResourceResolver(search_paths=[tb3]))))
+    assert len([path for path in items if "/visual_" in path]) == 4
+
+
+def test_environment_is_the_default_resolver(tb3: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("ROS_PACKAGE_PATH", str(tb3))
+    monkeypatch.delenv("AMENT_PREFIX_PATH", raising=False)
+    items = by_path(convert(urdf_text(tb3, "burger"), make_ctx("tb1")))
+    assert len([path for path in items if "/visual_" in path]) == 4
+
+
+def test_not_found_message_says_what_to_do(tmp_path: Path) -> None:
+    resolver = ResourceResolver(search_paths=[tmp_path])
+    with pytest.raises(ConvertError, match=r"--package-path foo=DIR") as caught:
+        resolver.read("package://foo/meshes/x.stl")
+    assert f"search path {tmp_path}" in str(caught.value)
+    with pytest.raises(ConvertError, match="only package://"):
+        resolver.read("http://example.com/x.stl")
+
+
+def test_package_path_option_parsing() -> None:
+    assert parse_package_path("pkg=/x/y") == ("pkg", Path("/x/y"))
+    for bad in ("pkg", "=dir", "pkg=", "a/b=dir"):
+        with pytest.raises(ConfigError):
+            parse_package_path(bad)
+
+
+def test_robot_description_topic_names() -> None:
+    assert urdf.is_robot_description("/robot_description")
+    assert urdf.is_robot_description("/tb1/robot_description")
+    assert not urdf.is_robot_description("/robot_description_semantic")
+
+
+OBJ = b"""mtllib {mtl}
+v 0 0 0
+v 1 0 0
+v 0 1 0
+vt 0 0
+vt 1 0
+vt 0 1
+usemtl m
+f 1/1 2/2 3/3
+"""
+
+
+def test_obj_materials_and_textures_come_through_the_resolver(tmp_path: Path) -> None:
+    texture = tmp_path / "tex.png"
+    pixels = np.array([[[255, 0, 0], [0, 255, 0]], [[0, 0, 255], [9, 9, 9]]], np.uint8)
+    Image.fromarray(pixels).save(texture)
+    served = {
+        "package://remote/m/red.obj": OBJ.replace(b"{mtl}", b"red.mtl"),
+        "package://remote/m/red.mtl": b"newmtl m\nKd 1 0 0\n",
+        "package://remote/m/tex.obj": OBJ.replace(b"{mtl}", b"tex.mtl"),
+        "package://remote/m/tex.mtl": b"newmtl m\nKd 1 1 1\nmap_Kd tex.png\n",
+        "package://remote/m/tex.png": texture.read_bytes(),
+    }
+    resolver = ResourceResolver(fetch=served.get)
+    xml = mesh_urdf(("package://remote/m/red.obj", "1 1 1"), ("package://remote/m/tex.obj", "1 1 1"))
+    items = by_path(convert(xml, make_ctx("r", resolver)))
+    red = mesh_of(items, "l0")
+    assert values(red.albedo_factor).tolist() == [packed([255, 0, 0, 255])]
+    assert red.albedo_texture_buffer is None
+    textured = mesh_of(items, "l1")
+    assert textured.albedo_factor is None
+    # trimesh's uv origin is bottom-left, Rerun's top-left: v is flipped.
+    np.testing.assert_allclose(values(textured.vertex_texcoords), [[0, 1], [1, 1], [0, 0]])
+    assert values(textured.albedo_texture_buffer)[0][:4].tolist() == [255, 0, 0, 255]
