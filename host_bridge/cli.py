@@ -181,6 +181,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             log_urdf_file(args, dispatcher)
         if args.bag is not None:
             convert_bag(args, dispatcher, stop)
+            if args.serve_web and not stop.is_set():
+                # The web viewer lives in this process: keep serving the converted bag.
+                print("bag converted; serving the web viewer until Ctrl-C", file=sys.stderr)
+                stop.wait(args.duration)
         elif args.demo:
             from host_bridge.demo import run_demo
 

@@ -109,3 +109,26 @@ def test_endpoint_that_does_not_answer_is_named(shared_data: Path) -> None:
         stderr = relay.stderr.read()
     assert f"no zenoh peer answers at {dead}" in stderr
     assert "no host subscribed within 6.0 s" in stderr
+
+
+def test_rerun_addr_streams_to_a_running_rerun_server(shared_data: Path, tmp_path: Path) -> None:
+    """`--rerun-addr` against a real Rerun gRPC server (the rerun CLI, saving what it receives)."""
+    import shutil
+    import sys
+
+    rerun = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+    if rerun is None:
+        pytest.skip("rerun CLI not on PATH")
+    port = free_port()
+    received = tmp_path / "received.rrd"
+    bag = shared_data / "hokuyo_scan_ccny" / "laser_scan_matcher_demo.bag"
+    with running([rerun, "--port", str(port), "--save", str(received)]) as server:
+        time.sleep(2.0)
+        assert host_main(["--bag", str(bag), "--rerun-addr",
+                          f"rerun+http://127.0.0.1:{port}/proxy"]) == 0
+        time.sleep(2.0)
+        server.send_signal(signal.SIGINT)
+        server.wait(timeout=30)
+    with pytest.warns(Warning, match="no footer"):
+        rows = entity_rows(received)["/robot/scan"]
+    assert scans(rows) == expected_scans(bag)
