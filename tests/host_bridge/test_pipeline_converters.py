@@ -176,9 +176,8 @@ def test_every_registered_type_has_a_converter_that_handles_a_default_message(
 ) -> None:
     """Walks the registry: each converter accepts a default-constructed message of its type
     (or refuses it with a ConvertError, never another exception)."""
-    from host_bridge.errors import ConvertError
-
     from host_bridge.decode import base_typestore
+    from host_bridge.errors import ConvertError
 
     store = base_typestore()
     spec = default_registry().get(msgtype)
