@@ -191,6 +191,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             run_demo(args, lambda: run_live(args, dispatcher, stop), stop)
         else:
             run_live(args, dispatcher, stop)
+        dispatcher.close()
         print(dispatcher.summary(), file=sys.stderr)
     except (HostError, RelayError) as err:
         print(f"swanky-host: error: {err}", file=sys.stderr)

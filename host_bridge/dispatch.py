@@ -8,6 +8,7 @@ warned about once per (robot, topic, error kind), counted, and shown in Rerun un
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ from host_bridge.registry import (
     LogItem,
     Registry,
     default_registry,
+    slow_converters,
 )
 from host_bridge.sink import RerunSink
 from robot_relay.wire import RawMessage
@@ -96,6 +98,7 @@ class Dispatcher:
         # Host-wide defaults every robot's state starts with (the mesh resolver).
         self._robot_state_defaults = dict(robot_state or {})
         self._warned: set[tuple[str, str, str]] = set()
+        self._slow = _SlowWorker(self, slow_converters())
 
     def robot_state(self, robot: str) -> dict[str, Any]:
         state = self._robot_state.get(robot)
@@ -212,6 +215,11 @@ class Dispatcher:
             self.sink.log(entries, ctx.times)
             counters.converted += 1
         counters.convert_seconds += time.perf_counter() - started
+        self._slow.submit(msgtype, decoded[-1][0], decoded[-1][1], decoded[-1][2])
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Let the slow worker finish what it holds (a saved .rrd then has the walls)."""
+        self._slow.close(timeout)
 
     def summary(self) -> str:
         """A table of every topic seen: type, received, converted, dropped, warnings."""
@@ -224,3 +232,54 @@ class Dispatcher:
         widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
         return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(r, widths, strict=False)) for r in rows)
 
+
+class _SlowWorker:
+    """One thread running slow converters on the latest message of each topic only: a map
+    that changes faster than its walls can be computed skips intermediate versions."""
+
+    def __init__(self, dispatcher: Dispatcher, specs: Mapping[str, Any]) -> None:
+        self._dispatcher = dispatcher
+        self._specs = specs
+        self._latest: dict[tuple[str, str], tuple[Any, Any, ConvertContext, RawMessage]] = {}
+        self._cond = threading.Condition()
+        self._busy = False
+        self._closed = False
+        self._thread: threading.Thread | None = None
+
+    def submit(self, msgtype: str, msg: Any, ctx: ConvertContext, raw: RawMessage) -> None:
+        spec = self._specs.get(msgtype)
+        if spec is None:
+            return
+        with self._cond:
+            self._latest[(raw.robot, raw.topic)] = (spec, msg, ctx, raw)
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="slow-converters",
+                                                daemon=True)
+                self._thread.start()
+            self._cond.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._latest and not self._closed:
+                    self._cond.wait()
+                if not self._latest:
+                    return
+                _, (spec, msg, ctx, raw) = self._latest.popitem()
+                self._busy = True
+            try:
+                self._dispatcher.sink.log(spec.convert(msg, ctx), ctx.times)
+            except PartialConvertError as err:
+                self._dispatcher.sink.log(err.items, ctx.times)
+                self._dispatcher.warn(raw.robot, raw.topic, err)
+            except Exception as err:
+                self._dispatcher.warn(raw.robot, raw.topic, err)
+            with self._cond:
+                self._busy = False
+                self._cond.notify_all()
+
+    def close(self, timeout: float) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+            self._cond.wait_for(lambda: not self._latest and not self._busy, timeout)

@@ -169,6 +169,7 @@ def default_registry() -> Registry:
         logs,
         markers,
         nav,
+        occupancy,
         odometry,
         pointcloud,
         proximity,
@@ -189,4 +190,13 @@ def default_registry() -> Registry:
                    camera, geometry, nav, logs, diagnostics):
         registry.add_all(module.CONVERTERS)
     registry.add_for_topics("std_msgs/msg/String", urdf.is_robot_description, urdf.SPEC)
+    registry.add_all(occupancy.CONVERTERS)
     return registry
+
+
+def slow_converters() -> dict[str, ConverterSpec]:
+    """Converters too heavy for the receive path (wall meshes from a 4000x4000 map): the
+    dispatcher runs them after the fast ones, in a worker that keeps only the latest message."""
+    from host_bridge.converters import walls
+
+    return dict(walls.SLOW_CONVERTERS)

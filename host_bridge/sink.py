@@ -4,6 +4,7 @@ the only place that calls ``log`` / ``send_columns``."""
 from __future__ import annotations
 
 import shutil
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,7 +45,8 @@ class RerunSink:
         rr.set_log_tick_enabled(False, recording=self.recording)
         self.web_url: str | None = None
         self._open(options)
-        self._times: Mapping[str, int] | None = None
+        # Rerun's time context is per thread (the dispatcher and the slow-converter worker).
+        self._local = threading.local()
 
     def _open(self, options: SinkOptions) -> None:
         sinks: list[rr.sinks.LogSinkLike] = []
@@ -77,12 +79,12 @@ class RerunSink:
             self.web_url = f"http://127.0.0.1:{options.web_port or 9090}/?url={grpc_url}"
 
     def _set_times(self, times: Mapping[str, int]) -> None:
-        if times == self._times:
+        if times == getattr(self._local, "times", None):
             return
         self.recording.reset_time()
         for name, ns in times.items():
             self.recording.set_time(name, timestamp=np.datetime64(ns, "ns"))
-        self._times = times
+        self._local.times = times
 
     def log(self, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
         for entry in entries:

@@ -99,3 +99,38 @@ def test_sequence_gaps_count_as_drops(dispatcher: Dispatcher) -> None:
     data = float_cdr(1.0)
     dispatcher.dispatch([raw("/s", "std_msgs/msg/Float64", data, i, sequence=i) for i in (0, 1, 4)])
     assert dispatcher.counters[("tb3", "/s")].sequence_gaps == 2
+
+
+def test_wall_meshes_are_built_off_the_receive_path_and_land_in_the_recording(
+    dispatcher: Dispatcher, tmp_path: Path
+) -> None:
+    """A map goes through the fast GridMap converter at once; its walls come from the slow
+    worker, and closing the dispatcher waits for them."""
+    import numpy as np
+
+    cells = np.zeros((60, 60), dtype=np.int8)
+    cells[10, 10:50] = 100  # a 2 m wall along x at y = 0.5 m
+    cells[10:50, 10] = 100  # and one along y: an L corner
+    info = T["nav_msgs/msg/MapMetaData"](
+        map_load_time=T["builtin_interfaces/msg/Time"](sec=0, nanosec=0), resolution=0.05,
+        width=60, height=60,
+        origin=T["geometry_msgs/msg/Pose"](
+            position=T["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+            orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        ),
+    )
+    header = T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="map"
+    )
+    grid = T["nav_msgs/msg/OccupancyGrid"](header=header, info=info, data=cells.ravel())
+    data = bytes(STORE.serialize_cdr(grid, "nav_msgs/msg/OccupancyGrid"))
+    dispatcher.dispatch([raw("/map", "nav_msgs/msg/OccupancyGrid", data, 1)])
+    dispatcher.close()
+    dispatcher.sink.close()
+    rows = entity_rows(tmp_path / "out.rrd")
+    assert rows["/tb3/map"][0]["GridMap:cell_size"] == [pytest.approx(0.05)]
+    vertices = np.asarray(rows["/tb3/map/walls"][-1]["Mesh3D:vertex_positions"])
+    assert len(vertices) == 2 * 24  # two walls, one box each
+    assert vertices[:, 0].max() == pytest.approx(2.5, abs=0.1)
+    assert vertices[:, 1].max() == pytest.approx(2.5, abs=0.1)
+    assert rows["/tb3/map/walls"][-1]["ros_time"] == 1_000_000_000

@@ -1,0 +1,116 @@
+"""Wall extraction on a 4000x4000 synthetic floor plan, against bare Canny + HoughLinesP.
+
+The baseline is one ``cv2.Canny`` + ``cv2.HoughLinesP`` call on the same grid image, the part of
+the pipeline OpenCV does in C++; the ratio shows what the blur, the merge, the mesh and the
+Rerun archetype add on top. Run: ``.venv/bin/python benchmarks/walls_4000.py``.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from collections.abc import Callable
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+from rosbags.typesys import Stores, get_typestore
+
+from host_bridge.converters import walls
+from host_bridge.converters.occupancy import grid_from_msg
+from host_bridge.registry import ConvertContext, LogEntry
+
+SIZE = 4000
+RESOLUTION = 0.05
+ROOM = 100  # cells: 5 m rooms
+DOOR = 18  # cells: 0.9 m doors
+REPEATS = 3
+
+
+def floor_plan(rng: np.random.Generator) -> npt.NDArray[np.int8]:
+    """Rooms on a 5 m pitch with two-cell walls, doors, diagonal walls and sensor noise."""
+    cells = np.full((SIZE, SIZE), -1, dtype=np.int8)
+    inner = slice(ROOM // 2, SIZE - ROOM // 2)
+    cells[inner, inner] = 0
+    lines = np.arange(ROOM // 2, SIZE - ROOM // 2 + 1, ROOM)
+    for offset in (0, 1):
+        cells[lines[:, None] + offset, inner] = 100
+        cells[inner, lines[None, :] + offset] = 100
+    # One door per room side of every inner wall line, at a random place along it.
+    starts = lines[:-1]
+    door_at = starts + rng.integers(10, ROOM - DOOR - 10, size=(lines.size - 2, starts.size))
+    across = lines[1:-1, None, None, None] + np.array([0, 1])[None, None, :, None]
+    along = door_at[:, :, None, None] + np.arange(DOOR)
+    cells[across, along] = 0
+    cells[along, across] = 0
+    mask = np.zeros((SIZE, SIZE), dtype=np.uint8)
+    for k in range(0, starts.size - 1, 3):
+        x0, y0 = int(starts[k]) + 20, int(starts[k + 1]) + 20
+        cv2.line(mask, (x0, y0), (x0 + 60, y0 + int(60 * math.tan(math.radians(37)))), 255, 2)
+    cells[mask > 0] = 100
+    noise = rng.random((SIZE, SIZE)) < 0.001
+    cells[noise & (cells == 0)] = 100
+    return cells
+
+
+def median_time(fn: Callable[[], object]) -> float:
+    times = []
+    for _ in range(REPEATS):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main() -> None:
+    cells = floor_plan(np.random.default_rng(7))
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    t = store.types
+    msg = t["nav_msgs/msg/OccupancyGrid"](
+        header=t["std_msgs/msg/Header"](
+            stamp=t["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="map"
+        ),
+        info=t["nav_msgs/msg/MapMetaData"](
+            map_load_time=t["builtin_interfaces/msg/Time"](sec=0, nanosec=0),
+            resolution=RESOLUTION,
+            width=SIZE,
+            height=SIZE,
+            origin=t["geometry_msgs/msg/Pose"](
+                position=t["geometry_msgs/msg/Point"](x=-100.0, y=-100.0, z=0.0),
+                orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+            ),
+        ),
+        data=cells.ravel(),
+    )
+    image = walls.grid_to_image(cells)
+
+    def baseline() -> npt.NDArray[Any] | None:
+        edges = cv2.Canny(image, 150.0, 250.0, L2gradient=True)
+        return cv2.HoughLinesP(edges, 1.0, math.pi / 180.0, 8, minLineLength=4.0, maxLineGap=2.0)
+
+    def context() -> ConvertContext:
+        # A fresh robot state each run: the digest cache would otherwise skip the work.
+        return ConvertContext(robot="bench", topic="/map", entity_path="/bench/map", times={})
+
+    def extraction() -> list[LogEntry]:
+        return walls.wall_items(msg, context())
+
+    segments = walls.wall_segments(
+        grid_from_msg(msg, context()), walls.WallOptions.from_options({}, RESOLUTION, "/map")
+    )
+    raw = baseline()
+    base_s = median_time(baseline)
+    full_s = median_time(extraction)
+    print(
+        f"map {SIZE}x{SIZE} cells at {RESOLUTION} m: baseline finds "
+        f"{0 if raw is None else len(raw)} raw segments, wall_items {segments.shape[0]} walls"
+    )
+    print(f"baseline cv2.Canny + cv2.HoughLinesP: {base_s * 1e3:8.1f} ms")
+    print(f"walls.wall_items (image, blur, Canny, Hough, merge, mesh, hash): {full_s * 1e3:8.1f} ms")
+    print(f"ratio wall_items / baseline: {full_s / base_s:.2f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,219 @@
+"""nav_msgs/OccupancyGrid -> ``rr.GridMap``; map_msgs/OccupancyGridUpdate patches the last grid.
+
+The grid travels to the viewer as one byte per cell (the int8 value, so -1 becomes 255) and the
+viewer applies its own RViz palettes (``Colormap.RvizMap`` / ``RvizCostmap``) on the GPU: the
+colours are RViz's (free white, occupied black, a grey ramp between, unknown grey-green; costmap
+blue-to-red with lethal/inscribed highlights and free cells transparent) and a 4000x4000 map
+costs one 16 MB flip-copy rather than an RGBA expansion.
+
+Geometry: ``info.origin`` is the pose of the outer corner of cell (0, 0) in the header frame,
+and that is exactly what GridMap's translation + quaternion mean for the lower-left corner of
+its image. Rerun draws image row 0 at the top (far from that corner) while ROS row 0 lies at
+the origin, so rows are flipped.
+
+Options (per grid topic): ``color_scheme`` "map" | "costmap" | "raw" (default: "costmap" when
+the topic name contains "costmap", else "map"; "raw" shows the byte values as grey levels),
+``opacity`` and ``draw_order`` (by topic name: 1.0 and 0 for maps, 0.7 and 1 for costmaps, 0.7
+and 2 for local costmaps, so costmaps layer over the map), plus the wall options of
+``walls.py``.
+
+State: the last grid of every topic lives in ``ctx.robot_state[GRIDS_KEY][topic]`` as an
+immutable :class:`Grid`, because its updates arrive on another topic (``/costmap_updates``
+patches ``/costmap``; option ``grid_topic`` overrides that naming rule). A patch builds a new
+Grid instead of writing into the old one, so a worker thread may read a grid while the receive
+path replaces it.
+
+Dispatcher contract: :data:`CONVERTERS` here are the fast path (a few ms even for a large map;
+validation, one flip-copy). The wall meshes built from the same messages are slow (see
+``walls.py``) and are offered separately as ``walls.SLOW_CONVERTERS`` for the same two types;
+the dispatcher runs those in a latest-only worker after this module's converter has handled
+the same message (an update's walls read the grid this module patched).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import rerun as rr
+
+from host_bridge.converters._common import frame_components, xyz, xyzw
+from host_bridge.errors import ConvertError
+from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
+
+GRIDS_KEY = "occupancy_grids"
+UPDATES_SUFFIX = "_updates"
+
+_COLORMAPS: dict[str, rr.components.Colormap | None] = {
+    "map": rr.components.Colormap.RvizMap,
+    "costmap": rr.components.Colormap.RvizCostmap,
+    "raw": None,
+}
+
+
+@dataclass(frozen=True, slots=True)
+class Grid:
+    """One occupancy grid as the converters need it; ``cells`` is read-only, row 0 at the origin.
+
+    ``options`` are the grid topic's own, so an update (whose topic has its own options)
+    renders the patched grid the way the grid topic asked for.
+    """
+
+    topic: str
+    entity_path: str
+    frame: str | None
+    cells: npt.NDArray[np.int8]
+    resolution: float
+    translation: npt.NDArray[np.float64]
+    quaternion: npt.NDArray[np.float64]
+    options: Mapping[str, Any]
+
+
+def _unit_quaternion(orientation: Any, topic: str) -> npt.NDArray[np.float64]:
+    q = np.array(xyzw(orientation), dtype=np.float64)
+    norm = float(np.linalg.norm(q))
+    if not math.isfinite(norm):
+        msg = f"{topic}: info.origin.orientation is not finite ({q.tolist()}); fix the map's origin"
+        raise ConvertError(msg)
+    return q / norm
+
+
+def grid_from_msg(msg: Any, ctx: ConvertContext) -> Grid:
+    """Validated view of an OccupancyGrid (no copy of the cells)."""
+    info = msg.info
+    resolution = float(info.resolution)
+    if not (math.isfinite(resolution) and resolution > 0.0):
+        text = (
+            f"{ctx.topic}: info.resolution is {resolution}; a grid needs a positive cell size in "
+            "metres per cell (fix the map publisher's resolution parameter)"
+        )
+        raise ConvertError(text)
+    width, height = int(info.width), int(info.height)
+    data = np.asarray(msg.data, dtype=np.int8)
+    if data.size != width * height:
+        text = (
+            f"{ctx.topic}: data has {data.size} cells but info says {width}x{height} = "
+            f"{width * height}; the message is inconsistent and is skipped"
+        )
+        raise ConvertError(text)
+    translation = np.array(xyz(info.origin.position), dtype=np.float64)
+    if not np.isfinite(translation).all():
+        text = f"{ctx.topic}: info.origin.position is not finite ({translation.tolist()})"
+        raise ConvertError(text)
+    cells = data.reshape(height, width)
+    cells.flags.writeable = False
+    return Grid(
+        topic=ctx.topic,
+        entity_path=ctx.entity_path,
+        frame=ctx.frame(msg.header.frame_id),
+        cells=cells,
+        resolution=resolution,
+        translation=translation,
+        quaternion=_unit_quaternion(info.origin.orientation, ctx.topic),
+        options=ctx.options,
+    )
+
+
+def color_scheme(grid: Grid) -> str:
+    return str(grid.options.get("color_scheme", "costmap" if "costmap" in grid.topic else "map"))
+
+
+def grid_map(grid: Grid) -> rr.GridMap:
+    scheme = color_scheme(grid)
+    if scheme not in _COLORMAPS:
+        text = (
+            f"{grid.topic}: option color_scheme is {scheme!r}; choose one of "
+            f"{', '.join(_COLORMAPS)}"
+        )
+        raise ConvertError(text)
+    costmap = "costmap" in grid.topic
+    height, width = grid.cells.shape
+    return rr.GridMap(
+        # tobytes of the flipped view is the one copy; Rerun takes bytes ~5x faster than arrays.
+        data=np.flipud(grid.cells).tobytes(),
+        format=rr.components.ImageFormat(
+            width=width, height=height, color_model="L", channel_datatype="U8"
+        ),
+        cell_size=grid.resolution,
+        translation=grid.translation,
+        quaternion=rr.Quaternion(xyzw=grid.quaternion),
+        opacity=float(grid.options.get("opacity", 0.7 if costmap else 1.0)),
+        draw_order=float(
+            grid.options.get("draw_order", (1.0 + ("local" in grid.topic)) if costmap else 0.0)
+        ),
+        colormap=_COLORMAPS[scheme],
+    )
+
+
+def grid_items(grid: Grid) -> list[LogEntry]:
+    # A 0x0 grid (a costmap before its first update cycle) has nothing to draw.
+    if grid.cells.size == 0:
+        return []
+    return [LogItem(grid.entity_path, (*frame_components(grid.frame), grid_map(grid)))]
+
+
+def _store(ctx: ConvertContext, grid: Grid) -> None:
+    ctx.robot_state.setdefault(GRIDS_KEY, {})[grid.topic] = grid
+
+
+def convert_grid(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+    grid = grid_from_msg(msg, ctx)
+    _store(ctx, grid)
+    return grid_items(grid)
+
+
+def grid_for_update(ctx: ConvertContext) -> Grid:
+    """The stored grid an update on ``ctx.topic`` patches (``T_updates`` patches ``T``)."""
+    target = ctx.options.get("grid_topic")
+    if target is None:
+        if not ctx.topic.endswith(UPDATES_SUFFIX):
+            text = (
+                f"{ctx.topic}: cannot tell which grid this OccupancyGridUpdate patches; name the "
+                f"topic <grid topic>{UPDATES_SUFFIX} or set its option grid_topic"
+            )
+            raise ConvertError(text)
+        target = ctx.topic[: -len(UPDATES_SUFFIX)]
+    grid: Grid | None = ctx.robot_state.get(GRIDS_KEY, {}).get(target)
+    if grid is None:
+        text = (
+            f"{ctx.topic}: no OccupancyGrid received yet on {target}; updates patch the last "
+            "full grid, so they are dropped until one arrives"
+        )
+        raise ConvertError(text)
+    return grid
+
+
+def patched(grid: Grid, msg: Any, topic: str) -> Grid:
+    """A new Grid with the update's rectangle written in (copy-on-write, see module doc)."""
+    x, y, width, height = int(msg.x), int(msg.y), int(msg.width), int(msg.height)
+    rows, cols = grid.cells.shape
+    if x < 0 or y < 0 or x + width > cols or y + height > rows:
+        text = (
+            f"{topic}: update rectangle x={x} y={y} {width}x{height} does not fit the "
+            f"{cols}x{rows} grid of {grid.topic}; the grid changed size, wait for the next full grid"
+        )
+        raise ConvertError(text)
+    patch = np.asarray(msg.data, dtype=np.int8)
+    if patch.size != width * height:
+        text = f"{topic}: update has {patch.size} cells for a {width}x{height} rectangle"
+        raise ConvertError(text)
+    cells = grid.cells.copy()
+    cells[y : y + height, x : x + width] = patch.reshape(height, width)
+    cells.flags.writeable = False
+    return replace(grid, cells=cells)
+
+
+def convert_update(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+    grid = patched(grid_for_update(ctx), msg, ctx.topic)
+    _store(ctx, grid)
+    return grid_items(grid)
+
+
+CONVERTERS: dict[str, ConverterSpec] = {
+    "nav_msgs/msg/OccupancyGrid": ConverterSpec(convert_grid),
+    "map_msgs/msg/OccupancyGridUpdate": ConverterSpec(convert_update),
+}

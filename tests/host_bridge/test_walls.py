@@ -1,0 +1,358 @@
+"""Wall extraction: segments against drawn walls, the merge's rules and invariants, the box mesh
+and how it lines up with the GridMap of the same grid."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+import pytest
+import rerun as rr
+
+from host_bridge.converters import occupancy, walls
+from host_bridge.registry import LogItem
+from tests.host_bridge.sensor_test_support import archetype, flat, log_item, make_ctx
+from tests.host_bridge.test_occupancy import grid_msg, shared_contexts, update_msg
+
+Float64Array = npt.NDArray[np.float64]
+
+RES = 0.05
+ORIGIN = (-3.0, -2.0, 0.0)
+# Walls drawn one cell thick, as (col0, row0, col1, row1) cells: an L corner, two parallel walls
+# 6 cells (0.3 m) apart, a wall at atan2(36, 48) = 36.87 degrees, a vertical wall.
+TRUTH_CELLS = {
+    "corner_x": (20, 20, 80, 20),
+    "corner_y": (20, 20, 20, 80),
+    "parallel_a": (110, 30, 180, 30),
+    "parallel_b": (110, 36, 180, 36),
+    "diagonal": (100, 60, 148, 96),
+    "vertical": (180, 60, 180, 140),
+}
+# Grid-local metres of the cell centres the walls run through.
+TRUTH = {name: (np.array(cells, dtype=np.float64) + 0.5) * RES for name, cells in TRUTH_CELLS.items()}
+
+
+def floor_plan(names: tuple[str, ...] = tuple(TRUTH_CELLS)) -> npt.NDArray[np.int8]:
+    """Free 200x160 grid with the named walls, and an unknown block whose frontier is no wall."""
+    mask = np.zeros((160, 200), dtype=np.uint8)
+    for name in names:
+        x0, y0, x1, y1 = TRUTH_CELLS[name]
+        cv2.line(mask, (x0, y0), (x1, y1), 255, 1)
+    cells = np.zeros((160, 200), dtype=np.int8)
+    cells[110:150, 30:80] = -1
+    cells[mask > 0] = 100
+    return cells
+
+
+def default_options() -> walls.WallOptions:
+    return walls.WallOptions.from_options({}, RES, "/map")
+
+
+def as_grid(cells: npt.NDArray[np.int8]) -> occupancy.Grid:
+    return occupancy.grid_from_msg(grid_msg(cells, resolution=RES), make_ctx("/map"))
+
+
+@pytest.fixture(scope="module")
+def segments() -> Float64Array:
+    return walls.wall_segments(as_grid(floor_plan()), default_options())
+
+
+def endpoint_error(segment: Float64Array, truth: Float64Array) -> float:
+    """Largest endpoint distance, for the better of the two endpoint pairings."""
+    straight = max(np.hypot(*(segment[:2] - truth[:2])), np.hypot(*(segment[2:] - truth[2:])))
+    crossed = max(np.hypot(*(segment[:2] - truth[2:])), np.hypot(*(segment[2:] - truth[:2])))
+    return float(min(straight, crossed))
+
+
+def matched(segments: Float64Array) -> dict[str, Float64Array]:
+    return {
+        name: min(segments, key=lambda s: endpoint_error(s, truth)) for name, truth in TRUTH.items()
+    }
+
+
+def angle_deg(segment: Float64Array) -> float:
+    return math.degrees(math.atan2(segment[3] - segment[1], segment[2] - segment[0])) % 180.0
+
+
+def test_walls_match_the_drawn_walls_within_one_cell(segments: Float64Array) -> None:
+    # One segment per wall: no double edges, no frontier of the unknown block, nothing extra.
+    assert segments.shape == (6, 4)
+    found = matched(segments)
+    assert len({tuple(s) for s in found.values()}) == 6
+    for name, segment in found.items():
+        assert endpoint_error(segment, TRUTH[name]) <= RES, name
+
+
+def test_corner_is_not_folded_and_parallel_walls_stay_apart(segments: Float64Array) -> None:
+    found = matched(segments)
+    assert angle_deg(found["corner_x"]) == pytest.approx(0.0, abs=0.5)
+    assert angle_deg(found["corner_y"]) == pytest.approx(90.0, abs=0.5)
+    a, b = found["parallel_a"], found["parallel_b"]
+    assert angle_deg(a) == pytest.approx(0.0, abs=0.5)
+    assert angle_deg(b) == pytest.approx(0.0, abs=0.5)
+    assert (a[1] + a[3]) / 2 - (b[1] + b[3]) / 2 == pytest.approx(-0.3, abs=RES / 2)
+
+
+def test_diagonal_angle_and_vertical_wall(segments: Float64Array) -> None:
+    found = matched(segments)
+    assert angle_deg(found["diagonal"]) == pytest.approx(math.degrees(math.atan2(36, 48)), abs=2.0)
+    vertical = found["vertical"]
+    assert vertical[0] == pytest.approx(vertical[2], abs=1e-9)
+    assert vertical[0] == pytest.approx(TRUTH["vertical"][0], abs=RES / 2)
+
+
+def merge(segments: npt.ArrayLike, **overrides: float) -> Float64Array:
+    settings = {"angle_deg": 5.0, "distance": 0.225, "gap": 0.35} | overrides
+    return walls.merge_segments(segments, **settings)
+
+
+def test_merged_wall_is_all_endpoints_projected_on_the_weighted_line() -> None:
+    # Lengths 2 and 1: the centroid line sits at y = (2 * 0 + 1 * 0.1) / 3.
+    out = merge([[0.0, 0.0, 2.0, 0.0], [3.1, 0.1, 2.1, 0.1]])
+    np.testing.assert_allclose(out, [[0.0, 0.1 / 3, 3.1, 0.1 / 3]], atol=1e-12)
+
+
+def test_vertical_fragments_merge_into_one_vertical_wall() -> None:
+    out = merge([[1.0, 0.0, 1.0, 1.0], [1.04, 2.0, 1.04, 1.1], [1.0, 2.05, 1.0, 3.0]])
+    # Length-weighted centroid x: (1.0 * 1 + 1.04 * 0.9 + 1.0 * 0.95) / 2.85.
+    x = (1.0 + 1.04 * 0.9 + 0.95) / 2.85
+    np.testing.assert_allclose(out, [[x, 0.0, x, 3.0]], atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "pair",
+    [
+        [[0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]],  # an L corner
+        [[0.0, 0.0, 1.0, 0.0], [1.0, 0.0, 1.0 + math.cos(0.2), math.sin(0.2)]],  # 11.5 degree bend
+        [[0.0, 0.0, 2.0, 0.0], [0.0, 0.3, 2.0, 0.3]],  # parallel walls 0.3 m apart
+        [[0.0, 0.0, 1.0, 0.0], [1.9, 0.0, 3.0, 0.0]],  # a 0.9 m door between collinear walls
+    ],
+)
+def test_merge_leaves_walls_that_are_not_one_wall_alone(pair: list[list[float]]) -> None:
+    out = merge(pair)
+    assert out.shape == (2, 4)
+    expected = {tuple(sorted([(a, b), (c, d)])) for a, b, c, d in pair}
+    assert {tuple(sorted([(a, b), (c, d)])) for a, b, c, d in out.tolist()} == expected
+
+
+def test_fragment_between_parallel_walls_joins_its_own_wall() -> None:
+    # Both edges of wall A (y = 0) and of wall B (y = 0.3), plus a piece of B's lower edge past
+    # the end of B. That piece is nearer to A's upper edge (0.2 m) than to B's (0.3 m along), so
+    # it must not be merged into A along with A's own edges.
+    out = merge(
+        [
+            [0.0, -0.05, 3.0, -0.05],
+            [0.0, 0.05, 3.0, 0.05],
+            [0.0, 0.35, 2.0, 0.35],
+            [0.0, 0.25, 2.0, 0.25],
+            [2.3, 0.25, 3.0, 0.25],
+        ]
+    )
+    # B's centroid line: (2 * 0.35 + 2 * 0.25 + 0.7 * 0.25) / 4.7.
+    b = (0.7 + 0.5 + 0.175) / 4.7
+    np.testing.assert_allclose(out, [[0.0, 0.0, 3.0, 0.0], [0.0, b, 3.0, b]], atol=1e-12)
+
+
+def test_segments_that_merge_with_nothing_come_out_bit_exact() -> None:
+    lone = [0.123456789, 5.2, 1.987654321, 6.3]
+    out = merge([[0.0, 0.0, 1.0, 0.0], [1.1, 0.0, 2.0, 0.0], lone])
+    assert out.shape == (2, 4)
+    assert lone in out.tolist()
+
+
+def test_merge_ignores_input_order_and_merging_again_changes_nothing() -> None:
+    cells = floor_plan()
+    pixels = walls.detect_segments(walls.grid_to_image(cells))
+    raw = (pixels + 0.5) * RES
+    assert raw.shape[0] > 20
+    out = merge(raw)
+    rng = np.random.default_rng(3)
+    shuffled = raw[rng.permutation(raw.shape[0])]
+    flip = rng.random(raw.shape[0]) < 0.5
+    shuffled[flip] = shuffled[flip][:, [2, 3, 0, 1]]
+    np.testing.assert_array_equal(merge(shuffled), out)
+    np.testing.assert_array_equal(merge(out), out)
+
+
+def test_join_corners_extends_short_ends_to_the_crossing_wall() -> None:
+    segs = np.array(
+        [
+            [0.1, 0.0, 2.0, 0.0],  # L corner with the next wall, 0.1 m short
+            [0.0, 0.12, 0.0, 2.0],
+            [1.0, 0.08, 1.0, 1.0],  # T junction onto the first wall, 0.08 m short
+            [3.0, 0.0, 3.0, 1.0],  # 1 m past the first wall's end: out of reach
+        ]
+    )
+    out = walls.join_corners(segs, reach=0.2)
+    np.testing.assert_allclose(
+        out,
+        [[0.0, 0.0, 2.0, 0.0], [0.0, 0.0, 0.0, 2.0], [1.0, 0.0, 1.0, 1.0], [3.0, 0.0, 3.0, 1.0]],
+        atol=1e-12,
+    )
+
+
+def test_thick_walls_meet_at_corners_and_junctions() -> None:
+    # Two-cell walls: an L corner and a T junction whose edges stop at the crossing wall.
+    cells = np.zeros((120, 120), dtype=np.int8)
+    cells[20:22, 20:90] = 100
+    cells[20:90, 20:22] = 100
+    cells[60:62, 20:90] = 100
+    segments = walls.wall_segments(as_grid(cells), default_options()) / RES - 0.5
+    assert segments.shape == (3, 4)
+    vertical = segments[np.abs(segments[:, 0] - segments[:, 2]) < 1.0][0]
+    top, stem = sorted(segments[np.abs(segments[:, 1] - segments[:, 3]) < 1.0].tolist())
+    # All three centre lines within a cell of the walls' centres (20.5 and 60.5 in cells) ...
+    assert vertical[0] == pytest.approx(20.5, abs=1.0)
+    assert top[1] == pytest.approx(20.5, abs=1.0)
+    assert stem[1] == pytest.approx(60.5, abs=1.0)
+    # ... and joined: the corner is one point, the stem starts on the vertical wall's line.
+    assert min(vertical[1], vertical[3]) == pytest.approx(top[1], abs=1e-9)
+    assert top[0] == pytest.approx(vertical[0], abs=1e-9)
+    assert stem[0] == pytest.approx(vertical[0], abs=1e-9)
+
+
+def test_box_mesh_geometry_and_pose() -> None:
+    height, thickness = 0.5, 0.1
+    yaw = math.pi / 2
+    mesh = walls.segments_to_mesh(
+        [[0.0, 0.0, 2.0, 0.0]],
+        [1.0, 2.0, 0.0],
+        [0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)],
+        height,
+        thickness,
+    )
+    assert mesh.vertices.shape == (24, 3)
+    assert mesh.triangles.shape == (12, 3)
+    # Local box: x in [-t/2, 2 + t/2], y in [-t/2, t/2]; turned 90 degrees, (x, y) -> (-y, x).
+    corners = {
+        (1.0 - y, 2.0 + x, z)
+        for x in (-0.05, 2.05)
+        for y in (-0.05, 0.05)
+        for z in (0.0, height)
+    }
+    found = {tuple(np.round(v, 6)) for v in mesh.vertices.astype(np.float64).tolist()}
+    assert found == {tuple(np.round(c, 6)) for c in corners}
+    # Normals are unit, face outwards and agree with the triangle winding.
+    np.testing.assert_allclose(np.linalg.norm(mesh.normals, axis=1), 1.0, atol=1e-6)
+    tri = mesh.vertices[mesh.triangles].astype(np.float64)
+    winding = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    winding /= np.linalg.norm(winding, axis=1, keepdims=True)
+    np.testing.assert_allclose(winding, mesh.normals[mesh.triangles[:, 0]], atol=1e-6)
+    centre = mesh.vertices.mean(axis=0)
+    assert ((tri.mean(axis=1) - centre) * winding).sum(axis=1).min() > 0.0
+
+
+def point_segment_distance(points: Float64Array, segment: Float64Array) -> Float64Array:
+    a, b = segment[:2], segment[2:]
+    t = np.clip(((points - a) @ (b - a)) / ((b - a) @ (b - a)), 0.0, 1.0)
+    distance: Float64Array = np.hypot(*(points - (a + t[:, None] * (b - a))).T)
+    return distance
+
+
+def yaw_matrix(quaternion: Float64Array) -> Float64Array:
+    yaw = 2.0 * math.atan2(quaternion[2], quaternion[3])
+    return np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 30.0])
+def test_wall_mesh_stands_on_the_occupied_cells_of_the_grid_map(yaw_deg: float) -> None:
+    cells = floor_plan()
+    message = grid_msg(cells, resolution=RES, origin=ORIGIN, yaw=math.radians(yaw_deg))
+    ctx = make_ctx("/map")
+    grid_map = archetype(log_item(occupancy.convert_grid(message, ctx), "/r/map"), rr.GridMap)
+    item = log_item(walls.wall_items(message, ctx), "/r/map/walls")
+    assert flat(archetype(item, rr.CoordinateFrame).frame).tolist() == ["r/map"]
+    mesh = archetype(item, rr.Mesh3D)
+    vertices = flat(mesh.vertex_positions, 3).astype(np.float64)
+    assert vertices.shape == (6 * 24, 3)
+    options = default_options()
+    assert vertices[:, 2].min() == pytest.approx(0.0, abs=1e-6)
+    assert vertices[:, 2].max() == pytest.approx(options.height, abs=1e-6)
+
+    # The GridMap as logged: grid-local (x, y) -> map frame.
+    translation = flat(grid_map.translation, 3)[0, :2].astype(np.float64)
+    rotation = yaw_matrix(flat(grid_map.quaternion, 4)[0].astype(np.float64))
+    cell_size = float(flat(grid_map.cell_size)[0])
+    truth_in_map = {
+        name: np.concatenate([rotation @ t[:2] + translation, rotation @ t[2:] + translation])
+        for name, t in TRUTH.items()
+    }
+    boxes = vertices[:, :2].reshape(6, 24, 2)
+    for box in boxes:
+        # Every vertex of a box lies within half the thickness (and a cell) of one drawn wall.
+        nearest = min(
+            truth_in_map.values(), key=lambda t: point_segment_distance(box, t).max()
+        )
+        assert point_segment_distance(box, nearest).max() <= options.thickness / 2 + RES + 1e-6
+        # Its centre line, mapped back through the GridMap pose, runs over occupied cells.
+        start, end = box[0:2].mean(axis=0), box[2:4].mean(axis=0)
+        line = start + np.linspace(0.0, 1.0, 25)[:, None] * (end - start)
+        col, row = np.floor((line - translation) @ rotation / cell_size).astype(int).T
+        near = np.stack([cells[row + dy, col + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+        assert (near == 100).any(axis=0).all()
+    # And every drawn wall has its box.
+    for truth in truth_in_map.values():
+        assert min(point_segment_distance(box, truth).max() for box in boxes) <= 0.05 + RES
+
+
+def test_unchanged_grid_yields_nothing_and_a_grid_without_walls_clears() -> None:
+    ctx = make_ctx("/map")
+    first = walls.wall_items(grid_msg(floor_plan()), ctx)
+    assert len(first) == 1
+    assert walls.wall_items(grid_msg(floor_plan()), ctx) == []
+    for empty in (np.zeros((160, 200), dtype=np.int8), np.zeros((0, 0), dtype=np.int8)):
+        cleared = walls.wall_items(grid_msg(empty), ctx)
+        assert [(e.path, [type(a) for a in e.archetypes]) for e in cleared if isinstance(e, LogItem)] == [
+            ("/r/map/walls", [rr.Clear])
+        ]
+
+
+@pytest.mark.parametrize(
+    ("topic", "options", "boxes"),
+    [
+        ("/map", {}, 6),
+        ("/robot/map", {}, 6),
+        ("/map", {"walls": False}, 0),
+        ("/global_costmap/costmap", {}, 0),
+        ("/global_costmap/costmap", {"walls": True}, 6),
+    ],
+)
+def test_walls_are_on_by_default_only_for_map_topics(
+    topic: str, options: dict[str, Any], boxes: int
+) -> None:
+    entries = walls.wall_items(grid_msg(floor_plan()), make_ctx(topic, options))
+    if boxes == 0:
+        assert entries == []
+    else:
+        mesh = archetype(log_item(entries, f"/r{topic}/walls"), rr.Mesh3D)
+        assert flat(mesh.vertex_positions, 3).shape == (boxes * 24, 3)
+
+
+def test_update_rebuilds_the_walls_of_the_patched_grid() -> None:
+    grid_ctx, update_ctx = shared_contexts("/map", "/map_updates")
+    corner = grid_msg(floor_plan(("corner_x", "corner_y")))
+    occupancy.convert_grid(corner, grid_ctx)
+    first = archetype(log_item(walls.wall_items(corner, grid_ctx), "/r/map/walls"), rr.Mesh3D)
+    assert flat(first.vertex_positions, 3).shape == (2 * 24, 3)
+    # The update carries the vertical wall; its walls go to the grid's wall entity.
+    full = floor_plan(("corner_x", "corner_y", "vertical"))
+    patch = update_msg(170, 50, full[50:150, 170:190])
+    occupancy.convert_update(patch, update_ctx)
+    entries = walls.update_wall_items(patch, update_ctx)
+    mesh = archetype(log_item(entries, "/r/map/walls"), rr.Mesh3D)
+    assert flat(mesh.vertex_positions, 3).shape == (3 * 24, 3)
+
+
+def test_grid_to_image_keeps_unknown_free_and_occupied_apart() -> None:
+    cells = np.array([[-1, 0, 64, 65, 100, 101, -50]], dtype=np.int8)
+    free, unknown, occupied = walls.FREE, walls.UNKNOWN, walls.OCCUPIED
+    expected = [unknown, free, free, occupied, occupied, unknown, unknown]
+    assert walls.grid_to_image(cells).tolist() == [expected]
+    assert len({walls.UNKNOWN, walls.FREE, walls.OCCUPIED}) == 3
+
+
+def test_slow_converter_keys_match_the_fast_ones() -> None:
+    assert sorted(walls.SLOW_CONVERTERS) == sorted(occupancy.CONVERTERS)
