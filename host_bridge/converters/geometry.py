@@ -134,7 +134,7 @@ def _group_rows(frames: Sequence[str | None]) -> list[tuple[str | None, RowIndex
     return [(frame, np.flatnonzero(labels == i)) for frame, i in index.items()]
 
 
-def _pose_run(
+def pose_run(
     poses: Sequence[Any], headers: Sequence[Any], ctxs: Sequence[ConvertContext],
 ) -> list[LogEntry]:
     """Pose transforms with axes, and the trail rows the run grew."""
@@ -166,13 +166,13 @@ def _pose_run(
 
 
 def _pose_stamped(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    return _pose_run([msg.pose], [msg.header], [ctx])
+    return pose_run([msg.pose], [msg.header], [ctx])
 
 
 def _pose_stamped_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
     if not msgs:
         return []
-    return _pose_run([m.pose for m in msgs], [m.header for m in msgs], ctxs)
+    return pose_run([m.pose for m in msgs], [m.header for m in msgs], ctxs)
 
 
 def _quats_from_matrices(m: Float64Array) -> Float64Array:
@@ -222,7 +222,7 @@ def covariance_ellipsoids(
 
 
 def _pose_with_covariance(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    entries = _pose_run([msg.pose.pose], [msg.header], [ctx])
+    entries = pose_run([msg.pose.pose], [msg.header], [ctx])
     covariance = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)[:3, :3]
     # A non-finite covariance says nothing about the spread; the pose itself is still valid.
     if np.isfinite(covariance).all():

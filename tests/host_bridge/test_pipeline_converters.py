@@ -143,12 +143,12 @@ def test_odometry_pose_twist_and_trail() -> None:
     assert column(pose, "Transform3D:parent_frame")[0] == ["tb3/odom"]
     assert column(by_path["/tb3/odom/twist/linear/x"], "Scalars:scalars") == [[0.3]] * 3
     assert column(by_path["/tb3/odom/twist/angular/z"], "Scalars:scalars") == [[0.5]] * 3
-    trails = [i for i in items if i.path == "/tb3/odom/trail"]
-    # The 1 mm step is below the trail's minimum distance: only 0.0 -> 1.0 is drawn.
-    assert len(trails) == 1
-    assert isinstance(trails[0], LogItem)
-    strip = trails[0].archetypes[0].strips.as_arrow_array().to_pylist()  # type: ignore[attr-defined]
-    assert strip == [[[0.0, 2.0, 0.0], [1.0, 2.0, 0.0]]]
+    [trail] = [i for i in items if i.path == "/tb3/odom/trail"]
+    assert isinstance(trail, ColumnsItem)
+    # The 1 mm step is below the trail's minimum step: the trail grows at x=0 and x=1 only.
+    strips = column(trail, "LineStrips3D:strips")
+    assert strips[-1] == [[[0.0, 2.0, 0.0], [1.0, 2.0, 0.0]]]
+    assert len(strips) == 2
 
 
 def test_generic_fallback_plots_numbers_and_logs_text() -> None:
