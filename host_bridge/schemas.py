@@ -2,12 +2,13 @@
 
 Robots publish vision_msgs and similar packages that rosbags' Humble store does not carry; a
 live source whose catalog omits the definition would otherwise be undecodable. The texts live
-in ``schemas/msg/<pkg>/<Name>.msg`` of the repository (language-neutral, reviewable), and the
-decoder registers them into its base typestore.
+in ``schemas/msg/<pkg>/<Name>.msg`` of the repository (language-neutral, reviewable; installed as
+the data package ``swanky_schemas``), and the decoder registers them into its base typestore.
 """
 
 from __future__ import annotations
 
+from importlib.resources import files
 from pathlib import Path
 
 from rosbags.interfaces.typing import Typesdict
@@ -15,7 +16,7 @@ from rosbags.typesys import get_types_from_msg
 
 from host_bridge.errors import UnknownTypeError
 
-MSG_DIR = Path(__file__).resolve().parents[1] / "schemas" / "msg"
+MSG_DIR = Path(str(files("swanky_schemas") / "msg"))
 
 
 def extra_typesdict(root: Path = MSG_DIR) -> Typesdict:
