@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
@@ -11,15 +12,25 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from host_bridge.config import HostConfig
 from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import HostError, PartialConvertError
-from host_bridge.resources import ResourceResolver, parse_package_path
+from host_bridge.inputs.files import RobotFiles
+from host_bridge.inputs.queues import InputProblem, QueueItem, RobotEvent, presence_items
+from host_bridge.recorder import McapRecorder, may_hold_several_robots
+from host_bridge.registry import default_registry
+from host_bridge.resources import ResourceResolver, RobotFetch, parse_package_path
 from host_bridge.sink import RerunSink, SinkOptions
 from robot_relay.errors import RelayError
 from robot_relay.session import add_zenoh_arguments
 from robot_relay.wire import check_robot_name
 
 log = logging.getLogger("swanky.host")
+
+
+def default_domain() -> int:
+    value = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    return int(value) if value.isdigit() else 0
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -30,15 +41,33 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     source = parser.add_argument_group("source (default: live robots over Zenoh)")
     source.add_argument("--bag", type=Path, help="convert this bag (rosbag2 dir/.mcap/.db3, .bag)")
     source.add_argument(
-        "--robot", default="robot", help="robot name for --bag (entity root, frame prefix)"
+        "--robot", default="robot",
+        help="robot name (entity root, frame prefix) for --bag, and for rmw_zenoh nodes that "
+        "have no ROS namespace",
     )
     source.add_argument(
         "--demo", action="store_true",
-        help="simulated robot through the real relay -> Zenoh -> host path, no hardware",
+        help="simulated robot through the real relay -> Zenoh -> host path, no hardware; "
+        "--demo --robots N: a fleet of N (sim, sim2, ...)",
     )
     source.add_argument(
         "--robots", default="*", metavar="KEYEXPR",
-        help="live: only robots matching this key-expression chunk (default: all)",
+        help="live: only robots matching this Zenoh key-expression chunk: a name, '*' (default: "
+        "all) or '$*' inside a name ('east-$*'); applies to relays and rmw_zenoh robots. With "
+        "--demo: the number of simulated robots",
+    )
+    source.add_argument(
+        "--domain", type=int, default=default_domain(), metavar="N",
+        help="ROS domain of rmw_zenoh robots read directly (default: ROS_DOMAIN_ID, else 0)",
+    )
+    source.add_argument(
+        "--no-rmw-zenoh", dest="rmw_zenoh", action="store_false",
+        help="live: only swanky relays; do not read rmw_zenoh robots directly",
+    )
+    source.add_argument(
+        "--list", action="store_true",
+        help="print the robots and topics seen live for --duration seconds (default 3), with "
+        "rates and bandwidth, then exit; nothing goes to Rerun",
     )
     out = parser.add_argument_group("Rerun (default: spawn a viewer)")
     out.add_argument(
@@ -49,6 +78,28 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     out.add_argument("--save", type=Path, metavar="FILE.rrd", help="write a .rrd file")
     out.add_argument(
         "--serve-web", action="store_true", help="serve the web viewer and print its URL"
+    )
+    out.add_argument(
+        "--record-mcap", type=Path, metavar="FILE.mcap",
+        help="also record every raw message received to a ROS 2 MCAP file (ros2 bag, Foxglove)",
+    )
+    out.add_argument(
+        "--stats", action=argparse.BooleanOptionalAction, default=None,
+        help="log rate, bandwidth, drops, latency and conversion time under /_stats "
+        "(default: on live, off for --bag, where it runs on bag time)",
+    )
+    out.add_argument("--web-port", type=int, metavar="PORT", help="--serve-web: HTTP port (9090)")
+    out.add_argument(
+        "--grpc-port", type=int, metavar="PORT", help="--serve-web: gRPC port the viewer reads (9876)"
+    )
+    layout = out.add_mutually_exclusive_group()
+    layout.add_argument(
+        "--no-blueprint", action="store_true",
+        help="do not send Swanky's layout (Rerun then arranges the views itself)",
+    )
+    layout.add_argument(
+        "--blueprint", type=Path, metavar="FILE.rbl",
+        help="send this saved Rerun blueprint instead of Swanky's layout",
     )
     stop = parser.add_argument_group("stopping (default: Ctrl-C; bags stop at their end)")
     stop.add_argument(
@@ -68,6 +119,15 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         help="where package://NAME/... meshes are (repeatable); then ROS_PACKAGE_PATH, "
         "AMENT_PREFIX_PATH",
     )
+    config = parser.add_argument_group("configuration")
+    config.add_argument(
+        "--config", type=Path, metavar="FILE.yaml",
+        help="per-topic entity path, enabled, converter, options, restamp (schemas/host.schema.json)",
+    )
+    config.add_argument(
+        "--print-config", action="store_true",
+        help="print the effective configuration (--config over the built-in defaults) as YAML, exit",
+    )
     parser.add_argument(
         "--strict", action="store_true", help="stop on the first bad message instead of warning"
     )
@@ -82,16 +142,18 @@ def sink_options(args: argparse.Namespace) -> SinkOptions:
         connect=args.rerun_addr,
         save=args.save,
         serve_web=args.serve_web,
+        web_port=args.web_port,
+        grpc_port=args.grpc_port,
     )
     if not options.any:
         options = SinkOptions(spawn=True)
     return options
 
 
-def resolver(args: argparse.Namespace) -> ResourceResolver:
+def resolver(args: argparse.Namespace, robot_fetch: RobotFetch | None = None) -> ResourceResolver:
     env = ResourceResolver.from_env()
     packages = dict(parse_package_path(option) for option in args.package_path)
-    return ResourceResolver(packages, env.search_paths)
+    return ResourceResolver(packages, env.search_paths, robot_fetch=robot_fetch)
 
 
 def log_urdf_file(args: argparse.Namespace, dispatcher: Dispatcher) -> None:
@@ -112,44 +174,86 @@ def log_urdf_file(args: argparse.Namespace, dispatcher: Dispatcher) -> None:
 
 def convert_bag(args: argparse.Namespace, dispatcher: Dispatcher, stop: threading.Event) -> None:
     from host_bridge.inputs.bag import bag_runs
+    from host_bridge.progress import Progress, bag_extent
+    from host_bridge.stats import StatsTap
 
+    progress = Progress(bag_extent(args.bag))
+    dispatcher.taps.append(progress)
+    if args.stats:
+        dispatcher.taps.append(StatsTap(dispatcher.sink, dispatcher.counters))
     for run in bag_runs(args.bag, args.robot):
         dispatcher.dispatch(run)
         if stop.is_set():
             break
+    progress.finish()
+
+
+def handle_items(dispatcher: Dispatcher, items: Sequence[QueueItem]) -> None:
+    """One robot's run of input items: problems warned about, arrivals logged, data dispatched."""
+    batch = []
+    for item in items:
+        if isinstance(item, InputProblem):
+            dispatcher.warn(item.robot, item.topic, item.error)
+        elif isinstance(item, RobotEvent):
+            log.info("%s", item.text)
+            dispatcher.sink.log(presence_items(item, time.time_ns()), {})
+        else:
+            batch.append(item)
+    if batch:
+        dispatcher.dispatch(batch)
 
 
 def run_live(
-    args: argparse.Namespace, dispatcher: Dispatcher, stop: threading.Event
+    args: argparse.Namespace, dispatcher: Dispatcher, stop: threading.Event,
+    robot_files: RobotFiles | None = None,
 ) -> None:
-    """Dispatch live samples until stopped, ``--duration`` or ``--until-idle``."""
-    from host_bridge.inputs.zenoh import InputProblem, ZenohInput
+    """Dispatch live samples until stopped, ``--duration`` or ``--until-idle``. Each robot is
+    dispatched from its own thread (inputs/queues.py): a slow or broken robot delays only itself."""
+    from host_bridge.inputs.queues import RobotQueues
+    from host_bridge.inputs.rmw_zenoh import RmwZenohInput
+    from host_bridge.inputs.zenoh import ZenohInput
+    from host_bridge.stats import StatsTap
     from robot_relay.session import open_session
 
     session = open_session(args)
-    source = ZenohInput(session, robots=args.robots)
-    started = last_data = time.monotonic()
+    if robot_files is not None:
+        robot_files.attach(session)
+    queues = RobotQueues()
+    sources: list[ZenohInput | RmwZenohInput] = [
+        ZenohInput(session, robots=args.robots, queues=queues)
+    ]
+    if args.rmw_zenoh:
+        sources.append(RmwZenohInput(session, args.domain, args.robots, args.robot, queues))
+    stats = None if args.stats is False else StatsTap(
+        dispatcher.sink, dispatcher.counters, session=session, robots=args.robots
+    )
+    if stats is not None:
+        dispatcher.taps.append(stats)
+    queues.serve(lambda items: handle_items(dispatcher, items))
+    started = time.monotonic()
     try:
-        while not stop.is_set():
-            items = source.drain()
+        while not stop.wait(0.05):
+            if queues.error is not None:
+                raise queues.error
             now = time.monotonic()
-            if items:
-                last_data = now
-                batch = []
-                for item in items:
-                    if isinstance(item, InputProblem):
-                        dispatcher.warn(item.robot, item.topic, item.error)
-                    else:
-                        batch.append(item)
-                dispatcher.dispatch(batch)
             if args.duration is not None and now - started >= args.duration:
                 break
-            if args.until_idle is not None and now - last_data >= args.until_idle:
+            if args.until_idle is not None and now - queues.last_put >= args.until_idle:
                 log.info("no data for %.1f s, stopping", args.until_idle)
                 break
     finally:
-        source.close()
+        for source in sources:
+            source.close()
+        queues.close()
+        if stats is not None:
+            stats.close()
+        if robot_files is not None:
+            robot_files.detach()
         session.close()
+    if queues.dropped:
+        log.warning("messages dropped because the host fell behind:\n%s", queues.drop_summary())
+    if queues.error is not None:
+        raise queues.error
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -166,17 +270,43 @@ def main(argv: Sequence[str] | None = None) -> int:
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     sink: RerunSink | None = None
+    recorder: McapRecorder | None = None
     try:
         check_robot_name(args.robot)
+        if args.list:
+            from host_bridge.listing import run_list
+
+            return run_list(args, stop)
+        registry = default_registry()
+        config = (
+            HostConfig.load(args.config, registry.types()) if args.config is not None
+            else HostConfig.builtin(registry.types())
+        )
+        if args.print_config:
+            print(config.dump(), end="")
+            return 0
         if args.bag is not None and not args.bag.exists():
             print(f"swanky-host: error: bag {args.bag} does not exist", file=sys.stderr)
             return 2
+        if args.demo:
+            from host_bridge.demo import configure_demo
+
+            configure_demo(args)  # checks --robots N before a viewer opens
         sink = RerunSink(sink_options(args))
         if sink.web_url:
             print(f"Rerun web viewer: {sink.web_url}", flush=True)
+        # Live robots serve the meshes this PC lacks (robot_relay/files.py).
+        robot_files = None if args.bag is not None else RobotFiles()
+        robot_fetch = None if robot_files is None else robot_files.fetch
         dispatcher = Dispatcher(
-            sink, strict=args.strict, robot_state={"resolver": resolver(args)}
+            sink, registry=registry, config=config, strict=args.strict,
+            robot_state={"resolver": resolver(args, robot_fetch)},
         )
+        if args.record_mcap is not None:
+            recorder = McapRecorder(args.record_mcap, prefix_robot=may_hold_several_robots(
+                bag=args.bag is not None, demo=args.demo and len(args.demo_robots) == 1,
+                robots=args.robots))
+            dispatcher.taps.append(recorder)
         if args.urdf is not None:
             log_urdf_file(args, dispatcher)
         if args.bag is not None:
@@ -188,15 +318,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         elif args.demo:
             from host_bridge.demo import run_demo
 
-            run_demo(args, lambda: run_live(args, dispatcher, stop), stop)
+            run_demo(args, lambda: run_live(args, dispatcher, stop, robot_files), stop)
         else:
-            run_live(args, dispatcher, stop)
+            run_live(args, dispatcher, stop, robot_files)
         dispatcher.close()
         print(dispatcher.summary(), file=sys.stderr)
     except (HostError, RelayError) as err:
         print(f"swanky-host: error: {err}", file=sys.stderr)
         return 2
     finally:
+        if recorder is not None:
+            recorder.close()
         if sink is not None:
             sink.close()
     return 0

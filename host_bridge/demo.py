@@ -1,28 +1,65 @@
-"""``swanky-host --demo``: the simulated robot through the real relay -> Zenoh -> host path.
+"""``swanky-host --demo [--robots N]``: simulated robots through the real relay -> Zenoh -> host path.
 
-The simulator writes a real rosbag2 file; an in-process relay replays it (looping, real time)
-over a loopback Zenoh link to this host, exactly as ``swanky-relay --bag`` would.
+The simulator (:mod:`host_bridge.sim`) writes one real rosbag2 per robot; for each robot an
+in-process relay replays its bag (looping, real time) over a loopback Zenoh link to this host,
+exactly as ``swanky-relay --bag`` on that robot would. Robots are named ``sim``, ``sim2``,
+``sim3``...; they drive the same loop through the same apartment, spread evenly along it, each
+with its own frames (``sim2/base_link``), map and sensors.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import multiprocessing
+import os
 import socket
 import tempfile
 import threading
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from host_bridge.sim import write_demo_bag
+from host_bridge.errors import ConfigError
+from host_bridge.sim import lap_length, write_demo_bag
 from robot_relay.relay import Relay
-from robot_relay.session import open_session
+from robot_relay.session import add_zenoh_arguments, open_session
 from robot_relay.sources.bag import BagSource
 
 log = logging.getLogger("swanky.demo")
 
 DEMO_ROBOT = "sim"
 DEMO_BAG_SECONDS = 60.0
+"""About one lap: a replay that loops starts again close to where it ended."""
+MAX_DEMO_ROBOTS = 10
+HOST_WAIT_SECONDS = 30.0
+
+
+def demo_robot_names(robots: str) -> list[str]:
+    """The robots of ``--demo --robots N``: ``sim`` alone by default, else sim, sim2, ... simN."""
+    if robots == "*":  # --robots left at its live default
+        return [DEMO_ROBOT]
+    try:
+        count = int(robots)
+    except ValueError:
+        count = 0
+    if not 1 <= count <= MAX_DEMO_ROBOTS:
+        msg = (
+            f"--robots {robots!r}: with --demo it is the number of simulated robots, "
+            f"1 to {MAX_DEMO_ROBOTS} (e.g. --demo --robots 3)"
+        )
+        raise ConfigError(msg)
+    return [DEMO_ROBOT if i == 0 else f"{DEMO_ROBOT}{i + 1}" for i in range(count)]
+
+
+def configure_demo(args: argparse.Namespace) -> None:
+    """Check ``--robots`` before anything opens, and point the host at a private loopback
+    endpoint for the demo relays (no multicast, so no other robot joins by accident)."""
+    args.demo_robots = demo_robot_names(args.robots)
+    args.robots = f"{DEMO_ROBOT}$*"  # sim, sim2, ...: a Zenoh chunk wildcard
+    args.demo_endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    args.listen = [*args.listen, args.demo_endpoint]
+    args.no_multicast_scouting = True
 
 
 def free_loopback_port() -> int:
@@ -32,43 +69,73 @@ def free_loopback_port() -> int:
 
 
 def _relay_args(endpoint: str) -> argparse.Namespace:
-    return argparse.Namespace(
-        mode=None, connect=[endpoint], listen=[], config=None, cfg=[],
-        no_multicast_scouting=True,
-    )
+    parser = argparse.ArgumentParser()
+    add_zenoh_arguments(parser)
+    return parser.parse_args(["--connect", endpoint, "--no-multicast-scouting"])
 
 
-def _replay(bag: Path, endpoint: str, stop: threading.Event, host_stop: threading.Event) -> None:
+def _write_bag(job: tuple[Path, float, float]) -> Path:
+    path, seconds, route_offset = job
+    return write_demo_bag(path, seconds, route_offset=route_offset)
+
+
+def write_bags(directory: Path, robots: list[str], seconds: float) -> list[Path]:
+    """One bag per robot, spread evenly along the loop; several are written in parallel
+    processes (the simulation is CPU-bound Python) so a fleet starts about as fast as one."""
+    spacing = lap_length() / len(robots)
+    jobs = [(directory / robot, seconds, i * spacing) for i, robot in enumerate(robots)]
+    workers = min(len(jobs), os.cpu_count() or 1)
+    if workers == 1:
+        return [_write_bag(job) for job in jobs]
+    context = multiprocessing.get_context("spawn")  # never fork a process running zenoh threads
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+        return list(pool.map(_write_bag, jobs))
+
+
+def _replay(
+    bag: Path, robot: str, endpoint: str, stop: threading.Event, host_stop: threading.Event
+) -> None:
     try:
         session = open_session(_relay_args(endpoint))
         try:
-            with BagSource(bag, DEMO_ROBOT, rate=1.0, loop=True) as source:
+            with BagSource(bag, robot, rate=1.0, loop=True) as source:
                 relay = Relay(session, source.catalog())
-                if relay.wait_for_host(timeout=30.0):
+                if relay.wait_for_host(timeout=HOST_WAIT_SECONDS):
                     relay.publish_all(source.messages(), stop)
+                else:
+                    log.error("demo relay %r: the host did not subscribe within %.0f s",
+                              robot, HOST_WAIT_SECONDS)
                 relay.close()
         finally:
             session.close()
     except Exception:
-        log.exception("demo relay failed; stopping the demo")
+        log.exception("demo relay %r failed; stopping the demo", robot)
         host_stop.set()
 
 
 def run_demo(args: argparse.Namespace, run_host: Callable[[], None], stop: threading.Event) -> None:
-    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-    args.listen = [*args.listen, endpoint]
-    args.no_multicast_scouting = True
+    """Write the bags, start one relay per robot, run the host until it stops."""
+    robots: list[str] = args.demo_robots
+    # With --duration the replay need not be longer than the demo itself.
+    seconds = DEMO_BAG_SECONDS if args.duration is None else min(DEMO_BAG_SECONDS, max(args.duration, 1.0))
     relay_stop = threading.Event()
     with tempfile.TemporaryDirectory(prefix="swanky-demo-") as tmp:
-        bag = write_demo_bag(Path(tmp) / "demo", DEMO_BAG_SECONDS)
-        log.info("demo: simulated robot %r, bag %s, loopback %s", DEMO_ROBOT, bag, endpoint)
-        relay = threading.Thread(
-            target=_replay, args=(bag, endpoint, relay_stop, stop), name="demo-relay", daemon=True
-        )
-        relay.start()
+        log.info("demo: simulating %s for %.0f s", ", ".join(robots), seconds)
+        bags = write_bags(Path(tmp), robots, seconds)
+        log.info("demo: relaying %s over %s", ", ".join(robots), args.demo_endpoint)
+        relays = [
+            threading.Thread(
+                target=_replay, args=(bag, robot, args.demo_endpoint, relay_stop, stop),
+                name=f"demo-relay-{robot}", daemon=True,
+            )
+            for bag, robot in zip(bags, robots, strict=True)
+        ]
+        for relay in relays:
+            relay.start()
         try:
             run_host()
         finally:
             relay_stop.set()
             stop.set()
-            relay.join(timeout=5.0)
+            for relay in relays:
+                relay.join(timeout=5.0)

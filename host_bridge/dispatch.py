@@ -16,8 +16,9 @@ from typing import Any
 
 import rerun as rr
 
+from host_bridge.config import HostConfig
 from host_bridge.decode import Decoder
-from host_bridge.errors import HostError, PartialConvertError
+from host_bridge.errors import ConfigError, HostError, PartialConvertError
 from host_bridge.registry import (
     TIMELINE_LOG,
     TIMELINE_RECEIVE,
@@ -35,11 +36,8 @@ log = logging.getLogger("swanky.host")
 
 WARNINGS_PATH = "/_swanky/warnings"
 
-OptionsLookup = Callable[[str, str, str], Mapping[str, Any]]
-
-
-def no_options(robot: str, topic: str, msgtype: str) -> Mapping[str, Any]:
-    return {}
+# Sees every run before decoding (the MCAP recorder, the stats); must not raise on good data.
+Tap = Callable[[Sequence[RawMessage]], None]
 
 
 @dataclass(slots=True)
@@ -48,6 +46,8 @@ class TopicCounters:
     received: int = 0
     converted: int = 0
     dropped: int = 0
+    # Disabled in the host config: counted, never decoded.
+    skipped: int = 0
     warnings: int = 0
     sequence_gaps: int = 0
     last_sequence: int | None = None
@@ -58,14 +58,30 @@ class TopicCounters:
 class _Topic:
     entity_path: str
     options: Mapping[str, Any]
+    enabled: bool = True
+    restamp: bool = False
     state: dict[str, Any] = field(default_factory=dict)
 
 
-def message_times(msg: Any, raw: RawMessage) -> dict[str, int]:
+def sequence_gap(last: int | None, sequence: int) -> int:
+    """Messages lost between two wire sequence numbers (u32, wrapping)."""
+    if last is None:
+        return 0
+    gap = (sequence - last - 1) & 0xFFFFFFFF
+    # A relay restart starts again at 0; that is not a loss.
+    return gap if 0 < gap < 0x80000000 and sequence != 0 else 0
+
+
+def message_times(msg: Any, raw: RawMessage, *, restamp: bool = False) -> dict[str, int]:
+    """The message's timelines; ``restamp`` makes ros_time the receive (else log) time, for
+    robots whose clock is off or whose stamps are zero."""
     times: dict[str, int] = {}
     header = getattr(msg, "header", None)
     stamp = getattr(header, "stamp", None)
-    if stamp is not None:
+    arrival = raw.receive_ns if raw.receive_ns is not None else raw.log_ns
+    if restamp and arrival is not None:
+        times[TIMELINE_ROS] = arrival
+    elif stamp is not None:
         ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
         if ns:
             times[TIMELINE_ROS] = ns
@@ -83,14 +99,16 @@ class Dispatcher:
         *,
         registry: Registry | None = None,
         decoder: Decoder | None = None,
-        options: OptionsLookup = no_options,
+        config: HostConfig | None = None,
         strict: bool = False,
         robot_state: Mapping[str, Any] | None = None,
+        taps: Sequence[Tap] = (),
     ) -> None:
         self.sink = sink
+        self.taps = list(taps)
         self.registry = registry or default_registry()
         self.decoder = decoder or Decoder()
-        self.options = options
+        self.config = config or HostConfig.builtin(self.registry.types())
         self.strict = strict
         self.counters: dict[tuple[str, str], TopicCounters] = {}
         self._topics: dict[tuple[str, str], _Topic] = {}
@@ -110,10 +128,14 @@ class Dispatcher:
         key = (raw.robot, raw.topic)
         topic = self._topics.get(key)
         if topic is None:
-            options = self.options(raw.robot, raw.topic, raw.msgtype)
-            path = options.get("entity_path") or f"/{raw.robot}{raw.topic}"
-            topic = _Topic(entity_path=path, options=options)
+            settings = self.config.resolve(raw.robot, raw.topic, raw.msgtype)
+            topic = _Topic(settings.entity_path, settings.options, settings.enabled, settings.restamp)
             self._topics[key] = topic
+            if settings.problems:
+                err = ConfigError("\n".join(settings.problems) + " (ignored for this topic)")
+                if self.strict:
+                    raise err
+                self.warn(raw.robot, raw.topic, err)
         return topic
 
     def warn(self, robot: str, topic: str, err: Exception) -> None:
@@ -136,16 +158,14 @@ class Dispatcher:
             counters = self.counters[key] = TopicCounters(raw.msgtype)
         counters.received += 1
         if raw.sequence is not None:
-            if counters.last_sequence is not None:
-                gap = (raw.sequence - counters.last_sequence - 1) & 0xFFFFFFFF
-                # A relay restart starts again at 0; that is not a loss.
-                if 0 < gap < 0x80000000 and raw.sequence != 0:
-                    counters.sequence_gaps += gap
+            counters.sequence_gaps += sequence_gap(counters.last_sequence, raw.sequence)
             counters.last_sequence = raw.sequence
         return counters
 
     def dispatch(self, batch: Sequence[RawMessage]) -> None:
         """Convert and log a run of messages; messages of one topic keep their order."""
+        for tap in self.taps:
+            tap(batch)
         runs: dict[tuple[str, str], list[RawMessage]] = {}
         for raw in batch:
             runs.setdefault((raw.robot, raw.topic), []).append(raw)
@@ -159,6 +179,9 @@ class Dispatcher:
         decoded: list[tuple[Any, ConvertContext, RawMessage]] = []
         for raw in run:
             counters = self._count(raw)
+            if not topic.enabled:
+                counters.skipped += 1
+                continue
             try:
                 msg = self.decoder.decode(raw)
             except HostError as err:
@@ -171,7 +194,7 @@ class Dispatcher:
                 robot=raw.robot,
                 topic=raw.topic,
                 entity_path=topic.entity_path,
-                times=message_times(msg, raw),
+                times=message_times(msg, raw, restamp=topic.restamp),
                 options=topic.options,
                 state=topic.state,
                 robot_state=robot_state,
@@ -222,15 +245,31 @@ class Dispatcher:
         self._slow.close(timeout)
 
     def summary(self) -> str:
-        """A table of every topic seen: type, received, converted, dropped, warnings."""
-        header = ("robot", "topic", "type", "received", "converted", "dropped", "warnings")
+        """A table of every topic seen: type, received, converted, dropped, warnings, wire
+        sequence gaps and mean conversion time, with a total row."""
+        header = ("robot", "topic", "type", "received", "converted", "dropped", "warnings", "gaps",
+                  "ms/msg")
+        counters = sorted(self.counters.items())
+        every = [c for _, c in counters]
+        total = TopicCounters(
+            "",
+            received=sum(c.received for c in every),
+            converted=sum(c.converted for c in every),
+            dropped=sum(c.dropped for c in every),
+            warnings=sum(c.warnings for c in every),
+            sequence_gaps=sum(c.sequence_gaps for c in every),
+            convert_seconds=sum(c.convert_seconds for c in every),
+        )
         rows = [header] + [
             (robot, topic, c.msgtype, str(c.received), str(c.converted), str(c.dropped),
-             str(c.warnings))
-            for (robot, topic), c in sorted(self.counters.items())
+             str(c.warnings), str(c.sequence_gaps),
+             f"{c.convert_seconds * 1000 / c.converted:.3f}" if c.converted else "-")
+            for (robot, topic), c in [*counters, (("total", f"{len(counters)} topics"), total)]
         ]
         widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
-        return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(r, widths, strict=False)) for r in rows)
+        return "\n".join(
+            "  ".join(cell.ljust(w) for cell, w in zip(r, widths, strict=True)).rstrip() for r in rows
+        )
 
 
 class _SlowWorker:

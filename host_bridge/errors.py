@@ -44,3 +44,11 @@ class ConfigError(HostError):
 
 class SinkError(HostError):
     """The Rerun sink cannot be set up (viewer not spawnable, bad address)."""
+
+
+class RecorderError(HostError):
+    """The --record-mcap file cannot be written."""
+
+
+class GraphError(HostError):
+    """An rmw_zenoh key, liveliness token or attachment is not in a form rmw_zenoh produces."""

@@ -4,9 +4,12 @@ A URDF from a robot names meshes by ROS package or by the robot's own absolute p
 means anything on the PC until it is mapped. The order is: an explicit ``--package-path
 NAME=DIR``, then search paths laid out like ``ROS_PACKAGE_PATH`` (``<dir>/<pkg>``) or like an
 ament prefix (``<dir>/share/<pkg>``), then ``fetch``, which asks the robot's file server
-(robot_relay/files.py). A robot-side absolute path ``.../share/<pkg>/<rest>`` (what xacro's
-``$(find-pkg-share ...)`` produces) is retried as ``package://<pkg>/<rest>`` when the path does
-not exist here, so those URDFs resolve the same way.
+(robot_relay/files.py; host_bridge/inputs/files.py on this side). A robot-side absolute path
+``.../share/<pkg>/<rest>`` (what xacro's ``$(find-pkg-share ...)`` produces) is retried as
+``package://<pkg>/<rest>`` when the path does not exist here, so those URDFs resolve the same way.
+
+One resolver serves every robot; :meth:`ResourceResolver.for_robot` binds the fetch to the robot
+whose model is being loaded.
 """
 
 from __future__ import annotations
@@ -17,24 +20,26 @@ from pathlib import Path, PurePosixPath
 from urllib.parse import unquote
 
 from host_bridge.errors import ConfigError, ConvertError
+from robot_relay import files
+from robot_relay.errors import RelayError
 
 Fetch = Callable[[str], bytes | None]
-"""Asks the robot for a ``package://`` URI; returns None when the robot cannot serve it."""
+"""Asks the robot for a ``package://`` URI; returns None when the robot cannot serve it, or
+raises ConvertError saying why (refused, no answer)."""
+RobotFetch = Callable[[str, str], bytes | None]
+"""A :data:`Fetch` for any robot: ``(robot, uri)``."""
 
 PACKAGE_SCHEME = "package://"
 FILE_SCHEME = "file://"
 
 
 def parse_package_path(option: str) -> tuple[str, Path]:
-    """Split a ``--package-path NAME=DIR`` option into the package name and its directory."""
-    name, sep, directory = option.partition("=")
-    if not sep or not name or not directory or "/" in name:
-        msg = (
-            f"--package-path {option!r} is not NAME=DIR: give the ROS package name, '=', and "
-            "the directory holding that package's files (the one with package.xml)"
-        )
-        raise ConfigError(msg)
-    return name, Path(directory).expanduser()
+    """Split a ``--package-path NAME=DIR`` option into the package name and its directory
+    (the relay's option, spelt and checked the same way)."""
+    try:
+        return files.parse_package_path(option)
+    except RelayError as err:
+        raise ConfigError(str(err)) from err
 
 
 def split_package_uri(uri: str) -> tuple[str, str]:
@@ -63,10 +68,12 @@ class ResourceResolver:
         package_paths: Mapping[str, Path] | None = None,
         search_paths: Sequence[Path] = (),
         fetch: Fetch | None = None,
+        robot_fetch: RobotFetch | None = None,
     ) -> None:
         self._package_paths = dict(package_paths or {})
         self._search_paths = tuple(search_paths)
         self._fetch = fetch
+        self._robot_fetch = robot_fetch
 
     @classmethod
     def from_env(
@@ -85,6 +92,17 @@ class ResourceResolver:
     @property
     def search_paths(self) -> tuple[Path, ...]:
         return self._search_paths
+
+    def for_robot(self, robot: str) -> ResourceResolver:
+        """This resolver, fetching what is missing here from ``robot`` (if robots are asked)."""
+        if self._robot_fetch is None:
+            return self
+        robot_fetch = self._robot_fetch
+
+        def fetch(uri: str) -> bytes | None:
+            return robot_fetch(robot, uri)
+
+        return ResourceResolver(self._package_paths, self._search_paths, fetch=fetch)
 
     def package_dir(self, package: str) -> Path | None:
         explicit = self._package_paths.get(package)
@@ -120,11 +138,15 @@ class ResourceResolver:
                 msg = f"{uri}: found at {path} but cannot read it ({err})"
                 raise ConvertError(msg) from err
         package_uri = self._as_package_uri(uri, base)
+        refusal = None
         if package_uri is not None and self._fetch is not None:
-            data = self._fetch(package_uri)
+            try:
+                data = self._fetch(package_uri)
+            except ConvertError as err:
+                data, refusal = None, str(err)
             if data is not None:
                 return data
-        raise ConvertError(self._not_found_message(uri, package_uri))
+        raise ConvertError(self._not_found_message(uri, package_uri, refusal))
 
     def _local_path(self, uri: str, base: Path | None) -> Path:
         if uri.startswith(FILE_SCHEME):
@@ -140,15 +162,14 @@ class ResourceResolver:
             return uri
         return package_uri_of_share_path(PurePosixPath(self._local_path(uri, base).as_posix()))
 
-    def _not_found_message(self, uri: str, package_uri: str | None) -> str:
+    def _not_found_message(self, uri: str, package_uri: str | None, refusal: str | None) -> str:
         tried = [f"--package-path {name}={path}" for name, path in self._package_paths.items()]
         tried += [f"search path {path}" for path in self._search_paths]
         where = ", ".join(tried) or "no --package-path and no ROS_PACKAGE_PATH/AMENT_PREFIX_PATH"
-        robot = (
-            "the robot did not serve it"
-            if self._fetch is not None and package_uri is not None
-            else "no robot file server to ask"
-        )
+        if self._fetch is None or package_uri is None:
+            robot = "no robot file server to ask"
+        else:
+            robot = refusal or "the robot did not serve it"
         hint = ""
         if package_uri is not None:
             package = split_package_uri(package_uri)[0]

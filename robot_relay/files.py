@@ -11,24 +11,34 @@ Zenoh key: ``swanky/<robot>/files/<package>/<path>``. A reply carries the file's
 (``traversal:``, ``outside_roots:``, ``symlink_escape:``, ``too_large:``, ``unknown_package:``,
 ``not_found:``, ``bad_request:``, ``unreadable:``). Zenoh is imported only by :func:`serve`, so
 the path checks run and test without it.
+
+What a relay serves (:func:`serve_files`): the ``--package-path NAME=DIR`` packages, plus the
+packages named by every /robot_description the relay forwards (live or from a bag) that are
+found under AMENT_PREFIX_PATH. The URDF is not decoded: its CDR payload is scanned for
+``package://`` names, before it is published, so a host that asks right away is answered.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import re
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path, PurePosixPath
 from typing import TYPE_CHECKING
 from urllib.parse import unquote
 
 from robot_relay.errors import ConfigError, RelayError
-from robot_relay.wire import PREFIX, check_robot_name
+from robot_relay.wire import PREFIX, RawMessage, check_robot_name
 
 if TYPE_CHECKING:
     import zenoh
 
+log = logging.getLogger("swanky.relay")
+
 PACKAGE_SCHEME = "package://"
+DEFAULT_MAX_BYTES = 64 << 20
+"""Larger than any robot mesh we know of; a bigger file is refused rather than sent."""
 FILE_SCHEME = "file://"
 _PACKAGE_URI = re.compile(r"package://([^/\"'\s<>]+)/")
 _SHARE_PATH = re.compile(r"file://[^\"'\s<>]*/share/([^/\"'\s<>]+)/")
@@ -56,6 +66,18 @@ def files_prefix(robot: str) -> str:
 def urdf_package_names(urdf: str) -> set[str]:
     """Packages a URDF names: ``package://<pkg>/`` and ``file://.../share/<pkg>/`` URIs."""
     return set(_PACKAGE_URI.findall(urdf)) | set(_SHARE_PATH.findall(urdf))
+
+
+def parse_package_path(option: str) -> tuple[str, Path]:
+    """Split a ``--package-path NAME=DIR`` option (the host's spelling) into name and directory."""
+    name, sep, directory = option.partition("=")
+    if not sep or not name or not directory or "/" in name or name in (".", ".."):
+        msg = (
+            f"--package-path {option!r} is not NAME=DIR: give the ROS package name, '=', and "
+            "the directory holding that package's files (the one with package.xml)"
+        )
+        raise ConfigError(msg)
+    return name, Path(directory).expanduser()
 
 
 def ament_prefix_paths(environ: Mapping[str, str] | None = None) -> list[Path]:
@@ -86,14 +108,28 @@ class FileServer:
         if max_bytes <= 0:
             msg = f"file server max_bytes must be positive, got {max_bytes}"
             raise ConfigError(msg)
-        for package in roots:
+        self._roots: dict[str, Path] = {}
+        self._real_roots: dict[str, Path] = {}
+        self._max_bytes = max_bytes
+        self.add_roots(roots)
+
+    def add_roots(self, roots: Mapping[str, Path]) -> list[str]:
+        """Serve more packages (a URDF named them); a package already served keeps its root.
+
+        Returns the packages added. Requests run on Zenoh's threads meanwhile, so the tables
+        are replaced, never changed in place, and the resolved one first: a package is never
+        seen in ``_roots`` without its entry in ``_real_roots``.
+        """
+        new = {package: root for package, root in roots.items() if package not in self._roots}
+        for package in new:
             if not package or "/" in package or package in (".", ".."):
                 msg = f"file server package name {package!r} is not a ROS package name"
                 raise ConfigError(msg)
         # Lexical roots to recognise absolute requests; resolved roots to check real paths.
-        self._roots = {package: Path(os.path.abspath(root)) for package, root in roots.items()}
-        self._real_roots = {package: root.resolve() for package, root in self._roots.items()}
-        self._max_bytes = max_bytes
+        lexical = {package: Path(os.path.abspath(root)) for package, root in new.items()}
+        self._real_roots = {**self._real_roots, **{p: r.resolve() for p, r in lexical.items()}}
+        self._roots = {**self._roots, **lexical}
+        return sorted(new)
 
     @property
     def packages(self) -> list[str]:
@@ -178,3 +214,62 @@ def serve(session: zenoh.Session, robot: str, server: FileServer) -> zenoh.Query
         query.reply(query.key_expr, data, encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM)
 
     return session.declare_queryable(f"{prefix}**", on_query)
+
+
+def is_robot_description(raw: RawMessage) -> bool:
+    """``/robot_description`` or a namespaced one (``/tb1/robot_description``), as a String."""
+    return raw.msgtype == "std_msgs/msg/String" and raw.topic.rsplit("/", 1)[-1] == "robot_description"
+
+
+class FileService:
+    """One relay's file server: a :class:`FileServer` answering on Zenoh whose packages grow
+    with the URDFs the relay forwards (:meth:`watch`)."""
+
+    def __init__(
+        self, session: zenoh.Session, robot: str, server: FileServer, prefixes: Sequence[Path]
+    ) -> None:
+        self.server = server
+        self._prefixes = tuple(prefixes)
+        self._queryable = serve(session, robot, server)
+
+    def learn(self, raw: RawMessage) -> None:
+        """Serve the packages a /robot_description names, when AMENT_PREFIX_PATH has them."""
+        if not is_robot_description(raw):
+            return
+        # Package names are ASCII inside the CDR string; nothing else of it is looked at.
+        names = urdf_package_names(bytes(raw.data).decode("utf-8", errors="replace"))
+        added = self.server.add_roots(package_roots(names - set(self.server.packages), self._prefixes))
+        if added:
+            log.info("%s names packages %s: serving their files", raw.topic, ", ".join(added))
+        missing = sorted(names - set(self.server.packages))
+        if missing:
+            log.warning(
+                "%s names packages %s, which are neither a --package-path nor under "
+                "AMENT_PREFIX_PATH: hosts cannot fetch their meshes from this robot",
+                raw.topic, ", ".join(missing),
+            )
+
+    def watch(self, messages: Iterable[RawMessage]) -> Iterator[RawMessage]:
+        """``messages`` unchanged, each learnt from before it is passed on (and published)."""
+        for raw in messages:
+            self.learn(raw)
+            yield raw
+
+    def close(self) -> None:
+        self._queryable.undeclare()
+
+
+def serve_files(
+    session: zenoh.Session,
+    robot: str,
+    package_paths: Sequence[str],
+    environ: Mapping[str, str] | None = None,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+) -> FileService:
+    """Start answering ``swanky/<robot>/files/**`` for the ``--package-path NAME=DIR`` options."""
+    explicit = dict(parse_package_path(option) for option in package_paths)
+    for name, directory in explicit.items():
+        if not directory.is_dir():
+            msg = f"--package-path {name}={directory}: not a directory"
+            raise ConfigError(msg)
+    return FileService(session, robot, FileServer(explicit, max_bytes), ament_prefix_paths(environ))

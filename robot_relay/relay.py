@@ -2,7 +2,19 @@
 
 Latched topics go through a zenoh-ext AdvancedPublisher with a cache, so a host that starts
 late (or reconnects) still gets /tf_static, /robot_description and /map. Everything else uses a
-plain publisher, whose matching status tells the relay whether any host listens.
+plain publisher.
+
+Demand: each plain publisher's matching listener tells the source (``on_demand(topic, wanted)``)
+when the first host starts and the last one stops listening, so the rclpy source holds a ROS
+subscription only while someone listens. Latched topics are always wanted: their cache must be
+warm before a late host asks.
+
+Policy (robot_relay.policy) sets each publisher's Zenoh priority and congestion control, the
+optional lz4/zstd compression of its payloads and a keep-latest rate cap. A capped message that
+arrives inside its period waits in the topic's limiter and one flusher thread sends it when the
+period ends. Checking only when the next message arrives would hold the last message of a burst
+until the topic speaks again, which may be never (a robot that stops stops publishing its pose);
+one thread per relay instead of a timer per message keeps it to one wake-up per waiting message.
 """
 
 from __future__ import annotations
@@ -10,13 +22,18 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterable
-from typing import Any
+from collections.abc import Callable, Iterable
+from typing import Any, Protocol
 
 import zenoh
 from zenoh import ext
 
+from robot_relay.errors import ConfigError, RelayError
+from robot_relay.policy import Policy, PolicyTable, RateLimiter
+from robot_relay.stats import RelayStatsPublisher
 from robot_relay.wire import (
+    COMPRESSION_FLAGS,
+    COMPRESSION_PACKAGES,
     Attachment,
     Catalog,
     RawMessage,
@@ -25,34 +42,69 @@ from robot_relay.wire import (
     catalog_key,
     cdr_encoding,
     check_robot_name,
+    compressor,
     data_key,
 )
 
 log = logging.getLogger("swanky.relay")
 
+_CONGESTION = {"drop": zenoh.CongestionControl.DROP, "block": zenoh.CongestionControl.BLOCK}
+
+
+class DemandListener(Protocol):
+    """A source that subscribes to a ROS topic only while a host listens to it."""
+
+    def on_demand(self, topic: str, wanted: bool) -> None: ...
+
+
+def _compressor(policy: Policy, topic: str) -> Callable[[bytes], bytes] | None:
+    if policy.compression == "none":
+        return None
+    try:
+        return compressor(policy.compression)
+    except ImportError as err:
+        package = COMPRESSION_PACKAGES[policy.compression]
+        msg = (
+            f"{topic}: compression {policy.compression!r} needs the Python package {package!r}, "
+            "which is not installed: pip install 'swanky[compression]' (or set compression: none)"
+        )
+        raise ConfigError(msg) from err
+
 
 class _TopicPublisher:
-    def __init__(self, session: zenoh.Session, robot: str, info: TopicInfo) -> None:
+    def __init__(
+        self, session: zenoh.Session, robot: str, info: TopicInfo, policy: Policy,
+        on_sent: Callable[[int], None],
+    ) -> None:
         self.info = info
+        self.policy = policy
         self.key = data_key(robot, info.topic)
         self.sequence = 0
-        encoding = zenoh.Encoding(cdr_encoding(info.msgtype))
+        self._on_sent = on_sent
+        self._lock = threading.Lock()
+        self._compress = _compressor(policy, info.topic)
+        self._flag = COMPRESSION_FLAGS.get(policy.compression, 0)
+        self.limiter: RateLimiter[tuple[RawMessage, int]] | None = (
+            RateLimiter(policy.max_rate) if policy.max_rate else None
+        )
+        self._listener: Any = None
+        options: dict[str, Any] = {
+            "encoding": zenoh.Encoding(cdr_encoding(info.msgtype)),
+            "priority": getattr(zenoh.Priority, policy.priority.upper()),
+            "congestion_control": _CONGESTION[policy.congestion],
+        }
         self.publisher: Any
         if info.latched:
+            # Miss detection makes its samples carry (publisher id, sequence number), which the
+            # host's AdvancedSubscriber orders per publisher, as it does the plain ones (_put).
             self.publisher = ext.declare_advanced_publisher(
-                session,
-                self.key,
-                encoding=encoding,
-                congestion_control=zenoh.CongestionControl.BLOCK,
-                cache=ext.CacheConfig(max(info.qos.depth, 1)),
+                session, self.key, cache=ext.CacheConfig(max(info.qos.depth, 1)),
                 publisher_detection=True,
+                sample_miss_detection=ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=None),
+                **options,
             )
         else:
-            self.publisher = session.declare_publisher(
-                self.key,
-                encoding=encoding,
-                congestion_control=zenoh.CongestionControl.BLOCK,
-            )
+            self.publisher = session.declare_publisher(self.key, **options)
 
     @property
     def matching(self) -> bool:
@@ -63,37 +115,163 @@ class _TopicPublisher:
         # zenoh-python returns a MatchingStatus object (its stub says bool).
         return bool(getattr(status, "matching", status))
 
-    def put(self, raw: RawMessage, receive_ns: int) -> None:
-        attachment = Attachment(self.sequence, receive_ns, raw.log_ns or 0)
-        self.publisher.put(bytes(raw.data), attachment=attachment.pack())
+    def watch_demand(self, callback: Callable[[bool], None]) -> None:
+        """``callback(listening)`` now and whenever that changes (plain publishers only)."""
+        self._listener = self.publisher.declare_matching_listener(
+            lambda status: callback(bool(status.matching))
+        )
+        # The listener reports changes only: a host that was already there counts too.
+        callback(self.matching)
+
+    def offer(self, raw: RawMessage, receive_ns: int, now: float) -> float | None:
+        """Send ``raw`` or let it wait for its rate-cap period; returns when to flush, if due."""
+        with self._lock:
+            if self.limiter is None:
+                self._put(raw, receive_ns)
+                return None
+            ready = self.limiter.offer((raw, receive_ns), now)
+            if ready is not None:
+                self._put(*ready)
+            return self.limiter.due_at
+
+    def flush(self, now: float, force: bool = False) -> float | None:
+        """Send the waiting message if its period has ended (or ``force``); the next due time."""
+        with self._lock:
+            if self.limiter is None:
+                return None
+            item = self.limiter.take_any() if force else self.limiter.take_due(now)
+            if item is not None:
+                self._put(*item)
+            return self.limiter.due_at
+
+    def _put(self, raw: RawMessage, receive_ns: int) -> None:
+        payload, flags = bytes(raw.data), 0
+        if self._compress is not None:
+            packed = self._compress(payload)
+            # Per sample, so incompressible payloads (JPEG, noise) go as they are.
+            if len(packed) < len(payload):
+                payload, flags = packed, self._flag
+        attachment = Attachment(self.sequence, receive_ns, raw.log_ns or 0, flags)
+        # Plain samples carry the source info an AdvancedPublisher's would. Without it the
+        # host's AdvancedSubscriber orders every sample of this session by timestamp and drops
+        # any older than the last it delivered, i.e. every sample a higher-priority topic
+        # overtook (a JointState sent just before a TF).
+        if self.info.latched:  # AdvancedPublisher.put sets its own (and takes no source_info)
+            self.publisher.put(payload, attachment=attachment.pack())
+        else:
+            source_info = zenoh.SourceInfo(self.publisher.id, self.sequence)
+            self.publisher.put(payload, attachment=attachment.pack(), source_info=source_info)
         self.sequence = (self.sequence + 1) & 0xFFFFFFFF
+        self._on_sent(len(payload))
 
     def undeclare(self) -> None:
+        self.flush(time.monotonic(), force=True)  # the newest message is never lost
+        if self._listener is not None:
+            self._listener.undeclare()
         self.publisher.undeclare()
 
 
-class Relay:
-    """Publishes RawMessages of one robot; answers its catalog; holds its liveliness token."""
+class _Flusher:
+    """One thread sending rate-capped messages when their period ends."""
 
-    def __init__(self, session: zenoh.Session, catalog: Catalog) -> None:
+    def __init__(self) -> None:
+        self._due: dict[_TopicPublisher, float] = {}
+        self._wake = threading.Condition()
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="relay-flush", daemon=True)
+        self._thread.start()
+
+    def schedule(self, publisher: _TopicPublisher, at: float | None) -> None:
+        if at is None:
+            return
+        with self._wake:
+            if at < self._due.get(publisher, float("inf")):
+                self._due[publisher] = at
+                self._wake.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._wake:
+                ready: list[_TopicPublisher] = []
+                while not self._closed and not ready:
+                    now = time.monotonic()
+                    ready = [p for p, at in self._due.items() if at <= now]
+                    if not ready:
+                        self._wake.wait(min(self._due.values()) - now if self._due else None)
+                if self._closed:
+                    return
+                for publisher in ready:
+                    del self._due[publisher]
+            for publisher in ready:
+                self.schedule(publisher, publisher.flush(time.monotonic()))
+
+    def close(self) -> None:
+        with self._wake:
+            self._closed = True
+            self._wake.notify()
+        self._thread.join(timeout=5.0)
+
+
+class Relay:
+    """Publishes RawMessages of one robot; answers its catalog; holds its liveliness token.
+
+    ``demand`` (a live source) hears when a host starts or stops listening to each topic.
+    """
+
+    def __init__(
+        self, session: zenoh.Session, catalog: Catalog, policies: PolicyTable | None = None,
+        demand: DemandListener | None = None,
+    ) -> None:
         self.session = session
         self.robot = check_robot_name(catalog.robot)
         self.catalog = catalog
+        self.policies = policies or PolicyTable()
+        self._demand = demand
         self._catalog_json = catalog.to_json()
         self._publishers: dict[str, _TopicPublisher] = {}
-        self._lock = threading.Lock()
+        self._wanted: dict[str, bool] = {}
+        self._failed: dict[str, TopicInfo] = {}
+        # Reentrant: zenoh may report a matching status on the declaring thread.
+        self._lock = threading.RLock()
+        self.published = 0
+        self.published_bytes = 0
+        self._flusher = _Flusher()
         for info in catalog.topics:
-            self._publisher(info)
+            self._add(info)
         self._queryable = session.declare_queryable(catalog_key(self.robot), self._answer_catalog)
         self._token = session.liveliness().declare_token(alive_key(self.robot))
-        self.published = 0
+        self._stats = RelayStatsPublisher(
+            session, self.robot, lambda: (self.published, self.published_bytes)
+        )
 
-    def _publisher(self, info: TopicInfo) -> _TopicPublisher:
-        publisher = self._publishers.get(info.topic)
-        if publisher is None:
-            publisher = _TopicPublisher(self.session, self.robot, info)
+    def policy(self, topic: str) -> Policy | None:
+        publisher = self._publishers.get(topic)
+        return None if publisher is None else publisher.policy
+
+    def _count_sent(self, size: int) -> None:
+        with self._lock:
+            self.published += 1
+            self.published_bytes += size
+
+    def _add(self, info: TopicInfo) -> None:
+        policy = self.policies.resolve(info.topic, info.msgtype, info.qos)
+        publisher = _TopicPublisher(self.session, self.robot, info, policy, self._count_sent)
+        with self._lock:
             self._publishers[info.topic] = publisher
-        return publisher
+        log.debug("%s: %s", info.topic, policy)
+        if info.latched:
+            self._set_wanted(publisher, True)
+        elif self._demand is not None:
+            publisher.watch_demand(lambda listening: self._set_wanted(publisher, listening))
+
+    def _set_wanted(self, publisher: _TopicPublisher, wanted: bool) -> None:
+        topic = publisher.info.topic
+        with self._lock:
+            if self._publishers.get(topic) is not publisher or self._wanted.get(topic, False) == wanted:
+                return
+            self._wanted[topic] = wanted
+        if self._demand is not None:
+            self._demand.on_demand(topic, wanted)
 
     def _answer_catalog(self, query: zenoh.Query) -> None:
         with self._lock:
@@ -101,12 +279,34 @@ class Relay:
         query.reply(catalog_key(self.robot), payload, encoding=zenoh.Encoding.APPLICATION_JSON)
 
     def update_catalog(self, catalog: Catalog) -> None:
-        """New topics appeared (live source): publish them and answer the new catalog."""
+        """The live graph changed: publish new topics, drop vanished ones, re-declare topics
+        whose type or QoS changed, and answer the new catalog.
+
+        A topic that cannot be published (its compression is not installed) is reported once
+        and left out; the others go on.
+        """
+        infos = {info.topic: info for info in catalog.topics}
         with self._lock:
             self.catalog = catalog
             self._catalog_json = catalog.to_json()
-            for info in catalog.topics:
-                self._publisher(info)
+            stale = [p for topic, p in self._publishers.items() if infos.get(topic) != p.info]
+            for publisher in stale:
+                del self._publishers[publisher.info.topic]
+            unwanted = [p.info.topic for p in stale if self._wanted.pop(p.info.topic, False)]
+        # Outside the lock: undeclaring waits for running matching callbacks, which take it.
+        for publisher in stale:
+            publisher.undeclare()
+        if self._demand is not None:
+            for topic in unwanted:
+                self._demand.on_demand(topic, False)
+        for info in catalog.topics:
+            if info.topic in self._publishers or self._failed.get(info.topic) == info:
+                continue
+            try:
+                self._add(info)
+            except RelayError as err:
+                self._failed[info.topic] = info
+                log.error("%s is not forwarded: %s", info.topic, err)
 
     def wait_for_host(self, timeout: float | None) -> bool:
         """Block until a host subscribes to any non-latched topic (or ``timeout`` passes)."""
@@ -121,8 +321,10 @@ class Relay:
         return False
 
     def publish(self, raw: RawMessage) -> None:
-        self._publishers[raw.topic].put(raw, time.time_ns())
-        self.published += 1
+        publisher = self._publishers.get(raw.topic)
+        if publisher is None:  # the topic vanished from the live graph meanwhile
+            return
+        self._flusher.schedule(publisher, publisher.offer(raw, time.time_ns(), time.monotonic()))
 
     def publish_all(self, messages: Iterable[RawMessage], stop: threading.Event) -> None:
         for raw in messages:
@@ -131,6 +333,8 @@ class Relay:
             self.publish(raw)
 
     def close(self) -> None:
+        self._stats.close()
+        self._flusher.close()
         for publisher in self._publishers.values():
             publisher.undeclare()
         self._queryable.undeclare()

@@ -1,5 +1,6 @@
 """Zenoh session set-up shared by both command lines, with zenoh's own example flags
-(``-m/--mode``, ``-e/--connect``, ``-l/--listen``, ``-c/--config``, ``--cfg KEY:JSON5``,
+(``-m/--mode``, ``-e/--connect``, ``-l/--listen``, ``--zenoh-config`` (zenoh's ``-c/--config``:
+``--config`` is each command's own YAML file), ``--cfg KEY:JSON5``,
 ``--no-multicast-scouting``), as in zenoh-python's examples/common/common.py."""
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
         "--listen", "-l", action="append", default=[], metavar="ENDPOINT",
         help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
     )
-    group.add_argument("--config", "-c", metavar="FILE", help="zenoh configuration file")
+    group.add_argument("--zenoh-config", metavar="FILE", help="zenoh configuration file (JSON5)")
     group.add_argument(
         "--cfg", action="append", default=[], metavar="KEY:JSON5",
         help="zenoh configuration value, e.g. 'scouting/multicast/enabled:false' (repeatable)",
@@ -42,10 +43,10 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
 def config_from_args(args: argparse.Namespace) -> zenoh.Config:
     try:
         config: zenoh.Config = (
-            zenoh.Config.from_file(args.config) if args.config else zenoh.Config()
+            zenoh.Config.from_file(args.zenoh_config) if args.zenoh_config else zenoh.Config()
         )
     except Exception as err:
-        msg = f"zenoh config file {args.config}: {err}"
+        msg = f"zenoh config file {args.zenoh_config}: {err}"
         raise ConfigError(msg) from err
     # zenoh-ext's AdvancedPublisher (latched topics) needs timestamps on samples.
     values: list[tuple[str, str]] = [("timestamping/enabled", "true")]
@@ -77,7 +78,7 @@ def open_session(args: argparse.Namespace) -> zenoh.Session:
     try:
         session: zenoh.Session = zenoh.open(config)
     except Exception as err:
-        msg = f"cannot open a zenoh session ({err}); check -e/-l endpoints and -c/--cfg"
+        msg = f"cannot open a zenoh session ({err}); check -e/-l endpoints, --zenoh-config and --cfg"
         raise ConfigError(msg) from err
     if args.connect:
         watch_connection(session, args.connect)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import re
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -127,6 +128,28 @@ class Attachment:
             msg = f"attachment on {key!r} has unknown flags {flags:#04x}"
             raise WireError(msg)
         return cls(sequence, receive_ns, source_ns, flags)
+
+
+COMPRESSION_FLAGS = {"lz4": FLAG_LZ4, "zstd": FLAG_ZSTD}
+# The Python package each compression needs (the optional extra ``swanky[compression]``).
+COMPRESSION_PACKAGES = {"lz4": "lz4", "zstd": "zstandard"}
+
+
+def compressor(name: str) -> Callable[[bytes], bytes]:
+    """A function compressing one payload into an lz4 or zstd frame; ImportError when the
+    package is missing (imported here, not at module level: the relay runs without them)."""
+    if name == "lz4":
+        import lz4.frame
+
+        return lz4.frame.compress  # type: ignore[no-any-return]
+    if name == "zstd":
+        import zstandard
+
+        # One context per topic, reused (zstd contexts are costly to make); not thread-safe,
+        # so each caller keeps its own.
+        return zstandard.ZstdCompressor().compress
+    msg = f"unknown compression {name!r} (expected one of: {', '.join(COMPRESSION_FLAGS)})"
+    raise ValueError(msg)
 
 
 def decompress(payload: bytes, flags: int, key: str) -> bytes:

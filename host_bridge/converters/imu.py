@@ -8,12 +8,15 @@ that rotated frame, so they turn with the attitude the IMU estimates.
 Raw IMUs send no orientation: ROS marks that with ``orientation_covariance[0] == -1``, and many
 drivers (the phidgets bag) send the all-zero quaternion instead. Both become the identity
 rotation, never a normalised NaN, so the arrows stay attached to the sensor frame and the
-scalars are unaffected. Options: ``acceleration_scale`` (m of arrow per m/s^2, default 0.1),
-``angular_velocity_scale`` (m per rad/s, default 1.0), ``axis_length`` (m, default 0.2).
+scalars are unaffected. A MagneticField of three NaNs (no new sample) is skipped.
+
+Options: ``acceleration_scale`` (m of arrow per m/s^2, default 0.1), ``angular_velocity_scale``
+(m per rad/s, default 1.0), ``axis_length`` (m, default 0.2).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -104,7 +107,11 @@ def convert_imu(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
 
 
 def _magnetic_field(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
-    return {(): xyz(msg.magnetic_field)}
+    # Drivers publish NaN for "no new reading" (the phidgets magnetometer samples at half the IMU
+    # rate, so every other message is NaN); such a message has nothing to plot, and NaN rows
+    # would only cut the plotted line into pieces.
+    field = xyz(msg.magnetic_field)
+    return {} if all(math.isnan(v) for v in field) else {(): field}
 
 
 CONVERTERS: dict[str, ConverterSpec] = {

@@ -80,6 +80,7 @@ def model_items(xml: str, ctx: ConvertContext, source: str, base: Path | None = 
     resolver = ctx.robot_state.get(RESOLVER_KEY)
     if not isinstance(resolver, ResourceResolver):
         resolver = ResourceResolver.from_env()
+    resolver = resolver.for_robot(ctx.robot)
     colors = {m.name: m.color.rgba for m in urdf.robot.materials if m.name and m.color}
 
     items: list[LogEntry] = []

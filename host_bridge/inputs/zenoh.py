@@ -3,21 +3,22 @@ catalog.
 
 A robot's samples wait (bounded) until its catalog has arrived: a ROS 1 bag replayed by a relay
 carries CDR laid out after ROS 1 definitions (``Header.seq``), which the bundled ROS 2 types
-would misread. Zenoh callbacks only parse and enqueue; decoding happens on the host's thread.
+would misread. Zenoh callbacks only parse and enqueue (per robot, see queues.py); decoding happens on the
+host's threads.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-import queue
 import threading
 import time
-from dataclasses import dataclass
 
 import zenoh
 from zenoh import ext
 
+from host_bridge.errors import ConfigError
+from host_bridge.inputs.queues import InputProblem, QueueItem, RobotEvent, RobotQueues
 from robot_relay.errors import WireError
 from robot_relay.wire import (
     PREFIX,
@@ -39,17 +40,28 @@ CATALOG_TIMEOUT_S = 5.0
 CATALOG_RETRY_S = 2.0
 MAX_PENDING_PER_ROBOT = 2000
 
-
-@dataclass(frozen=True, slots=True)
-class InputProblem:
-    """A sample the input had to drop; the dispatcher reports it once per kind."""
-
-    robot: str
-    topic: str
-    error: Exception
+__all__ = ["InputProblem", "QueueItem", "RobotEvent", "ZenohInput", "check_robot_pattern"]
 
 
-QueueItem = RawMessage | InputProblem
+def check_robot_pattern(pattern: str) -> str:
+    """``--robots``: one Zenoh key-expression chunk: a robot name (``tb3``), ``*`` (all), or a
+    name with ``$*`` inside (``east-$*`` matches ``east-1``, ``east-tb3``). ``tb*`` and lists
+    are not key expressions; a fleet split over hosts names its robots by group instead."""
+    try:
+        if "/" in pattern or not pattern:
+            raise ValueError("a robot pattern is one non-empty chunk, without '/'")
+        zenoh.KeyExpr(pattern)
+    except Exception as err:
+        msg = (
+            f"--robots {pattern!r} is not a Zenoh key-expression chunk ({err}); use a name, "
+            "'*', or '$*' inside a name (e.g. 'tb$*')"
+        )
+        raise ConfigError(msg) from err
+    return pattern
+
+
+def robot_matches(robot: str, pattern: str) -> bool:
+    return bool(zenoh.KeyExpr(robot).intersects(zenoh.KeyExpr(pattern)))
 
 
 class _Robot:
@@ -61,13 +73,15 @@ class _Robot:
 
 
 class ZenohInput:
-    """Subscribes to the data of the robots matched by ``robots`` (a key-expression chunk)."""
+    """Subscribes to the data of the robots matched by ``robots`` (see
+    :func:`check_robot_pattern`); a router then forwards only those robots' samples here."""
 
     def __init__(
-        self, session: zenoh.Session, robots: str = "*", queue_size: int = 20000
+        self, session: zenoh.Session, robots: str = "*", queues: RobotQueues | None = None
     ) -> None:
+        check_robot_pattern(robots)
         self.session = session
-        self.queue: queue.Queue[QueueItem] = queue.Queue(maxsize=queue_size)
+        self.queues = queues or RobotQueues()
         self.dropped = 0
         self._robots: dict[str, _Robot] = {}
         self._lock = threading.Lock()
@@ -86,11 +100,11 @@ class ZenohInput:
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         robot = parse_robot_key(str(sample.key_expr))
-        if sample.kind == zenoh.SampleKind.PUT:
-            log.info("robot %s joined", robot)
+        joined = sample.kind == zenoh.SampleKind.PUT
+        self.queues.put(RobotEvent(robot, joined, "swanky relay"))
+        if joined:
             self._fetch_catalog(robot)
         else:
-            log.info("robot %s left", robot)
             with self._lock:
                 state = self._robots.get(robot)
                 if state is not None:
@@ -132,6 +146,7 @@ class ZenohInput:
         with self._lock:
             state = self._robots.setdefault(raw.robot, _Robot())
             deliver = state.topics is not None
+            latched = False
             if state.topics is None:
                 if len(state.pending) < MAX_PENDING_PER_ROBOT:
                     state.pending.append(raw)
@@ -143,16 +158,14 @@ class ZenohInput:
                 fetch = info is None and time.monotonic() - state.last_fetch > CATALOG_RETRY_S
                 if info is not None and info.msgtype == raw.msgtype:
                     raw = dataclasses.replace(raw, definition=info.definition)
+                    latched = info.latched
         if fetch:
             self._fetch_catalog(raw.robot)
         if deliver:
-            self._put(raw)
+            self._put(raw, latched)
 
-    def _put(self, item: QueueItem) -> None:
-        try:
-            self.queue.put_nowait(item)
-        except queue.Full:
-            self.dropped += 1
+    def _put(self, item: QueueItem, latched: bool = False) -> None:
+        self.queues.put(item, latched)
 
     def _fetch_catalog(self, robot: str) -> None:
         with self._lock:
@@ -199,26 +212,13 @@ class ZenohInput:
             info = known.get(waiting.topic)
             if info is not None and info.msgtype == waiting.msgtype:
                 waiting = dataclasses.replace(waiting, definition=info.definition)  # noqa: PLW2901
-            self._put(waiting)
+            self._put(waiting, info is not None and info.latched)
 
     # -- consumer side -----------------------------------------------------------------------
 
     def drain(self, max_items: int = 1024, wait: float = 0.05) -> list[QueueItem]:
         """Gather what arrives within ``wait`` seconds (at least one item, or none on timeout)."""
-        items: list[QueueItem] = []
-        try:
-            items.append(self.queue.get(timeout=wait))
-        except queue.Empty:
-            return items
-        deadline = time.monotonic() + 0.005
-        while len(items) < max_items:
-            try:
-                items.append(self.queue.get_nowait())
-            except queue.Empty:
-                if time.monotonic() >= deadline:
-                    break
-                time.sleep(0.001)
-        return items
+        return self.queues.drain(max_items, wait)
 
     def close(self) -> None:
         self._closed.set()

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from robot_relay.errors import SourceError
+from robot_relay.sources.qos import adapted_qos
 from robot_relay.wire import (
     Catalog,
     MessageDefinition,
@@ -55,22 +56,14 @@ def bag_paths(path: Path) -> list[Path]:
 
 
 def _qos(connection: Any, topic: str) -> QosProfile:
-    ext = connection.ext
-    profiles = getattr(ext, "offered_qos_profiles", None) or []
+    profiles = getattr(connection.ext, "offered_qos_profiles", None) or []
     if profiles:
-        # Like `ros2 bag record`: best effort if any publisher is, latched only if all are.
-        best_effort = any(p.reliability.name == "BEST_EFFORT" for p in profiles)
-        latched = all(p.durability.name == "TRANSIENT_LOCAL" for p in profiles)
-        depth = max((p.depth for p in profiles), default=10) or 10
-    else:
-        best_effort = False
-        latched = bool(getattr(ext, "latching", None)) or topic in CONVENTIONALLY_LATCHED
-        depth = 1 if latched else 10
-    return QosProfile(
-        reliability="best_effort" if best_effort else "reliable",
-        durability="transient_local" if latched else "volatile",
-        depth=depth,
-    )
+        return adapted_qos([
+            (p.reliability.name.lower(), p.durability.name.lower(), p.depth) for p in profiles
+        ])
+    if getattr(connection.ext, "latching", None) or topic in CONVENTIONALLY_LATCHED:
+        return QosProfile(durability="transient_local", depth=1)
+    return QosProfile()
 
 
 def _definition(connection: Any) -> MessageDefinition | None:

@@ -21,6 +21,7 @@ from tests.host_bridge.sensor_test_support import (
     make_ctx,
     msg,
     read_topic,
+    scalars_of,
     stamp_ns,
 )
 
@@ -105,9 +106,12 @@ def test_real_magnetic_field_run(phidgets: dict[str, list[Any]]) -> None:
     entries = spec.convert_run(msgs, ctxs)
     item = columns_item(entries, "/r/imu/mag")
     rows = np.stack(column_rows(item, "Scalars:scalars"))
-    assert rows.shape == (13964, 3)
-    expected = [[m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z] for m in msgs]
+    # Every other message of this magnetometer is NaN, NaN, NaN: "no new reading", not plotted.
+    readings = [m for m in msgs if not math.isnan(m.magnetic_field.x)]
+    assert rows.shape == (6974, 3)
+    expected = [[m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z] for m in readings]
     np.testing.assert_array_equal(rows, expected)
+    assert item.times["ros_time"].tolist() == [stamp_ns(m) for m in readings]
     legends = [e for e in entries if isinstance(e, LogItem) and e.static]
     assert [e.path for e in legends] == ["/r/imu/mag"]
     names = archetype(legends[0], rr.SeriesLines).names.as_arrow_array().to_pylist()
@@ -167,3 +171,18 @@ def test_run_with_mixed_orientations_and_empty_frame_id() -> None:
     parents = np.concatenate(column_rows(orientation, "Transform3D:parent_frame"))
     assert list(parents) == ["tf#/r/imu", "tf#/r/imu"]
     np.testing.assert_array_equal(orientation.times["ros_time"], [1, 2])
+
+
+def test_magnetic_field_without_a_reading_logs_nothing() -> None:
+    nan = float("nan")
+    spec = CONVERTERS["sensor_msgs/msg/MagneticField"]
+
+    def field(x: float, y: float, z: float) -> Any:
+        return msg("sensor_msgs/msg/MagneticField", header=header("imu"),
+                   magnetic_field=vector(x, y, z), magnetic_field_covariance=np.zeros(9))
+
+    entries = spec.convert(field(nan, nan, nan), make_ctx("/imu/mag"))
+    assert [e for e in entries if not (isinstance(e, LogItem) and e.static)] == []
+    partial = spec.convert(field(1e-5, nan, 3e-5), make_ctx("/imu/mag"))
+    (item,) = [e for e in partial if isinstance(e, LogItem) and not e.static]
+    np.testing.assert_array_equal(scalars_of(item), [1e-5, nan, 3e-5])

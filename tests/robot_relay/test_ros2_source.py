@@ -1,14 +1,20 @@
-"""The pure parts of the rclpy source (rclpy itself is not installable here)."""
+"""The rclpy source without rclpy (not installable here): discovery, QoS, demand and
+definitions against fake nodes that answer like rclpy's graph API."""
 
 from __future__ import annotations
 
 import dataclasses
+import enum
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
-from robot_relay.sources.ros2 import adapted_qos, ament_share_dirs, message_definition
+from robot_relay.sources.qos import adapted_qos
+from robot_relay.sources.ros2 import Ros2Source, ament_share_dirs, message_definition
+from robot_relay.wire import RawMessage, TopicInfo
 
 
 def write_msg(share: Path, name: str, text: str) -> None:
@@ -51,6 +57,184 @@ def test_qos_follows_ros2_bag_record() -> None:
     assert adapted_qos([]).durability == "volatile"
     mixed = adapted_qos([("reliable", "transient_local", 1), ("best_effort", "volatile", 5)])
     assert (mixed.reliability, mixed.durability, mixed.depth) == ("best_effort", "volatile", 5)
+    # Several /tf_static broadcasters: the cache must hold each one's latched message.
     latched = adapted_qos([("reliable", "transient_local", 1), ("reliable", "transient_local", 1)])
-    assert latched.durability == "transient_local"
-    assert latched.reliability == "reliable"
+    assert (latched.reliability, latched.durability, latched.depth) == ("reliable", "transient_local", 2)
+    # rosbag2 asks reliable only when every publisher offers it (an unknown one does not).
+    assert adapted_qos([("reliable", "volatile", 10), ("unknown", "volatile", 10)]).reliability == (
+        "best_effort"
+    )
+
+
+def test_idl_only_package_gives_a_ros2idl_definition_rosbags_parses(tmp_path: Path) -> None:
+    share = tmp_path / "share"
+    (share / "idl_pkg" / "msg").mkdir(parents=True)
+    (share / "idl_pkg" / "msg" / "Basic.idl").write_text(
+        "module idl_pkg {\n  module msg {\n    struct Basic {\n      float value;\n    };\n  };\n};\n"
+    )
+    (share / "idl_pkg" / "msg" / "Complex.idl").write_text(
+        '// written in IDL\n#include "idl_pkg/msg/Basic.idl"\n\n'
+        "module idl_pkg {\n  module msg {\n    struct Complex {\n"
+        "      idl_pkg::msg::Basic first;\n      sequence<idl_pkg::msg::Basic> rest;\n"
+        "    };\n  };\n};\n"
+    )
+    definition = message_definition("idl_pkg/msg/Complex", [share])
+    assert definition is not None
+    assert definition.encoding == "ros2idl"
+    separator = "=" * 80 + "\n"
+    blocks = definition.text.split(separator)[1:]
+    assert [b.split("\n", 1)[0] for b in blocks] == ["IDL: idl_pkg/msg/Complex", "IDL: idl_pkg/msg/Basic"]
+    # As rosbags' AnyReader reads rosbag2's ros2idl: block by block, #include lines dropped
+    # (its IDL grammar has no preprocessor).
+    store = get_typestore(Stores.EMPTY)
+    for block in blocks:
+        body = "\n".join(line for line in block.split("\n")[1:] if not line.startswith("#include"))
+        store.register(get_types_from_idl(body))
+    complex_type = store.types["idl_pkg/msg/Complex"]
+    fields = [f.name for f in dataclasses.fields(cast(Any, complex_type)) if not f.name.startswith("__")]
+    assert fields == ["first", "rest"]
+    assert message_definition("idl_pkg/action/Go_FeedbackMessage", [share]) is None
+
+
+@dataclass
+class Policies:
+    reliability: enum.Enum
+    durability: enum.Enum
+    depth: int
+
+
+@dataclass
+class Endpoint:
+    """rclpy.topic_endpoint_info.TopicEndpointInfo, as far as the source reads it."""
+
+    qos_profile: Policies
+
+
+class Reliability(enum.IntEnum):  # rclpy.qos.ReliabilityPolicy
+    SYSTEM_DEFAULT = 0
+    RELIABLE = 1
+    BEST_EFFORT = 2
+
+
+class Durability(enum.IntEnum):  # rclpy.qos.DurabilityPolicy
+    SYSTEM_DEFAULT = 0
+    TRANSIENT_LOCAL = 1
+    VOLATILE = 2
+
+
+def sensor(depth: int = 5) -> Endpoint:
+    return Endpoint(Policies(Reliability.BEST_EFFORT, Durability.VOLATILE, depth))
+
+
+def latched() -> Endpoint:
+    return Endpoint(Policies(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, 1))
+
+
+@dataclass
+class FakeNode:
+    """Answers like rclpy.node.Node's graph API; records subscriptions made through it."""
+
+    graph: dict[str, tuple[list[str], list[Endpoint]]] = field(default_factory=dict)
+    subscribed: list[str] = field(default_factory=list)
+    unsubscribed: list[str] = field(default_factory=list)
+    callbacks: dict[str, Callable[[bytes], None]] = field(default_factory=dict)
+
+    def get_topic_names_and_types(self) -> list[tuple[str, list[str]]]:
+        return [(topic, types) for topic, (types, _) in self.graph.items()]
+
+    def get_publishers_info_by_topic(self, topic: str) -> list[Endpoint]:
+        return self.graph[topic][1]
+
+    def subscribe(self, info: TopicInfo, callback: Callable[[bytes], None]) -> str:
+        self.subscribed.append(info.topic)
+        self.callbacks[info.topic] = callback
+        return info.topic
+
+    def unsubscribe(self, handle: str) -> None:
+        self.unsubscribed.append(handle)
+        del self.callbacks[handle]
+
+
+def make_source(node: FakeNode, shares: list[Path] | None = None) -> Ros2Source:
+    return Ros2Source(
+        node, "tb3", lambda topic: not topic.startswith("/secret"), shares or [],
+        subscribe=node.subscribe, unsubscribe=node.unsubscribe,
+    )
+
+
+def test_discovery_follows_new_vanished_and_changed_topics(tmp_path: Path) -> None:
+    write_msg(tmp_path, "my_robot/Reading", "float32 value\n")
+    node = FakeNode({
+        "/scan": (["sensor_msgs/msg/LaserScan"], [sensor()]),
+        "/reading": (["my_robot/msg/Reading"], [sensor(1)]),
+        "/cmd_vel": (["geometry_msgs/msg/Twist"], []),  # only subscribers: nothing to forward
+        "/secret/pose": (["geometry_msgs/msg/Pose"], [sensor()]),  # denied
+        "/both": (["std_msgs/msg/String", "std_msgs/msg/Int32"], [sensor()]),  # ambiguous
+    })
+    source = make_source(node, [tmp_path])
+    catalog = source.discover()
+    assert catalog is not None
+    assert catalog.source == "ros2"
+    assert [(t.topic, t.msgtype) for t in catalog.topics] == [
+        ("/reading", "my_robot/msg/Reading"), ("/scan", "sensor_msgs/msg/LaserScan"),
+    ]
+    reading = catalog.topics[0]
+    assert reading.definition is not None
+    assert reading.definition.text == "float32 value\n"  # a custom package, from its share dir
+    assert reading.qos.reliability == "best_effort"
+    assert source.discover() is None  # nothing changed
+
+    # A second, latched publisher joins /tf_static; a reliable one joins /scan; /reading leaves.
+    node.graph["/tf_static"] = (["tf2_msgs/msg/TFMessage"], [latched(), latched()])
+    node.graph["/scan"] = (["sensor_msgs/msg/LaserScan"],
+                           [sensor(), Endpoint(Policies(Reliability.RELIABLE, Durability.VOLATILE, 10))])
+    del node.graph["/reading"]
+    catalog = source.discover()
+    assert catalog is not None
+    infos = {t.topic: t for t in catalog.topics}
+    assert sorted(infos) == ["/scan", "/tf_static"]
+    assert infos["/tf_static"].latched
+    assert infos["/tf_static"].qos.depth == 2
+    assert (infos["/scan"].qos.reliability, infos["/scan"].qos.depth) == ("best_effort", 10)
+
+
+def test_demand_subscribes_and_unsubscribes_and_forwards_raw_bytes() -> None:
+    node = FakeNode({"/scan": (["sensor_msgs/msg/LaserScan"], [sensor()]),
+                     "/tf_static": (["tf2_msgs/msg/TFMessage"], [latched()])})
+    source = make_source(node)
+    assert source.discover() is not None
+    published: list[RawMessage] = []
+    source.apply_demand(published.append)
+    assert node.subscribed == []  # nobody asked
+
+    source.on_demand("/scan", True)
+    source.on_demand("/tf_static", True)
+    assert source.wake.is_set()
+    source.apply_demand(published.append)
+    assert node.subscribed == ["/scan", "/tf_static"]
+    node.callbacks["/scan"](b"\x00\x01\x00\x00cdr")
+    assert [(m.robot, m.topic, m.msgtype, m.data) for m in published] == [
+        ("tb3", "/scan", "sensor_msgs/msg/LaserScan", b"\x00\x01\x00\x00cdr")
+    ]
+
+    # Listening again changes nothing; off then on before the thread runs changes nothing.
+    source.on_demand("/scan", True)
+    source.on_demand("/tf_static", False)
+    source.on_demand("/tf_static", True)
+    source.apply_demand(published.append)
+    assert node.subscribed == ["/scan", "/tf_static"]
+
+    source.on_demand("/scan", False)
+    source.apply_demand(published.append)
+    assert node.unsubscribed == ["/scan"]
+
+    # The publisher's QoS changes while a host listens: re-subscribed with the new QoS.
+    node.graph["/tf_static"][1].append(sensor())
+    assert source.discover() is not None
+    source.on_demand("/tf_static", True)
+    source.apply_demand(published.append)
+    assert node.unsubscribed == ["/scan", "/tf_static"]
+    assert node.subscribed == ["/scan", "/tf_static", "/tf_static"]
+    assert not source.subscriptions["/tf_static"][0].latched
+    source.close()
+    assert sorted(node.unsubscribed) == ["/scan", "/tf_static", "/tf_static"]

@@ -1,0 +1,284 @@
+"""Link and pipeline health as Rerun data, so a plot shows whether the Wi-Fi or the PC is the
+bottleneck.
+
+Once per second of each robot's clock (the relay's receive time live; the bag's log time when
+``--stats`` is asked for an offline conversion), for every topic of that robot:
+
+- ``/_stats/<robot><topic>/rate_hz``: messages that reached the host, per second;
+- ``.../bandwidth_kbps``: their CDR bytes (after wire decompression), kbit/s;
+- ``.../drops``: messages lost on the way (wire sequence gaps) in the period;
+- ``.../latency_ms``: mean host wall clock when the message reached the pipeline minus the
+  relay's receive time (live only);
+- ``.../convert_ms``: mean host decode + conversion time per message;
+- ``/_stats/<robot>/host/convert_load_percent``: host time spent converting this robot's
+  messages, in % of the period;
+- ``/_stats/<robot>/relay/cpu_percent`` (% of one core), ``sent_hz``, ``sent_kbps``: the
+  relay's own report (``swanky/<robot>/stats``), to compare what was sent with what arrived.
+
+Latency compares two clocks: it is only meaningful when robot and PC are synchronised (chrony /
+NTP). An offset shows as a constant shift of every topic's latency (negative when the robot's
+clock is ahead); congestion shows as latency that grows with bandwidth, together with drops or
+``sent_hz`` above ``rate_hz``. A saturated PC shows as ``convert_load_percent`` near 100 instead.
+Latency includes the time a sample waited in the host's input queue.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import rerun as rr
+
+from host_bridge.dispatch import TopicCounters, sequence_gap
+from host_bridge.registry import TIMELINE_LOG, TIMELINE_RECEIVE, LogItem
+from robot_relay.errors import WireError
+from robot_relay.stats import RelayReport, stats_selector
+from robot_relay.wire import RawMessage, parse_robot_key
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from host_bridge.sink import RerunSink
+
+log = logging.getLogger("swanky.host")
+
+STATS_ROOT = "/_stats"
+PERIOD_NS = 1_000_000_000
+# After a silence longer than this many periods, log one empty period and skip the rest.
+MAX_EMPTY_PERIODS = 10
+
+ConvertTotals = Callable[[str, str], tuple[int, float]]
+
+
+def no_convert_totals(robot: str, topic: str) -> tuple[int, float]:
+    return 0, 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class TopicStats:
+    """One topic over one period ending at ``end_ns`` on ``timeline``."""
+
+    robot: str
+    topic: str
+    timeline: str
+    end_ns: int
+    rate_hz: float
+    bandwidth_kbps: float
+    drops: int
+    latency_ms: float | None
+    convert_ms: float | None
+    convert_seconds: float
+
+
+@dataclass(slots=True)
+class _TopicWindow:
+    count: int = 0
+    bytes: int = 0
+    drops: int = 0
+    latency_ns: int = 0
+    latency_count: int = 0
+    last_sequence: int | None = None
+    converted_before: int = 0
+    convert_seconds_before: float = 0.0
+
+
+@dataclass(slots=True)
+class _RobotWindow:
+    timeline: str
+    end_ns: int
+    topics: dict[str, _TopicWindow] = field(default_factory=dict)
+
+
+class StatsTracker:
+    """Per-robot one-second windows over RawMessages; pure (times come in, numbers go out)."""
+
+    def __init__(
+        self, period_ns: int = PERIOD_NS, convert_totals: ConvertTotals = no_convert_totals
+    ) -> None:
+        self.period_ns = period_ns
+        self.convert_totals = convert_totals
+        self._robots: dict[str, _RobotWindow] = {}
+
+    def observe(self, raw: RawMessage, host_ns: int) -> list[TopicStats]:
+        """Count ``raw``, handed to the host pipeline at ``host_ns``; return the periods it closed."""
+        if raw.receive_ns is not None:
+            at, timeline = raw.receive_ns, TIMELINE_RECEIVE
+        elif raw.log_ns is not None:
+            at, timeline = raw.log_ns, TIMELINE_LOG
+        else:
+            return []
+        robot = self._robots.get(raw.robot)
+        if robot is None:
+            robot = self._robots[raw.robot] = _RobotWindow(timeline, self._period_end(at))
+        closed: list[TopicStats] = []
+        while at >= robot.end_ns:
+            closed += self._close(raw.robot, robot)
+            if at >= robot.end_ns + MAX_EMPTY_PERIODS * self.period_ns:
+                closed += self._close(raw.robot, robot)  # one empty period shows the silence
+                robot.end_ns = self._period_end(at)
+        window = robot.topics.get(raw.topic)
+        if window is None:
+            converted, seconds = self.convert_totals(raw.robot, raw.topic)
+            window = robot.topics[raw.topic] = _TopicWindow(
+                converted_before=converted, convert_seconds_before=seconds
+            )
+        window.count += 1
+        window.bytes += len(raw.data)
+        if raw.sequence is not None:
+            window.drops += sequence_gap(window.last_sequence, raw.sequence)
+            window.last_sequence = raw.sequence
+        if raw.receive_ns is not None:
+            window.latency_ns += host_ns - raw.receive_ns
+            window.latency_count += 1
+        return closed
+
+    def _period_end(self, at: int) -> int:
+        return (at // self.period_ns + 1) * self.period_ns
+
+    def _close(self, name: str, robot: _RobotWindow) -> list[TopicStats]:
+        seconds = self.period_ns / 1e9
+        closed = []
+        for topic, window in robot.topics.items():
+            converted, convert_seconds = self.convert_totals(name, topic)
+            new_converted = converted - window.converted_before
+            spent = convert_seconds - window.convert_seconds_before
+            closed.append(TopicStats(
+                robot=name,
+                topic=topic,
+                timeline=robot.timeline,
+                end_ns=robot.end_ns,
+                rate_hz=window.count / seconds,
+                bandwidth_kbps=window.bytes * 8 / 1000 / seconds,
+                drops=window.drops,
+                latency_ms=window.latency_ns / window.latency_count / 1e6
+                if window.latency_count else None,
+                convert_ms=spent * 1000 / new_converted if new_converted else None,
+                convert_seconds=spent,
+            ))
+            robot.topics[topic] = _TopicWindow(
+                last_sequence=window.last_sequence,
+                converted_before=converted,
+                convert_seconds_before=convert_seconds,
+            )
+        robot.end_ns += self.period_ns
+        return closed
+
+
+def topic_stats_items(stats: Sequence[TopicStats], period_ns: int = PERIOD_NS) -> list[LogItem]:
+    """Scalars per topic and metric, plus each robot's host conversion load per period."""
+    items: list[LogItem] = []
+    load: dict[tuple[str, str, int], float] = {}
+    for s in stats:
+        times = {s.timeline: s.end_ns}
+        root = f"{STATS_ROOT}/{s.robot}{s.topic}"
+        values: dict[str, float | None] = {
+            "rate_hz": s.rate_hz,
+            "bandwidth_kbps": s.bandwidth_kbps,
+            "drops": float(s.drops),
+            "latency_ms": s.latency_ms,
+            "convert_ms": s.convert_ms,
+        }
+        items += [
+            LogItem(f"{root}/{name}", (rr.Scalars(value),), times=times)
+            for name, value in values.items()
+            if value is not None
+        ]
+        if s.timeline == TIMELINE_RECEIVE:  # a wall-clock share; meaningless on bag time
+            key = (s.robot, s.timeline, s.end_ns)
+            load[key] = load.get(key, 0.0) + s.convert_seconds
+    items += [
+        LogItem(
+            f"{STATS_ROOT}/{robot}/host/convert_load_percent",
+            (rr.Scalars(seconds * 1e9 / period_ns * 100),),
+            times={timeline: end_ns},
+        )
+        for (robot, timeline, end_ns), seconds in load.items()
+    ]
+    return items
+
+
+class RelayRates:
+    """Turns a relay's cumulative reports into rates between consecutive reports."""
+
+    def __init__(self) -> None:
+        self._last: dict[str, RelayReport] = {}
+
+    def items(self, report: RelayReport) -> list[LogItem]:
+        root = f"{STATS_ROOT}/{report.robot}/relay"
+        times = {TIMELINE_RECEIVE: report.time_ns}
+        items = [LogItem(f"{root}/cpu_percent", (rr.Scalars(report.cpu_percent),), times=times)]
+        last = self._last.get(report.robot)
+        self._last[report.robot] = report
+        if last is not None and report.time_ns > last.time_ns and report.messages >= last.messages:
+            seconds = (report.time_ns - last.time_ns) / 1e9
+            sent_hz = (report.messages - last.messages) / seconds
+            sent_kbps = (report.payload_bytes - last.payload_bytes) * 8 / 1000 / seconds
+            items += [
+                LogItem(f"{root}/sent_hz", (rr.Scalars(sent_hz),), times=times),
+                LogItem(f"{root}/sent_kbps", (rr.Scalars(sent_kbps),), times=times),
+            ]
+        return items
+
+
+class StatsTap:
+    """Dispatcher tap logging ``/_stats``; with a Zenoh session it also logs the relays' reports."""
+
+    def __init__(
+        self,
+        sink: RerunSink,
+        counters: Mapping[tuple[str, str], TopicCounters],
+        *,
+        session: zenoh.Session | None = None,
+        robots: str = "*",
+        clock: Callable[[], int] = time.time_ns,
+    ) -> None:
+        self.sink = sink
+        self.tracker = StatsTracker(convert_totals=self._convert_totals)
+        self._counters = counters
+        self._clock = clock
+        self._rates = RelayRates()
+        self._reports: collections.deque[RelayReport] = collections.deque(maxlen=1000)
+        # Live robots are dispatched from one thread each; windows and rates are shared state.
+        self._lock = threading.Lock()
+        self._subscriber = (
+            None if session is None
+            else session.declare_subscriber(stats_selector(robots), self._on_report)
+        )
+
+    def _convert_totals(self, robot: str, topic: str) -> tuple[int, float]:
+        counters = self._counters.get((robot, topic))
+        return (0, 0.0) if counters is None else (counters.converted, counters.convert_seconds)
+
+    def _on_report(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            report = RelayReport.from_json(sample.payload.to_bytes(), key)
+            if report.robot != parse_robot_key(key):
+                msg = f"relay stats on {key!r} name robot {report.robot!r}"
+                raise WireError(msg)
+        except WireError as err:
+            log.debug("%s", err)
+            return
+        self._reports.append(report)  # zenoh's thread; logged on the host's thread
+
+    def __call__(self, batch: Sequence[RawMessage]) -> None:
+        host_ns = self._clock()
+        closed: list[TopicStats] = []
+        with self._lock:
+            for raw in batch:
+                closed += self.tracker.observe(raw, host_ns)
+            items = topic_stats_items(closed, self.tracker.period_ns)
+            while self._reports:
+                items += self._rates.items(self._reports.popleft())
+        if items:
+            self.sink.log(items, {})
+
+    def close(self) -> None:
+        if self._subscriber is not None:
+            self._subscriber.undeclare()
+            self._subscriber = None

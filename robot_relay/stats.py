@@ -1,0 +1,137 @@
+"""The relay's own health, published once a second on ``swanky/<robot>/stats`` (schemas/wire.md).
+
+CPU comes from ``os.times()`` (user + system time of this process, every thread) against
+``time.monotonic()``: no psutil on the robot. 100 % is one full core, so the value lies in
+``[0, 100 * cores]``. Counts are cumulative, so a lost report loses no messages; the host turns
+consecutive reports into rates.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from robot_relay.errors import WireError
+from robot_relay.wire import PREFIX
+
+log = logging.getLogger("swanky.relay")
+
+STATS_VERSION = 1
+REPORT_PERIOD_S = 1.0
+
+
+def stats_key(robot: str) -> str:
+    return f"{PREFIX}/{robot}/stats"
+
+
+def stats_selector(robots: str = "*") -> str:
+    return f"{PREFIX}/{robots}/stats"
+
+
+@dataclass(frozen=True, slots=True)
+class RelayReport:
+    robot: str
+    time_ns: int
+    cpu_percent: float
+    messages: int
+    payload_bytes: int
+
+    def to_json(self) -> str:
+        return json.dumps({
+            "version": STATS_VERSION,
+            "robot": self.robot,
+            "time_ns": self.time_ns,
+            "cpu_percent": round(self.cpu_percent, 2),
+            "messages": self.messages,
+            "bytes": self.payload_bytes,
+        })
+
+    @classmethod
+    def from_json(cls, text: str | bytes, key: str) -> RelayReport:
+        try:
+            doc: Any = json.loads(text)
+            if doc["version"] != STATS_VERSION:
+                msg = f"relay stats on {key!r} have version {doc['version']}, expected {STATS_VERSION}"
+                raise WireError(msg)
+            return cls(
+                robot=str(doc["robot"]),
+                time_ns=int(doc["time_ns"]),
+                cpu_percent=float(doc["cpu_percent"]),
+                messages=int(doc["messages"]),
+                payload_bytes=int(doc["bytes"]),
+            )
+        except WireError:
+            raise
+        except (ValueError, KeyError, TypeError) as err:
+            msg = f"relay stats on {key!r} are not valid: {err!r}"
+            raise WireError(msg) from err
+
+
+def process_cpu_seconds() -> float:
+    times = os.times()
+    return times.user + times.system
+
+
+class CpuMeter:
+    """Process CPU use since the previous reading, in percent of one core."""
+
+    def __init__(
+        self,
+        cpu_seconds: Callable[[], float] = process_cpu_seconds,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self._cpu_seconds = cpu_seconds
+        self._clock = clock
+        self._last = (clock(), cpu_seconds())
+
+    def percent(self) -> float:
+        now, cpu = self._clock(), self._cpu_seconds()
+        (then, cpu_then), self._last = self._last, (now, cpu)
+        elapsed = now - then
+        return max(0.0, (cpu - cpu_then) / elapsed * 100) if elapsed > 0 else 0.0
+
+
+class RelayStatsPublisher:
+    """A thread putting one RelayReport per period; ``counts`` gives (messages, bytes) sent."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        robot: str,
+        counts: Callable[[], tuple[int, int]],
+        period_s: float = REPORT_PERIOD_S,
+    ) -> None:
+        self.robot = robot
+        self._counts = counts
+        self._period_s = period_s
+        self._meter = CpuMeter()
+        self._publisher = session.declare_publisher(
+            stats_key(robot), encoding=zenoh.Encoding.APPLICATION_JSON
+        )
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="relay-stats", daemon=True)
+        self._thread.start()
+
+    def report(self) -> RelayReport:
+        messages, sent = self._counts()
+        return RelayReport(self.robot, time.time_ns(), self._meter.percent(), messages, sent)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._period_s):
+            try:
+                self._publisher.put(self.report().to_json())
+            except Exception as err:  # the session is closing; stats are best effort
+                log.debug("relay stats not sent: %s", err)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        self._publisher.undeclare()

@@ -1,0 +1,144 @@
+"""/_stats from RawMessages with known times, sizes and sequence gaps: exact numbers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from host_bridge.dispatch import TopicCounters
+from host_bridge.registry import TIMELINE_LOG, TIMELINE_RECEIVE
+from host_bridge.sink import RerunSink, SinkOptions
+from host_bridge.stats import RelayRates, StatsTap, StatsTracker, TopicStats, topic_stats_items
+from robot_relay.stats import RelayReport
+from robot_relay.wire import RawMessage
+from tests.rrd import entity_rows
+
+S = 1_000_000_000
+MS = 1_000_000
+T0 = 1_700_000_000 * S  # a whole second
+
+
+def live(topic: str, at: int, sequence: int, size: int = 100, robot: str = "tb3") -> RawMessage:
+    return RawMessage(robot, topic, "std_msgs/msg/String", b"\0" * size, receive_ns=at,
+                      log_ns=at - 5 * MS, sequence=sequence)
+
+
+def test_rate_bandwidth_drops_latency_per_second() -> None:
+    tracker = StatsTracker()
+    closed: list[TopicStats] = []
+    # Second 0: /scan at 10 Hz, sequences 0..9 except 3 and 4 (lost), 1000 bytes, 20 ms late.
+    for seq in (0, 1, 2, 5, 6, 7, 8, 9):
+        at = T0 + seq * 100 * MS
+        closed += tracker.observe(live("/scan", at, seq, 1000), host_ns=at + 20 * MS)
+    # /odom: two messages, 50 and 70 ms late.
+    closed += tracker.observe(live("/odom", T0 + 10 * MS, 0), host_ns=T0 + 60 * MS)
+    closed += tracker.observe(live("/odom", T0 + 20 * MS, 1), host_ns=T0 + 90 * MS)
+    assert closed == []  # the second has not ended yet
+    # Second 1 starts: closes second 0 for both topics.
+    closed = tracker.observe(live("/scan", T0 + S, 10, 1000), host_ns=T0 + S + 20 * MS)
+    by_topic = {s.topic: s for s in closed}
+    scan = by_topic["/scan"]
+    assert (scan.robot, scan.timeline, scan.end_ns) == ("tb3", TIMELINE_RECEIVE, T0 + S)
+    assert scan.rate_hz == 8.0
+    assert scan.bandwidth_kbps == 8 * 1000 * 8 / 1000
+    assert scan.drops == 2
+    assert scan.latency_ms == 20.0
+    assert scan.convert_ms is None
+    odom = by_topic["/odom"]
+    assert (odom.rate_hz, odom.drops, odom.latency_ms) == (2.0, 0, 60.0)
+    assert odom.bandwidth_kbps == 2 * 100 * 8 / 1000
+
+
+def test_silence_gives_zero_rate_and_a_long_one_is_skipped() -> None:
+    tracker = StatsTracker()
+    tracker.observe(live("/scan", T0, 0), T0)
+    closed = tracker.observe(live("/scan", T0 + 3 * S + 1, 1), T0 + 3 * S + 1)
+    assert [(s.end_ns, s.rate_hz) for s in closed] == [
+        (T0 + S, 1.0), (T0 + 2 * S, 0.0), (T0 + 3 * S, 0.0)
+    ]
+    closed = tracker.observe(live("/scan", T0 + 3600 * S, 2), T0 + 3600 * S)
+    # An hour of silence: one empty period, not 3600.
+    assert [(s.end_ns, s.rate_hz) for s in closed] == [(T0 + 4 * S, 1.0), (T0 + 5 * S, 0.0)]
+    closed = tracker.observe(live("/scan", T0 + 3601 * S, 3), T0 + 3601 * S)
+    assert [(s.end_ns, s.rate_hz, s.drops) for s in closed] == [(T0 + 3601 * S, 1.0, 0)]
+
+
+def test_robots_have_their_own_clocks_and_a_bag_uses_log_time() -> None:
+    tracker = StatsTracker()
+    bag = RawMessage("bag", "/tf", "tf2_msgs/msg/TFMessage", b"1234", log_ns=5 * S + 1)
+    assert tracker.observe(bag, 0) == []
+    assert tracker.observe(live("/scan", T0, 0), T0) == []  # another robot: nothing closes
+    closed = tracker.observe(RawMessage("bag", "/tf", "x", b"", log_ns=6 * S), 0)
+    assert [(s.robot, s.timeline, s.end_ns, s.rate_hz, s.latency_ms) for s in closed] == [
+        ("bag", TIMELINE_LOG, 6 * S, 1.0, None)
+    ]
+    assert tracker.observe(RawMessage("bag", "/x", "x", b""), 0) == []  # no time: not counted
+
+
+def test_sequence_wrap_and_relay_restart_are_not_drops() -> None:
+    tracker = StatsTracker()
+    for i, seq in enumerate((0xFFFFFFFE, 0xFFFFFFFF, 0, 1, 0, 1, 3)):
+        tracker.observe(live("/scan", T0 + i * MS, seq), T0)
+    (scan,) = tracker.observe(live("/scan", T0 + S, 4), T0 + S)
+    assert scan.drops == 1  # only 2 is missing
+
+
+def test_convert_time_from_the_dispatcher_counters() -> None:
+    counters = {("tb3", "/scan"): TopicCounters("x", converted=0, convert_seconds=0.0)}
+
+    def totals(robot: str, topic: str) -> tuple[int, float]:
+        c = counters.get((robot, topic))
+        return (0, 0.0) if c is None else (c.converted, c.convert_seconds)
+
+    tracker = StatsTracker(convert_totals=totals)
+    tracker.observe(live("/scan", T0, 0), T0)
+    counters["tb3", "/scan"] = TopicCounters("x", converted=4, convert_seconds=0.010)
+    (scan,) = tracker.observe(live("/scan", T0 + S, 1), T0 + S)
+    assert scan.convert_ms == pytest.approx(2.5)
+    assert scan.convert_seconds == pytest.approx(0.010)
+    items = {i.path: i for i in topic_stats_items([scan])}
+    assert sorted(items) == [
+        "/_stats/tb3/host/convert_load_percent", "/_stats/tb3/scan/bandwidth_kbps",
+        "/_stats/tb3/scan/convert_ms", "/_stats/tb3/scan/drops", "/_stats/tb3/scan/latency_ms",
+        "/_stats/tb3/scan/rate_hz",
+    ]
+    load = items["/_stats/tb3/host/convert_load_percent"]
+    assert load.archetypes[0].scalars.as_arrow_array().to_pylist() == [pytest.approx(1.0)]  # type: ignore[attr-defined]
+    assert load.times == {TIMELINE_RECEIVE: T0 + S}
+
+
+def test_relay_rates_between_reports() -> None:
+    rates = RelayRates()
+    first = rates.items(RelayReport("tb3", T0, 12.5, messages=100, payload_bytes=10_000))
+    assert [i.path for i in first] == ["/_stats/tb3/relay/cpu_percent"]
+    second = rates.items(RelayReport("tb3", T0 + 2 * S, 30.0, messages=300, payload_bytes=260_000))
+    values = {i.path: i.archetypes[0].scalars.as_arrow_array().to_pylist()  # type: ignore[attr-defined]
+              for i in second}
+    assert values == {
+        "/_stats/tb3/relay/cpu_percent": [30.0],
+        "/_stats/tb3/relay/sent_hz": [100.0],
+        "/_stats/tb3/relay/sent_kbps": [1000.0],
+    }
+
+
+def test_stats_tap_logs_scalars_into_rerun(tmp_path: Path) -> None:
+    out = tmp_path / "stats.rrd"
+    sink = RerunSink(SinkOptions(save=out))
+    clock = iter([T0 + 950 * MS, T0 + S + 450 * MS, T0 + 2 * S + 30 * MS])
+    tap = StatsTap(sink, {}, clock=lambda: next(clock))
+    tap([live("/scan", T0 + i * 100 * MS, i) for i in range(10)])
+    tap([live("/scan", T0 + S + i * 100 * MS, 10 + 2 * i) for i in range(5)])
+    tap([live("/scan", T0 + 2 * S, 20)])
+    sink.close()
+    rows = entity_rows(out)
+
+    def series(name: str) -> list[tuple[int, Any]]:
+        return [(r[TIMELINE_RECEIVE], r["Scalars:scalars"][0]) for r in rows[f"/_stats/tb3/scan/{name}"]]
+
+    assert series("rate_hz") == [(T0 + S, 10.0), (T0 + 2 * S, 5.0)]
+    assert series("drops") == [(T0 + S, 0.0), (T0 + 2 * S, 4.0)]
+    # The host clock is read once per run (as it is taken from the input queue).
+    assert series("latency_ms") == [(T0 + S, pytest.approx(950 - 450)),
+                                    (T0 + 2 * S, pytest.approx(450 - 200))]
