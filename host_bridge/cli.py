@@ -12,6 +12,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from host_bridge.blueprint import BlueprintFollower, check_blueprint_file
 from host_bridge.config import HostConfig
 from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import HostError, PartialConvertError
@@ -20,7 +21,7 @@ from host_bridge.inputs.queues import InputProblem, QueueItem, RobotEvent, prese
 from host_bridge.recorder import McapRecorder, may_hold_several_robots
 from host_bridge.registry import default_registry
 from host_bridge.resources import ResourceResolver, RobotFetch, parse_package_path
-from host_bridge.sink import RerunSink, SinkOptions
+from host_bridge.sink import APPLICATION_ID, RerunSink, SinkOptions
 from robot_relay.errors import RelayError
 from robot_relay.session import add_zenoh_arguments
 from robot_relay.wire import check_robot_name
@@ -172,6 +173,18 @@ def log_urdf_file(args: argparse.Namespace, dispatcher: Dispatcher) -> None:
         dispatcher.warn(args.robot, str(args.urdf), err)
 
 
+def start_layout(args: argparse.Namespace, sink: RerunSink) -> BlueprintFollower | None:
+    """The user's --blueprint file, sent once; else Swanky's layout following the topics,
+    unless --no-blueprint."""
+    if args.blueprint is not None:
+        sink.send_blueprint_file(args.blueprint)
+        return None
+    if args.no_blueprint:
+        return None
+    stats = args.stats if args.stats is not None else args.bag is None
+    return BlueprintFollower(sink.send_blueprint, stats=stats)
+
+
 def convert_bag(args: argparse.Namespace, dispatcher: Dispatcher, stop: threading.Event) -> None:
     from host_bridge.inputs.bag import bag_runs
     from host_bridge.progress import Progress, bag_extent
@@ -271,6 +284,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     sink: RerunSink | None = None
     recorder: McapRecorder | None = None
+    layout: BlueprintFollower | None = None
     try:
         check_robot_name(args.robot)
         if args.list:
@@ -292,15 +306,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             from host_bridge.demo import configure_demo
 
             configure_demo(args)  # checks --robots N before a viewer opens
+        if args.blueprint is not None:
+            check_blueprint_file(args.blueprint, APPLICATION_ID)
         sink = RerunSink(sink_options(args))
         if sink.web_url:
             print(f"Rerun web viewer: {sink.web_url}", flush=True)
+        layout = start_layout(args, sink)
         # Live robots serve the meshes this PC lacks (robot_relay/files.py).
         robot_files = None if args.bag is not None else RobotFiles()
         robot_fetch = None if robot_files is None else robot_files.fetch
         dispatcher = Dispatcher(
             sink, registry=registry, config=config, strict=args.strict,
             robot_state={"resolver": resolver(args, robot_fetch)},
+            on_new_topic=None if layout is None else layout.topic_seen,
         )
         if args.record_mcap is not None:
             recorder = McapRecorder(args.record_mcap, prefix_robot=may_hold_several_robots(
@@ -329,6 +347,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if recorder is not None:
             recorder.close()
+        if layout is not None:
+            layout.close()
         if sink is not None:
             sink.close()
     return 0

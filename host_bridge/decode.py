@@ -27,10 +27,22 @@ def base_typestore() -> Typestore:
     return store
 
 
+IDL_SEPARATOR = "=" * 80 + "\n"
+
+
 def _parse(definition: MessageDefinition, msgtype: str) -> dict[str, Any]:
-    if definition.encoding == "ros2idl":
+    if definition.encoding != "ros2idl":
+        return dict(get_types_from_msg(definition.text, msgtype))
+    if not definition.text.startswith(f"{IDL_SEPARATOR}IDL: "):
         return dict(get_types_from_idl(definition.text))
-    return dict(get_types_from_msg(definition.text, msgtype))
+    # rosbag2's delimited form: one "IDL: pkg/msg/Name" block per file, as AnyReader reads it.
+    # rosbags' IDL grammar has no preprocessor; the blocks already carry what #include pulls in.
+    types: dict[str, Any] = {}
+    for block in definition.text.split(IDL_SEPARATOR)[1:]:
+        _, body = block.split("\n", 1)
+        lines = (line for line in body.split("\n") if not line.startswith("#include"))
+        types.update(get_types_from_idl("\n".join(lines)))
+    return types
 
 
 def _referenced_types(fielddefs: dict[str, Any]) -> set[str]:

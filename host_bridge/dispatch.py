@@ -37,7 +37,10 @@ log = logging.getLogger("swanky.host")
 WARNINGS_PATH = "/_swanky/warnings"
 
 # Sees every run before decoding (the MCAP recorder, the stats); must not raise on good data.
+# Live robots dispatch from one thread each, so a tap must be thread-safe.
 Tap = Callable[[Sequence[RawMessage]], None]
+# Told of each enabled topic when its first message arrives: (robot, topic, type, entity path).
+TopicListener = Callable[[str, str, str, str], None]
 
 
 @dataclass(slots=True)
@@ -103,9 +106,11 @@ class Dispatcher:
         strict: bool = False,
         robot_state: Mapping[str, Any] | None = None,
         taps: Sequence[Tap] = (),
+        on_new_topic: TopicListener | None = None,
     ) -> None:
         self.sink = sink
         self.taps = list(taps)
+        self.on_new_topic = on_new_topic
         self.registry = registry or default_registry()
         self.decoder = decoder or Decoder()
         self.config = config or HostConfig.builtin(self.registry.types())
@@ -131,6 +136,8 @@ class Dispatcher:
             settings = self.config.resolve(raw.robot, raw.topic, raw.msgtype)
             topic = _Topic(settings.entity_path, settings.options, settings.enabled, settings.restamp)
             self._topics[key] = topic
+            if topic.enabled and self.on_new_topic is not None:
+                self.on_new_topic(raw.robot, raw.topic, raw.msgtype, topic.entity_path)
             if settings.problems:
                 err = ConfigError("\n".join(settings.problems) + " (ignored for this topic)")
                 if self.strict:

@@ -48,7 +48,7 @@ def channel_topic(robot: str, topic: str, prefix_robot: bool) -> str:
     return f"/{robot}{topic}" if prefix_robot else topic
 
 
-def message_times(raw: RawMessage) -> tuple[int, int]:
+def mcap_times(raw: RawMessage) -> tuple[int, int]:
     """(log_time, publish_time): relay receive time and source/bag time, each standing in for
     the other when only one is known (a bag converted offline has no receive time)."""
     receive = raw.receive_ns if raw.receive_ns is not None else raw.log_ns
@@ -84,11 +84,11 @@ class McapRecorder:
             if self._closed:
                 return
             for raw in batch:
-                self.write(raw)
+                self._write(raw)
 
-    def write(self, raw: RawMessage) -> None:
+    def _write(self, raw: RawMessage) -> None:
         channel = self._channel(raw)
-        log_time, publish_time = message_times(raw)
+        log_time, publish_time = mcap_times(raw)
         sequence = raw.sequence if raw.sequence is not None else self._sequences.get(channel, 0)
         self._sequences[channel] = sequence + 1
         self._writer.add_message(

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 
 from host_bridge.errors import SinkError
 from host_bridge.registry import ColumnsItem, LogEntry, LogItem
@@ -100,6 +101,14 @@ class RerunSink:
                 else:
                     self._set_times(times if entry.times is None else entry.times)
                     self.recording.log(entry.path, *entry.archetypes)
+
+    def send_blueprint(self, blueprint: rrb.Blueprint) -> None:
+        """Make ``blueprint`` the viewer's layout (and its default); a saved .rrd keeps it too."""
+        self.recording.send_blueprint(blueprint, make_active=True, make_default=True)
+
+    def send_blueprint_file(self, path: Path) -> None:
+        """Send a saved .rbl as is: its blueprint store and activation travel with the data."""
+        rr.log_file_from_path(path, recording=self.recording)
 
     def flush(self) -> None:
         self.recording.flush()

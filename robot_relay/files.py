@@ -230,6 +230,7 @@ class FileService:
     ) -> None:
         self.server = server
         self._prefixes = tuple(prefixes)
+        self._unfound: set[str] = set()
         self._queryable = serve(session, robot, server)
 
     def learn(self, raw: RawMessage) -> None:
@@ -241,8 +242,9 @@ class FileService:
         added = self.server.add_roots(package_roots(names - set(self.server.packages), self._prefixes))
         if added:
             log.info("%s names packages %s: serving their files", raw.topic, ", ".join(added))
-        missing = sorted(names - set(self.server.packages))
+        missing = sorted(names - set(self.server.packages) - self._unfound)
         if missing:
+            self._unfound.update(missing)  # a re-sent or looped description says it once
             log.warning(
                 "%s names packages %s, which are neither a --package-path nor under "
                 "AMENT_PREFIX_PATH: hosts cannot fetch their meshes from this robot",

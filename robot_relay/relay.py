@@ -244,10 +244,6 @@ class Relay:
             session, self.robot, lambda: (self.published, self.published_bytes)
         )
 
-    def policy(self, topic: str) -> Policy | None:
-        publisher = self._publishers.get(topic)
-        return None if publisher is None else publisher.policy
-
     def _count_sent(self, size: int) -> None:
         with self._lock:
             self.published += 1

@@ -6,7 +6,7 @@ frame. The page is captured every ``--every`` seconds until ``--settle`` capture
 alike (the viewer has loaded and drawn its views) or ``--timeout`` runs out; the last capture is
 written.
 
-    python scripts/screenshot.py URL out.png [--browser PATH] [--size 1600x1000]
+    python scripts/screenshot.py URL out.png [--browser PATH] [--size 1280x800]
 
 The browser is Debian's ``chromium-headless-shell`` (or ``chromium``):
 ``apt-get install -y --no-install-recommends chromium-headless-shell``. Exit status 3 means no
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import contextlib
 import itertools
 import json
 import os
@@ -127,10 +128,8 @@ class DevTools:
         return parsed
 
     def close(self) -> None:
-        try:
+        with contextlib.suppress(RuntimeError, TimeoutError, OSError):
             self.call("Browser.close", timeout=5.0)
-        except (RuntimeError, TimeoutError, OSError):
-            pass
         try:
             self.process.wait(timeout=10)
         except subprocess.TimeoutExpired:
@@ -153,11 +152,15 @@ def distinct_colours(png: bytes) -> int:
 
 
 def capture(
-    url: str, *, browser: str, size: tuple[int, int] = (1600, 1000), timeout: float = 90.0,
+    url: str, *, browser: str, size: tuple[int, int] = (1280, 800), timeout: float = 90.0,
     every: float = 3.0, settle: int = 3, min_colours: int = 200, log: IO[bytes] | None = None,
 ) -> bytes:
     """PNG of ``url`` once it has drawn: ``settle`` captures in a row with at least
-    ``min_colours`` colours and nearly the same count (or the last capture at ``timeout``)."""
+    ``min_colours`` colours and nearly the same count, else the last capture at ``timeout``.
+
+    Software GL on a busy machine can take tens of seconds per frame, so a capture that does not
+    come back in time ends the wait with the previous one instead of failing.
+    """
     with tempfile.TemporaryDirectory(prefix="swanky-chromium-") as profile:
         tools = DevTools(browser, Path(profile), log or subprocess.DEVNULL)  # type: ignore[arg-type]
         try:
@@ -166,16 +169,23 @@ def capture(
             width, height = size
             tools.call("Emulation.setDeviceMetricsOverride", session, width=width, height=height,
                        deviceScaleFactor=1, mobile=False)
+            started = time.monotonic()
+            deadline = started + timeout
             tools.call("Page.navigate", session, url=url)
-            deadline = time.monotonic() + timeout
+            shot = b""
             counts: list[int] = []
             while True:
                 time.sleep(every)
-                shot = base64.b64decode(
-                    tools.call("Page.captureScreenshot", session, format="png")["data"]
-                )
+                try:
+                    reply = tools.call("Page.captureScreenshot", session,
+                                       timeout=max(deadline - time.monotonic(), every), format="png")
+                except TimeoutError:
+                    if shot:
+                        return shot
+                    raise
+                shot = base64.b64decode(reply["data"])
                 counts.append(distinct_colours(shot))
-                print(f"screenshot: {time.monotonic() - deadline + timeout:.0f} s: {counts[-1]} colours",
+                print(f"screenshot: {time.monotonic() - started:.0f} s: {counts[-1]} colours",
                       file=sys.stderr, flush=True)
                 recent = counts[-settle:]
                 steady = len(recent) == settle and max(recent) <= 1.25 * min(recent)
@@ -190,7 +200,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("url")
     parser.add_argument("output", type=Path)
     parser.add_argument("--browser", help="Chromium executable (default: search PATH)")
-    parser.add_argument("--size", default="1600x1000", help="window WIDTHxHEIGHT")
+    parser.add_argument("--size", default="1280x800", help="window WIDTHxHEIGHT")
     parser.add_argument("--timeout", type=float, default=90.0, help="seconds to wait at most")
     parser.add_argument("--every", type=float, default=3.0, help="seconds between captures")
     parser.add_argument("--browser-log", type=Path, help="write the browser's own output here")

@@ -128,7 +128,7 @@ def _colormap(ctx: ConvertContext) -> rr.components.Colormap | None:
 def _depth_meter(ctx: ConvertContext, dtype: np.dtype[Any]) -> float:
     default = 1.0 if dtype.kind == "f" else 1000.0
     meter = ctx.options.get("depth_meter", default)
-    if not isinstance(meter, int | float) or meter <= 0:
+    if isinstance(meter, bool) or not isinstance(meter, int | float) or meter <= 0:
         msg = f"{ctx.topic}: image option depth_meter={meter!r} must be a positive number"
         raise ConvertError(msg)
     return float(meter)

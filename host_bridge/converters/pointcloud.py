@@ -68,12 +68,21 @@ def cloud_view(msg: Any, topic: str) -> npt.NDArray[np.void]:
     data = msg.data
     if height * width == 0:
         return np.zeros((height, width), dtype=dtype)
+    if height == 1:
+        # One row needs no stride; some drivers leave row_step 0 for unorganised clouds.
+        row_step = width * point_step
+    if row_step < width * point_step:
+        msg_ = (
+            f"{topic}: PointCloud2 row_step {row_step} is shorter than a row of {width} points "
+            f"of point_step {point_step} ({width * point_step} bytes); fix the publisher"
+        )
+        raise ConvertError(msg_)
     needed = (height - 1) * row_step + width * point_step
-    if row_step < width * point_step or len(data) < needed:
+    if len(data) < needed:
         msg_ = (
             f"{topic}: PointCloud2 of {height}x{width} points with point_step {point_step} and "
-            f"row_step {row_step} needs {needed} bytes of rows at least {width * point_step} "
-            f"long, but data has {len(data)} bytes; the message is truncated or inconsistent"
+            f"row_step {row_step} needs {needed} bytes, but data has {len(data)} bytes; the "
+            "message is truncated"
         )
         raise ConvertError(msg_)
     view: npt.NDArray[np.void] = np.ndarray(
@@ -111,7 +120,8 @@ def _colors(
         if {"r", "g", "b"} <= set(names):
             channels = [c for c in ("r", "g", "b", "a") if c in names]
             rgba = np.stack([_scalar_field(points, c, keep, ctx.topic) for c in channels], -1)
-            if rgba.dtype.kind == "f" and rgba.size and np.nanmax(rgba) <= 1.0:
+            finite = rgba[np.isfinite(rgba)] if rgba.dtype.kind == "f" else rgba[:0]
+            if finite.size and finite.max() <= 1.0:
                 rgba = rgba * 255.0  # float channels in [0, 1] (Open3D-style clouds)
             bytes8: npt.NDArray[np.uint8] = np.clip(np.nan_to_num(rgba), 0, 255).astype(np.uint8)
             return bytes8

@@ -388,6 +388,7 @@ def test_two_channel_images_show_each_channel(encoding: str, dtype: Any) -> None
         ("16UC1", (W, H, H * W * 2, W * 2), {"colormap": "rainbow"}, "colormap"),
         ("16UC1", (W, H, H * W * 2, W * 2), {"depth_range": [3, 1]}, "depth_range"),
         ("16UC1", (W, H, H * W * 2, W * 2), {"depth_meter": -1}, "depth_meter"),
+        ("16UC1", (W, H, H * W * 2, W * 2), {"depth_meter": True}, "depth_meter"),
     ],
 )
 def test_bad_images_raise_convert_error_naming_the_topic(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -251,6 +252,25 @@ def test_bad_layouts_raise_convert_error_naming_topic() -> None:
         convert(cloud(bytes(12), xyz, 1, 12), color_field="rgb")
     with pytest.raises(ConvertError, match=r"/cloud: unknown colormap 'rainbow'"):
         convert(cloud(bytes(12), xyz, 1, 12), colormap="rainbow")
+    with pytest.raises(ConvertError, match=r"/cloud.*row_step 20 is shorter than a row of 2"):
+        convert(cloud(bytes(44), xyz, 2, 12, height=2, row_step=20))
+
+
+def test_single_row_cloud_ignores_a_zero_row_step() -> None:
+    xyz = [field("x", 0, FLOAT32), field("y", 4, FLOAT32), field("z", 8, FLOAT32)]
+    positions, _, _ = convert(cloud(XYZ.tobytes(), xyz, 3, 12, row_step=0))
+    np.testing.assert_array_equal(positions, XYZ)
+
+
+def test_float_colour_channels_all_nan_give_black_without_numpy_warnings() -> None:
+    rec = records({"x": ("<f4", 0), "y": ("<f4", 4), "z": ("<f4", 8), "r": ("<f4", 12),
+                   "g": ("<f4", 16), "b": ("<f4", 20)}, 24, 1)
+    rec["r"] = rec["g"] = rec["b"] = np.nan
+    fields = [field(name, 4 * i, FLOAT32) for i, name in enumerate("xyzrgb")]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _, colors, _ = convert(cloud(rec.tobytes(), fields, 1, 24))
+    np.testing.assert_array_equal(colors, [[0, 0, 0, 255]])
 
 
 def test_empty_cloud_and_empty_frame_id() -> None:

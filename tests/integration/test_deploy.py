@@ -13,7 +13,6 @@ import subprocess
 import sys
 import time
 import types
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -58,7 +57,9 @@ def test_systemd_unit_starts_the_relay_after_the_network_inside_ros_environment(
     env = {"PATH": os.environ["PATH"], "ROS_SETUP": str(setup), "SWANKY_RELAY": str(relay),
            "SWANKY_CONFIG": "/etc/swanky/relay.yaml", "SWANKY_ARGS": "--robot tb3 -e tcp/10.0.0.1:7447"}
     out = subprocess.run(command, env=env, check=True, capture_output=True, text=True, timeout=30)
-    assert out.stdout == "/opt/ros/humble 7 --config /etc/swanky/relay.yaml --robot tb3 -e tcp/10.0.0.1:7447\n"
+    assert out.stdout == (
+        "/opt/ros/humble 7 --config /etc/swanky/relay.yaml --robot tb3 -e tcp/10.0.0.1:7447\n"
+    )
 
 
 class _Entity:
@@ -69,15 +70,12 @@ class _Entity:
 
 def test_launch_file_runs_the_relay_with_its_config(monkeypatch: pytest.MonkeyPatch) -> None:
     """ROS 2 launch is not installable here: stand-ins record what the file builds."""
-    fake: dict[str, Callable[..., Any]] = {
-        "launch": _Entity, "launch.actions": _Entity, "launch.substitutions": _Entity,
-    }
     names = {"launch": ["LaunchDescription"], "launch.actions": ["DeclareLaunchArgument", "ExecuteProcess"],
              "launch.substitutions": ["LaunchConfiguration"]}
     for module_name, classes in names.items():
         module = types.ModuleType(module_name)
         for class_name in classes:
-            setattr(module, class_name, type(class_name, (fake[module_name],), {}))
+            setattr(module, class_name, type(class_name, (_Entity,), {}))
         monkeypatch.setitem(sys.modules, module_name, module)
     namespace: dict[str, Any] = {"__name__": "swanky_relay_launch"}
     exec(compile((DEPLOY / "swanky_relay.launch.py").read_text(), "swanky_relay.launch.py", "exec"),

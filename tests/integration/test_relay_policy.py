@@ -186,7 +186,6 @@ def test_compressed_payloads_reach_the_host_byte_for_byte(
     relay = Relay(robot, catalog, policies)
     source = ZenohInput(host)
     try:
-        assert relay.policy("/map") is not None
         assert relay.wait_for_host(10.0)
         time.sleep(0.5)  # the advanced subscriber's late-publisher detection settles
         sent = [RawMessage("tb3", "/map", "nav_msgs/msg/OccupancyGrid", grid)]
@@ -233,7 +232,7 @@ def test_rate_cap_and_compression_through_relay_and_host_processes(tmp_path: Pat
     port = free_port()
     out = tmp_path / "live.rrd"
     host = command("host_bridge.cli", "-l", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting",
-                   "--save", str(out), "--until-idle", "2", "--duration", "90")
+                   "--save", str(out), "--until-idle", "6", "--duration", "90")
     relay = command("robot_relay.cli", "--config", str(config), "--bag", str(bag), "--rate", "1",
                     "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting", "--wait-for-host", "30")
     with running(host) as host_proc:

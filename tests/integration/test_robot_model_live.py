@@ -7,7 +7,6 @@ package path and no ROS environment, records both. One run serves every test her
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
@@ -87,7 +86,7 @@ class Run:
 
 
 @pytest.fixture(scope="module")
-def run(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
+def run(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Run:
     tmp = tmp_path_factory.mktemp("robot_model_live")
     package = package_dir(shared_data)
     urdf = burger_urdf(shared_data).replace("</robot>", EXTRA_LINK)
@@ -110,10 +109,10 @@ def run(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator
             lines.wait_for("topics from", timeout=60)
         endpoints = [arg for robot in ROBOTS for arg in ("-e", f"tcp/127.0.0.1:{ports[robot]}")]
         assert host_main([*endpoints, "--no-multicast-scouting", "--save", str(out),
-                          "--until-idle", "5", "--duration", "60"]) == 0
+                          "--until-idle", "3", "--duration", "60"]) == 0
         for lines in logs.values():
             lines.wait_for("replay finished", timeout=30)
-    yield Run(entity_rows(out), package, {robot: lines.text for robot, lines in logs.items()})
+    return Run(entity_rows(out), package, {robot: lines.text for robot, lines in logs.items()})
 
 
 def test_every_mesh_comes_from_the_robot_vertex_for_vertex(run: Run) -> None:
@@ -122,13 +121,14 @@ def test_every_mesh_comes_from_the_robot_vertex_for_vertex(run: Run) -> None:
             rows = run.rows[f"/{robot}/robot_model/{link}/visual_0"]
             assert rows[0]["static"]
             assert rows[0]["CoordinateFrame:frame"] == [f"{robot}/{link}"]
-            stl = trimesh.load(run.package / relpath, force="mesh")
+            stl = trimesh.load_mesh(run.package / relpath)
             expected = np.asarray(stl.vertices, np.float64) * 0.001  # the URDF's scale
             logged = np.asarray(rows[0]["Mesh3D:vertex_positions"], np.float64)
             assert logged.shape == expected.shape
             np.testing.assert_allclose(logged, expected, rtol=0, atol=1e-7)
             assert len(rows[0]["Mesh3D:triangle_indices"]) == len(stl.faces)
-        visuals = {path for path in run.rows if path.startswith(f"/{robot}/robot_model/") and "/visual_" in path}
+        model = f"/{robot}/robot_model/"
+        visuals = {path for path in run.rows if path.startswith(model) and "/visual_" in path}
         assert visuals == {f"/{robot}/robot_model/{link}/visual_0" for link in MESHES}
 
 
@@ -163,7 +163,8 @@ def wheel_angle(quaternion: list[float]) -> float:
     origin = np.array([np.sin(-1.57 / 2), 0.0, 0.0, np.cos(-1.57 / 2)])
     conjugate = origin * np.array([-1.0, -1.0, -1.0, 1.0])
     x, y, z, w = quaternion_product(conjugate, np.asarray(quaternion, np.float64))
-    assert abs(x) < 1e-6 and abs(y) < 1e-6
+    assert abs(x) < 1e-6
+    assert abs(y) < 1e-6
     return float(2.0 * np.arctan2(z, w))
 
 

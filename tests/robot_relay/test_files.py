@@ -5,7 +5,9 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -15,9 +17,12 @@ from robot_relay.files import (
     FileServer,
     files_key,
     package_roots,
+    parse_package_path,
     serve,
+    serve_files,
     urdf_package_names,
 )
+from robot_relay.wire import RawMessage
 
 MESH = bytes(range(256)) * 40
 
@@ -168,3 +173,73 @@ def test_serve_over_zenoh(server: FileServer) -> None:
         assert bad[0].err is not None
         assert bad[0].err.payload.to_string().startswith("not_found:")
         queryable.undeclare()
+
+
+def test_package_path_option() -> None:
+    assert parse_package_path("pkg=/x/y") == ("pkg", Path("/x/y"))
+    for bad in ("pkg", "=dir", "pkg=", "a/b=dir", "..=dir"):
+        with pytest.raises(ConfigError, match="NAME=DIR"):
+            parse_package_path(bad)
+
+
+def test_added_roots_never_replace_a_served_package(root: Path, tmp_path: Path) -> None:
+    server = FileServer({"robot_description": root}, max_bytes=1 << 20)
+    other = tmp_path / "other"
+    (other / "meshes").mkdir(parents=True)
+    (other / "meshes" / "base.stl").write_bytes(b"other")
+    assert server.add_roots({"robot_description": other, "extra": other}) == ["extra"]
+    assert server.read("robot_description/meshes/base.stl") == MESH
+    assert server.read("extra/meshes/base.stl") == b"other"
+    with pytest.raises(ConfigError):
+        server.add_roots({"a/b": other})
+
+
+def string_cdr(text: str) -> bytes:
+    """std_msgs/String as ROS serialises it: header, length with the NUL, bytes, NUL."""
+    data = text.encode("utf-8") + b"\0"
+    return b"\x00\x01\x00\x00" + len(data).to_bytes(4, "little") + data
+
+
+@pytest.fixture
+def session() -> Iterator[Any]:
+    zenoh = pytest.importorskip("zenoh")
+    config = zenoh.Config()
+    config.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(config) as opened:
+        yield opened
+
+
+def test_served_packages_grow_with_the_urdfs_forwarded(session: Any, root: Path, tmp_path: Path) -> None:
+    prefix = {"AMENT_PREFIX_PATH": str(tmp_path / "install")}
+    service = serve_files(session, "tb1", [], environ=prefix)
+    key = files_key("tb1", "robot_description", "meshes/base.stl")
+    try:
+        (before,) = session.get(key, timeout=5)
+        assert before.err.payload.to_string().startswith("unknown_package:")
+        urdf = '<robot name="r"><link name="a"><visual><geometry><mesh filename=' \
+               '"package://robot_description/meshes/base.stl"/></geometry></visual></link></robot>'
+        messages = [
+            RawMessage("tb1", "/chatter", "std_msgs/msg/String", string_cdr(urdf)),
+            RawMessage("tb1", "/tb1/robot_description", "std_msgs/msg/String", string_cdr(urdf)),
+        ]
+        # Passed on unchanged; only the robot description teaches the server a package.
+        watched = service.watch(messages)
+        assert next(watched) is messages[0]
+        assert service.server.packages == []
+        assert next(watched) is messages[1]
+        assert service.server.packages == ["robot_description"]
+        (after,) = session.get(key, timeout=5)
+        assert after.ok.payload.to_bytes() == MESH
+    finally:
+        service.close()
+
+
+def test_explicit_package_paths_are_served_and_checked(session: Any, root: Path, tmp_path: Path) -> None:
+    service = serve_files(session, "tb1", [f"robot_description={root}"], environ={})
+    try:
+        (reply,) = session.get(files_key("tb1", "robot_description", "meshes/base.stl"), timeout=5)
+        assert reply.ok.payload.to_bytes() == MESH
+    finally:
+        service.close()
+    with pytest.raises(ConfigError, match="not a directory"):
+        serve_files(session, "tb1", [f"robot_description={tmp_path / 'nowhere'}"], environ={})

@@ -10,8 +10,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
-from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from host_bridge.decode import Decoder
 from robot_relay.sources.qos import adapted_qos
 from robot_relay.sources.ros2 import Ros2Source, ament_share_dirs, message_definition
 from robot_relay.wire import RawMessage, TopicInfo
@@ -84,12 +85,8 @@ def test_idl_only_package_gives_a_ros2idl_definition_rosbags_parses(tmp_path: Pa
     separator = "=" * 80 + "\n"
     blocks = definition.text.split(separator)[1:]
     assert [b.split("\n", 1)[0] for b in blocks] == ["IDL: idl_pkg/msg/Complex", "IDL: idl_pkg/msg/Basic"]
-    # As rosbags' AnyReader reads rosbag2's ros2idl: block by block, #include lines dropped
-    # (its IDL grammar has no preprocessor).
-    store = get_typestore(Stores.EMPTY)
-    for block in blocks:
-        body = "\n".join(line for line in block.split("\n")[1:] if not line.startswith("#include"))
-        store.register(get_types_from_idl(body))
+    # The host's decoder reads it (block by block, as rosbags' AnyReader reads rosbag2's ros2idl).
+    store = Decoder(get_typestore(Stores.EMPTY)).typestore_for("idl_pkg/msg/Complex", definition)
     complex_type = store.types["idl_pkg/msg/Complex"]
     fields = [f.name for f in dataclasses.fields(cast(Any, complex_type)) if not f.name.startswith("__")]
     assert fields == ["first", "rest"]

@@ -1,0 +1,272 @@
+"""The viewer layout (a Rerun blueprint) built from the topics seen, and kept in step with them.
+
+:func:`build_blueprint` is pure: robots and their topics (ROS type, entity path) in, a
+``rerun.blueprint.Blueprint`` out. Per robot: one 3D view of everything under ``/<robot>`` (model,
+scan, cloud, map, walls, trails, camera frustums: TF frames are named, so the view needs no
+origin frame of its own), a 2D view per image topic, a map for GPS fixes, time series grouped by
+kind, and a text log. Several robots get one tab each, after a tab with every robot in one 3D
+view.
+
+:class:`BlueprintFollower` owns the "when": the dispatcher tells it of each new topic, and it
+rebuilds and re-sends the blueprint when the set of (robot, topic, type) changed, at most once per
+interval, so a robot that joins later or a topic that starts late gets its view.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import rerun.blueprint as rrb
+
+from host_bridge.converters.camera import pinhole_path
+from host_bridge.converters.urdf import is_robot_description
+from host_bridge.dispatch import WARNINGS_PATH
+from host_bridge.errors import ConfigError
+from host_bridge.registry import ConvertContext
+from host_bridge.stats import STATS_ROOT
+
+TIMER_PREFIX = "/instrumentation/timer/"
+
+IMAGE_TYPES = frozenset({"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"})
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+# Drawn over the images of their camera namespace.
+IMAGE_OVERLAY_TYPES = frozenset({"vision_msgs/msg/Detection2D", "vision_msgs/msg/Detection2DArray"})
+GPS_TYPES = frozenset({"sensor_msgs/msg/NavSatFix"})
+TEXT_TYPES = frozenset({
+    "rcl_interfaces/msg/Log", "rosgraph_msgs/msg/Log", "std_msgs/msg/String",
+    "diagnostic_msgs/msg/DiagnosticArray",
+})
+# Shown by the 3D view only: they log no scalars worth a plot.
+SPATIAL_TYPES = frozenset({
+    "tf2_msgs/msg/TFMessage", "sensor_msgs/msg/LaserScan", "sensor_msgs/msg/PointCloud2",
+    "nav_msgs/msg/OccupancyGrid", "map_msgs/msg/OccupancyGridUpdate", "nav_msgs/msg/GridCells",
+    "nav_msgs/msg/Path", "geometry_msgs/msg/PoseArray", "geometry_msgs/msg/PoseStamped",
+    "geometry_msgs/msg/PoseWithCovarianceStamped", "geometry_msgs/msg/PointStamped",
+    "geometry_msgs/msg/PolygonStamped", "visualization_msgs/msg/Marker",
+    "visualization_msgs/msg/MarkerArray", "vision_msgs/msg/Detection3D",
+    "vision_msgs/msg/Detection3DArray", "trajectory_msgs/msg/JointTrajectory", CAMERA_INFO_TYPE,
+})
+# Time series, one view per group, in this order; other types (scalars, ranges, twists,
+# wrenches, custom types through the generic converter) are "Signals".
+PLOT_GROUPS: dict[str, str] = {
+    "nav_msgs/msg/Odometry": "Odometry",
+    "sensor_msgs/msg/Imu": "IMU",
+    "sensor_msgs/msg/MagneticField": "IMU",
+    "sensor_msgs/msg/BatteryState": "Battery",
+    "sensor_msgs/msg/JointState": "Joints",
+}
+SIGNALS = "Signals"
+TIMERS = "Timers"
+PLOT_ORDER = ("Odometry", "IMU", "Battery", "Joints", SIGNALS, TIMERS)
+
+
+@dataclass(frozen=True, slots=True, order=True)
+class TopicEntry:
+    """One topic as the layout sees it."""
+
+    robot: str
+    topic: str
+    msgtype: str
+    entity_path: str
+
+
+def _subtree(path: str) -> str:
+    return f"+ {path.rstrip('/')}/**"
+
+
+def _is_under(path: str, root: str) -> bool:
+    return path == root or path.startswith(root.rstrip("/") + "/")
+
+
+def _plot_group(entry: TopicEntry) -> str | None:
+    if entry.topic.startswith(TIMER_PREFIX):
+        return TIMERS
+    if entry.msgtype in PLOT_GROUPS:
+        return PLOT_GROUPS[entry.msgtype]
+    other = SPATIAL_TYPES | IMAGE_TYPES | IMAGE_OVERLAY_TYPES | GPS_TYPES | TEXT_TYPES
+    if entry.msgtype in other or is_robot_description(entry.topic):
+        return None
+    return SIGNALS
+
+
+def _plot_query(entry: TopicEntry) -> str:
+    if entry.msgtype == "nav_msgs/msg/Odometry":
+        # Only the twist is scalar; the pose and its trail are for the 3D view.
+        return _subtree(f"{entry.entity_path}/twist")
+    return _subtree(entry.entity_path)
+
+
+def _image_views(topics: Sequence[TopicEntry]) -> list[rrb.View]:
+    """A 2D view per image topic, rooted at its camera's pinhole when it has one, so overlays
+    of the same camera and the 3D scene's projection land on the picture."""
+    pinholes = {
+        pinhole_path(ConvertContext(robot=t.robot, topic=t.topic, entity_path=t.entity_path, times={}))
+        for t in topics
+        if t.msgtype == CAMERA_INFO_TYPE
+    }
+    views: list[rrb.View] = []
+    for image in (t for t in topics if t.msgtype in IMAGE_TYPES):
+        cameras = [p for p in pinholes if _is_under(image.entity_path, p)]
+        origin = max(cameras, key=len) if cameras else image.entity_path
+        overlays = [
+            t.entity_path for t in topics
+            if t.msgtype in IMAGE_OVERLAY_TYPES and _is_under(t.entity_path, origin)
+        ]
+        views.append(rrb.Spatial2DView(
+            name=image.topic, origin=origin,
+            contents=[_subtree(image.entity_path), *(_subtree(p) for p in overlays)],
+        ))
+    return views
+
+
+def _plot_views(robot: str, topics: Sequence[TopicEntry], stats: bool) -> list[rrb.View]:
+    groups: dict[str, list[str]] = {}
+    for entry in topics:
+        group = _plot_group(entry)
+        if group is not None:
+            groups.setdefault(group, []).append(_plot_query(entry))
+    views: list[rrb.View] = [
+        rrb.TimeSeriesView(name=group, origin=f"/{robot}", contents=groups[group])
+        for group in PLOT_ORDER
+        if group in groups
+    ]
+    if stats:
+        views.append(rrb.TimeSeriesView(name="Stats", origin=f"{STATS_ROOT}/{robot}"))
+    return views
+
+
+def _log_view(topics: Sequence[TopicEntry]) -> rrb.View:
+    queries = [
+        _subtree(t.entity_path) for t in topics
+        if t.msgtype in TEXT_TYPES and not is_robot_description(t.topic)
+    ]
+    return rrb.TextLogView(name="Log", origin="/", contents=[*queries, _subtree(WARNINGS_PATH)])
+
+
+def _gps_view(name: str, topics: Iterable[TopicEntry]) -> rrb.View | None:
+    fixes = [_subtree(t.entity_path) for t in topics if t.msgtype in GPS_TYPES]
+    return rrb.MapView(name=name, origin="/", contents=fixes) if fixes else None
+
+
+def robot_layout(robot: str, topics: Sequence[TopicEntry], *, stats: bool = False) -> rrb.Container:
+    """3D view on the left; cameras and map, plots (as tabs) and the log on the right."""
+    right: list[rrb.Container | rrb.View] = []
+    pictures: list[rrb.View] = _image_views(topics)
+    gps = _gps_view("GPS", topics)
+    if gps is not None:
+        pictures.append(gps)
+    if pictures:
+        right.append(rrb.Grid(*pictures) if len(pictures) > 1 else pictures[0])
+    plots = _plot_views(robot, topics, stats)
+    if plots:
+        right.append(rrb.Tabs(*plots))
+    right.append(_log_view(topics))
+    return rrb.Horizontal(
+        rrb.Spatial3DView(name=f"{robot} 3D", origin=f"/{robot}"),
+        rrb.Vertical(*right),
+        column_shares=[3, 2],
+        name=robot,
+    )
+
+
+def build_blueprint(topics: Iterable[TopicEntry], *, stats: bool = False) -> rrb.Blueprint:
+    """The layout for these topics; ``stats`` adds each robot's ``/_stats/<robot>`` plots."""
+    by_robot: dict[str, list[TopicEntry]] = {}
+    for entry in sorted(set(topics)):
+        by_robot.setdefault(entry.robot, []).append(entry)
+    layouts = [robot_layout(robot, entries, stats=stats) for robot, entries in by_robot.items()]
+    if len(layouts) == 1:
+        return rrb.Blueprint(layouts[0])
+    shared: list[rrb.View] = [rrb.Spatial3DView(
+        name="All robots 3D", origin="/", contents=[_subtree(f"/{robot}") for robot in by_robot],
+    )]
+    gps = _gps_view("All robots GPS", (t for entries in by_robot.values() for t in entries))
+    if gps is not None:
+        shared.append(gps)
+    overview = rrb.Horizontal(*shared, name="All robots")
+    return rrb.Blueprint(rrb.Tabs(overview, *layouts, active_tab=0))
+
+
+class BlueprintFollower:
+    """Re-sends the layout when the topics change, at most once per ``interval`` seconds.
+
+    The first topic of a burst starts a timer; everything that arrives before it fires goes into
+    one blueprint. :meth:`close` sends what is still pending (a saved .rrd gets the final layout).
+    """
+
+    def __init__(
+        self, send: Callable[[rrb.Blueprint], None], *, interval: float = 1.0, stats: bool = False
+    ) -> None:
+        self._send = send
+        self._interval = interval
+        self._stats = stats
+        self._topics: set[TopicEntry] = set()
+        self._sent: frozenset[TopicEntry] = frozenset()
+        self._lock = threading.Lock()
+        self._timer: threading.Timer | None = None
+        self._closed = False
+        self.sends = 0
+
+    def topic_seen(self, robot: str, topic: str, msgtype: str, entity_path: str) -> None:
+        entry = TopicEntry(robot, topic, msgtype, entity_path)
+        with self._lock:
+            if entry in self._topics or self._closed:
+                return
+            self._topics.add(entry)
+            if self._timer is None:
+                self._timer = threading.Timer(self._interval, self._fire)
+                self._timer.daemon = True
+                self._timer.start()
+
+    def _fire(self) -> None:
+        with self._lock:
+            self._timer = None
+            self._send_if_changed()
+
+    def _send_if_changed(self) -> None:
+        topics = frozenset(self._topics)
+        if topics == self._sent:
+            return
+        self._send(build_blueprint(topics, stats=self._stats))
+        self._sent = topics
+        self.sends += 1
+
+    def close(self) -> None:
+        with self._lock:
+            if self._timer is not None:
+                self._timer.cancel()
+                self._timer = None
+            self._closed = True
+            self._send_if_changed()
+
+
+def check_blueprint_file(path: Path, application_id: str) -> Path:
+    """``path`` if it is a Rerun blueprint (.rbl) for ``application_id``, else a ConfigError
+    naming the file and what is wrong with it."""
+    from rerun.chunk import RrdReader
+
+    if path.suffix != ".rbl":
+        msg = f"--blueprint {path}: not an .rbl file (the Rerun viewer's menu saves one)"
+        raise ConfigError(msg)
+    if not path.is_file():
+        msg = f"--blueprint {path}: no such file"
+        raise ConfigError(msg)
+    try:
+        stores = RrdReader(path).blueprints()
+    except (RuntimeError, ValueError) as err:
+        msg = f"--blueprint {path}: not a Rerun blueprint file ({err})"
+        raise ConfigError(msg) from err
+    if not stores:
+        msg = f"--blueprint {path}: the file holds no blueprint (is it a recording?)"
+        raise ConfigError(msg)
+    others = sorted({s.application_id for s in stores} - {application_id})
+    if others:
+        msg = (
+            f"--blueprint {path}: the blueprint is for application {others[0]!r}, Swanky's "
+            f"recordings are {application_id!r}; save it from a Swanky recording in the viewer"
+        )
+        raise ConfigError(msg)
+    return path

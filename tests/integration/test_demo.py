@@ -1,0 +1,209 @@
+"""``swanky-host --demo --duration 20 --save demo.rrd``, headless, as a real process: the simulated
+robot through relay -> Zenoh on loopback -> host, then every topic it publishes read back from
+the .rrd with plausible values.
+
+One demo run is shared by every test of this module (it takes the demo's 20 s plus the bag):
+to check another output of the same run (e.g. ``--record-mcap``), add its flag to
+:func:`demo_command` and a test reading ``demo.directory``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from host_bridge import sim
+from tests.integration.procs import command, running
+from tests.rrd import entity_rows
+
+pytestmark = pytest.mark.integration
+
+DEMO_SECONDS = 20
+# Writing the bag, zenoh start-up and the final flush come on top of the demo's own 20 s; a
+# loaded 2-core CI machine needs some slack.
+TIMEOUT_S = 150
+ROBOT = "sim"
+
+Rows = dict[str, list[dict[str, Any]]]
+
+
+@dataclass(frozen=True)
+class DemoRun:
+    directory: Path
+    returncode: int
+    stdout: str
+    stderr: str
+    elapsed_s: float
+    rows: Rows
+
+    def entity(self, path: str) -> list[dict[str, Any]]:
+        assert path in self.rows, f"{path} missing from demo.rrd; stderr:\n{self.stderr[-3000:]}"
+        return self.rows[path]
+
+
+def demo_command(directory: Path) -> list[str]:
+    """The shared demo run; every output it writes goes into ``directory``."""
+    return command(
+        "host_bridge.cli", "--demo", "--duration", str(DEMO_SECONDS),
+        "--save", str(directory / "demo.rrd"),
+    )
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory: pytest.TempPathFactory) -> DemoRun:
+    directory = tmp_path_factory.mktemp("demo")
+    started = time.monotonic()
+    with running(demo_command(directory)) as proc:
+        stdout, stderr = proc.communicate(timeout=TIMEOUT_S)
+    elapsed = time.monotonic() - started
+    rrd = directory / "demo.rrd"
+    rows = entity_rows(rrd) if rrd.exists() else {}
+    return DemoRun(directory, proc.returncode, stdout, stderr, elapsed, rows)
+
+
+def test_demo_ends_by_itself_with_a_summary(demo: DemoRun) -> None:
+    assert demo.returncode == 0, demo.stderr[-3000:]
+    assert DEMO_SECONDS <= demo.elapsed_s < TIMEOUT_S
+    assert f"robot {ROBOT} joined" in demo.stderr
+    summary = {line.split()[1]: line.split() for line in demo.stderr.splitlines()
+               if line.startswith(f"{ROBOT} ")}
+    assert set(summary) == {spec.topic for spec in sim.TOPICS}
+
+
+def _scalars(rows: list[dict[str, Any]]) -> NDArray[np.float64]:
+    return np.array([r["Scalars:scalars"][0] for r in rows if r.get("Scalars:scalars")])
+
+
+def _quaternion_rotate(q: list[float], v: NDArray[np.float64]) -> NDArray[np.float64]:
+    x, y, z, w = q
+    u = np.array([x, y, z])
+    return (  # type: ignore[no-any-return]
+        v * (w * w - u @ u) + 2.0 * np.outer(v @ u, u) + 2.0 * w * np.cross(u, v)
+    )
+
+
+def test_scan_points_lie_on_the_apartment_walls(demo: DemoRun) -> None:
+    scans = [r for r in demo.entity(f"/{ROBOT}/scan") if r.get("Points3D:positions")]
+    assert len(scans) >= 3 * DEMO_SECONDS // 2  # 5 Hz; the machine may drop some
+    assert scans[0]["CoordinateFrame:frame"] == [f"{ROBOT}/base_scan"]
+    body = {
+        r["ros_time"]: r for r in demo.entity(f"/{ROBOT}/tf")
+        if r.get("Transform3D:child_frame") == [f"{ROBOT}/base_footprint"]
+    }
+    offset = np.add(sim.SCAN_XYZ, (0.0, 0.0, sim.BASE_LINK_Z))
+    checked = 0
+    for scan in scans:
+        pose = body.get(scan["ros_time"])
+        if pose is None:  # its /tf sample was dropped on the way
+            continue
+        local = np.asarray(scan["Points3D:positions"], np.float64) + offset
+        world = _quaternion_rotate(pose["Transform3D:quaternion"][0], local)
+        world += pose["Transform3D:translation"][0]
+        x0, y0, x1, y1 = sim.BOUNDS
+        assert np.all((world[:, 0] > x0 - 0.01) & (world[:, 0] < x1 + 0.01))
+        assert np.all((world[:, 1] > y0 - 0.01) & (world[:, 1] < y1 + 0.01))
+        assert sim.distance_to_walls(world[:, :2]).max() < 0.01
+        checked += 1
+    assert checked >= len(scans) // 2
+
+
+def test_camera_image_depth_and_cloud(demo: DemoRun) -> None:
+    (pinhole, *_) = demo.entity(f"/{ROBOT}/camera")
+    k = np.asarray(pinhole["Pinhole:image_from_camera"][0]).reshape(3, 3).T  # column-major
+    np.testing.assert_allclose(k, sim.camera_matrix())
+    assert pinhole["Pinhole:resolution"] == [[160.0, 120.0]]
+    assert pinhole["Pinhole:parent_frame"] == [f"{ROBOT}/camera_optical_frame"]
+
+    images = [r for r in demo.entity(f"/{ROBOT}/camera/image_raw") if r.get("Image:buffer")]
+    assert len(images) >= 2 * DEMO_SECONDS
+    fmt = images[0]["Image:format"][0]
+    assert (fmt["width"], fmt["height"]) == (160, 120)
+    pixels = np.asarray(images[-1]["Image:buffer"][0], np.uint8).reshape(120, 160, 3)
+    assert len(np.unique(pixels.reshape(-1, 3), axis=0)) > 20  # a rendered view, not a fill
+
+    depths = [r for r in demo.entity(f"/{ROBOT}/camera/depth/image_raw")
+              if r.get("DepthImage:buffer")]
+    assert len(depths) >= 2 * DEMO_SECONDS
+    assert depths[0]["DepthImage:meter"] == [1000.0]
+    for row in depths[::10]:
+        mm = np.asarray(row["DepthImage:buffer"][0], np.uint8).view("<u2").reshape(120, 160)
+        assert mm.min() >= 200  # the floor just below the lens
+        assert mm.max() <= sim.DEPTH_MAX * 1000
+        # the sky is a ceiling, the horizon a wall: the middle row is the farthest
+        assert mm[59].mean() > mm[-1].mean()
+
+    clouds = [r for r in demo.entity(f"/{ROBOT}/camera/depth/points")
+              if r.get("Points3D:positions")]
+    assert len(clouds) >= 2 * DEMO_SECONDS
+    assert clouds[0]["CoordinateFrame:frame"] == [f"{ROBOT}/camera_optical_frame"]
+    points = np.asarray(clouds[-1]["Points3D:positions"], np.float64)
+    assert points.shape == (30 * 40, 3)
+    assert np.all((points[:, 2] > 0.2) & (points[:, 2] <= sim.DEPTH_MAX))
+    assert len(clouds[-1]["Points3D:colors"]) == len(points)
+
+
+def test_map_grows(demo: DemoRun) -> None:
+    maps = [r for r in demo.entity(f"/{ROBOT}/map") if r.get("GridMap:data")]
+    assert len(maps) >= DEMO_SECONDS // 2
+    assert maps[0]["GridMap:cell_size"] == [pytest.approx(0.05)]
+    assert maps[0]["GridMap:translation"][0] == pytest.approx([-0.525, -0.525, 0.0])
+    known = []
+    for row in maps:
+        fmt = row["GridMap:format"][0]
+        cells = np.asarray(row["GridMap:data"][0], np.uint8)
+        assert len(cells) == fmt["width"] * fmt["height"]
+        assert set(np.unique(cells).tolist()) == {0, 100, 255}  # free, occupied, unknown
+        known.append(int(np.count_nonzero(cells != 255)))
+    assert known == sorted(known)
+    assert known[-1] > known[0]
+
+
+def test_robot_model_and_frames(demo: DemoRun) -> None:
+    visuals = [p for p in demo.rows if p.startswith(f"/{ROBOT}/robot_model/")]
+    links = {p.split("/")[3] for p in visuals}
+    assert links >= {"base_link", "wheel_left_link", "wheel_right_link", "caster_back_link",
+                     "base_scan", "camera_link"}
+    (wheel,) = demo.entity(f"/{ROBOT}/robot_model/wheel_left_link/visual_0")
+    assert wheel["Cylinders3D:radii"] == [pytest.approx(sim.WHEEL_RADIUS)]
+    statics = {p.rsplit("/", 1)[1] for p in demo.rows if p.startswith(f"/{ROBOT}/tf_static/")}
+    assert statics == {"odom", "base_link", "caster_back_link", "imu_link", "base_scan",
+                       "camera_link", "camera_optical_frame"}
+    (optical,) = demo.entity(f"/{ROBOT}/tf_static/camera_optical_frame")
+    assert optical["Transform3D:quaternion"][0] == pytest.approx([-0.5, 0.5, -0.5, 0.5])
+    wheels = {r["Transform3D:child_frame"][0] for r in demo.entity(f"/{ROBOT}/tf")}
+    assert wheels == {f"{ROBOT}/base_footprint", f"{ROBOT}/wheel_left_link",
+                      f"{ROBOT}/wheel_right_link"}
+    angles = _scalars(demo.entity(f"/{ROBOT}/joint_states/wheel_left_joint/position"))
+    assert np.all(np.diff(angles) >= 0.0)  # always rolling forward
+    assert angles[-1] > 2 * math.pi  # at least a turn in 20 s
+
+
+def test_imu_battery_timer_and_logs(demo: DemoRun) -> None:
+    accel = [r["Scalars:scalars"] for r in demo.entity(f"/{ROBOT}/imu/linear_acceleration")
+             if r.get("Scalars:scalars")]
+    assert len(accel) >= 10 * DEMO_SECONDS
+    np.testing.assert_allclose(np.asarray(accel)[:, 2], 9.80665, rtol=1e-6)
+
+    battery = _scalars(demo.entity(f"/{ROBOT}/battery_state/percentage"))
+    assert len(battery) >= DEMO_SECONDS // 2
+    assert np.all((battery > 0.9) & (battery <= 0.97 + 1e-6))
+    assert np.all(np.diff(battery) < 0.0)
+    voltage = _scalars(demo.entity(f"/{ROBOT}/battery_state/voltage"))
+    assert np.all((voltage > 10.5) & (voltage < 12.6))
+
+    timer = _scalars(demo.entity(f"/{ROBOT}{sim.STEP_TIMER_TOPIC}"))
+    assert len(timer) >= 10 * DEMO_SECONDS
+    assert np.all((timer > 0.5) & (timer < 8.0))
+
+    logs = [(r["TextLog:level"][0], r["TextLog:text"][0]) for r in demo.entity(f"/{ROBOT}/rosout")]
+    assert logs[0] == ("INFO", "[swanky_bot.driver] driving the apartment loop from (2.00, 1.70), "
+                               "next waypoint 1 at (6.0, 1.7)")
+    assert logs[1][0] == "WARN"
+    assert "camera: no calibration file found" in logs[1][1]
