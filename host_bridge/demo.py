@@ -16,6 +16,7 @@ import os
 import socket
 import tempfile
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -121,8 +122,10 @@ def run_demo(args: argparse.Namespace, run_host: Callable[[], None], stop: threa
     relay_stop = threading.Event()
     with tempfile.TemporaryDirectory(prefix="swanky-demo-") as tmp:
         log.info("demo: simulating %s for %.0f s", ", ".join(robots), seconds)
+        started = time.monotonic()
         bags = write_bags(Path(tmp), robots, seconds)
-        log.info("demo: relaying %s over %s", ", ".join(robots), args.demo_endpoint)
+        log.info("demo: bags written in %.1f s; relaying them over %s",
+                 time.monotonic() - started, args.demo_endpoint)
         relays = [
             threading.Thread(
                 target=_replay, args=(bag, robot, args.demo_endpoint, relay_stop, stop),
