@@ -118,6 +118,9 @@ def _image_views(topics: Sequence[TopicEntry]) -> list[rrb.View]:
         views.append(rrb.Spatial2DView(
             name=image.topic, origin=origin,
             contents=[_subtree(image.entity_path), *(_subtree(p) for p in overlays)],
+            # The image plane, i.e. the pinhole's child frame. Left unset, a view takes the
+            # origin's CoordinateFrame: the camera's 3D optical frame, where no 2D content is.
+            spatial_information=rrb.SpatialInformation(target_frame=f"tf#{origin}"),
         ))
     return views
 

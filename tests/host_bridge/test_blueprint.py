@@ -16,8 +16,8 @@ from host_bridge.cli import main as host_main
 from host_bridge.dispatch import Dispatcher
 from host_bridge.sim import write_demo_bag
 from host_bridge.sink import APPLICATION_ID, RerunSink, SinkOptions
-from tests.host_bridge.test_dispatch import float_cdr, string_cdr
 from robot_relay.wire import RawMessage
+from tests.host_bridge.test_dispatch import float_cdr, string_cdr
 
 ROBOT_TOPICS = {
     "/scan": "sensor_msgs/msg/LaserScan",
@@ -43,6 +43,15 @@ ROBOT_TOPICS = {
 
 def entries(robot: str, topics: dict[str, str] = ROBOT_TOPICS) -> list[TopicEntry]:
     return [TopicEntry(robot, topic, msgtype, f"/{robot}{topic}") for topic, msgtype in topics.items()]
+
+
+def target_frame(view: rrb.View) -> str:
+    information: Any = view.properties["SpatialInformation"]
+    return str(information.target_frame.as_arrow_array()[0])
+
+
+def children(container: Any) -> list[Any]:
+    return list(container.contents)
 
 
 def views(part: Any) -> list[rrb.View]:
@@ -82,7 +91,10 @@ def test_one_robot_gets_3d_images_map_plots_and_log() -> None:
     for topic in ("/camera/image_raw", "/camera/image_raw/compressed", "/camera/depth/image_raw"):
         assert found[topic].origin == "/tb3/camera"
         assert found[topic].contents == [f"+ /tb3{topic}/**", "+ /tb3/camera/detections/**"]
+        # The pinhole's image plane, not the optical frame the namespace entity names.
+        assert target_frame(found[topic]) == "tf#/tb3/camera"
     assert found["/front/image"].origin == "/tb3/front/image"
+    assert target_frame(found["/front/image"]) == "tf#/tb3/front/image"
     assert found["/front/image"].contents == ["+ /tb3/front/image/**"]
     assert found["GPS"].contents == ["+ /tb3/gps/fix/**"]
     assert found["Odometry"].contents == ["+ /tb3/odom/twist/**"]
@@ -99,10 +111,11 @@ def test_one_robot_gets_3d_images_map_plots_and_log() -> None:
 def test_one_robot_layout_is_3d_beside_a_column_of_the_rest() -> None:
     root = build_blueprint(entries("tb3")).root_container
     assert isinstance(root, rrb.Horizontal)
-    assert [type(p).__name__ for p in root.contents] == ["Spatial3DView", "Vertical"]
-    column = root.contents[1]
-    assert [type(p).__name__ for p in column.contents] == ["Grid", "Tabs", "TextLogView"]
-    assert [v.name for v in column.contents[1].contents] == [
+    parts = children(root)
+    assert [type(p).__name__ for p in parts] == ["Spatial3DView", "Vertical"]
+    column = children(parts[1])
+    assert [type(p).__name__ for p in column] == ["Grid", "Tabs", "TextLogView"]
+    assert [v.name for v in children(column[1])] == [
         "Odometry", "IMU", "Battery", "Signals", "Timers",
     ]
 
@@ -120,16 +133,17 @@ def test_several_robots_get_a_shared_tab_then_one_tab_each() -> None:
 
     root = blueprint.root_container
     assert isinstance(root, rrb.Tabs)
-    assert [str(tab.name) for tab in root.contents] == ["All robots", "pupper", "tb3"]
-    shared = by_name(views(root.contents[0]))
+    tabs = children(root)
+    assert [str(tab.name) for tab in tabs] == ["All robots", "pupper", "tb3"]
+    shared = by_name(views(tabs[0]))
     assert shared["All robots 3D"].origin == "/"
     assert shared["All robots 3D"].contents == ["+ /pupper/**", "+ /tb3/**"]
     assert shared["All robots GPS"].contents == ["+ /tb3/gps/fix/**"]
-    pupper_views = by_name(views(root.contents[1]))
+    pupper_views = by_name(views(tabs[1]))
     assert set(pupper_views) == {"pupper 3D", "IMU", "Log"}
     assert pupper_views["pupper 3D"].origin == "/pupper"
     assert pupper_views["IMU"].contents == ["+ /pupper/imu/**"]
-    assert by_name(views(root.contents[2]))["tb3 3D"].origin == "/tb3"
+    assert by_name(views(tabs[2]))["tb3 3D"].origin == "/tb3"
 
 
 class Sent:
@@ -206,7 +220,8 @@ def saved_views(path: Path) -> list[dict[str, Any]]:
             if not chunk.entity_path.startswith("/view/"):
                 continue
             batch = chunk.to_record_batch()
-            view = found.setdefault(chunk.entity_path.removesuffix("/ViewContents"), {})
+            # /view/<id> and its parts (/view/<id>/ViewContents, ...)
+            view = found.setdefault("/".join(chunk.entity_path.split("/")[:3]), {})
             for column, key in (("ViewBlueprint:class_identifier", "class"),
                                 ("ViewBlueprint:display_name", "name"),
                                 ("ViewBlueprint:space_origin", "origin"),
@@ -251,19 +266,20 @@ def test_blueprint_file_is_sent_instead_of_swankys(demo_bag: Path, tmp_path: Pat
 
 
 @pytest.mark.parametrize(
-    ("name", "content", "expected"),
+    ("case", "expected"),
     [
-        ("missing.rbl", None, "no such file"),
-        ("layout.json", b"{}", "not an .rbl file"),
-        ("garbage.rbl", b"not a blueprint at all", "not a Rerun blueprint file"),
-        ("recording.rbl", "recording", "the file holds no blueprint"),
-        ("other.rbl", "other app", "the blueprint is for application 'other_app'"),
+        (("missing.rbl", None), "no such file"),
+        (("layout.json", b"{}"), "not an .rbl file"),
+        (("garbage.rbl", b"not a blueprint at all"), "not a Rerun blueprint file"),
+        (("recording.rbl", "recording"), "the file holds no blueprint"),
+        (("other.rbl", "other app"), "the blueprint is for application 'other_app'"),
     ],
 )
 def test_bad_blueprint_file_is_named_before_anything_opens(
-    name: str, content: bytes | str | None, expected: str, demo_bag: Path, tmp_path: Path,
+    case: tuple[str, bytes | str | None], expected: str, demo_bag: Path, tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
+    name, content = case
     path = tmp_path / name
     if content == "recording":
         import rerun as rr
