@@ -15,20 +15,24 @@ interval, so a robot that joins later or a topic that starts late gets its view.
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import rerun as rr
 import rerun.blueprint as rrb
 
 from host_bridge.converters.camera import pinhole_path
 from host_bridge.converters.urdf import is_robot_description
 from host_bridge.dispatch import WARNINGS_PATH
 from host_bridge.errors import ConfigError
-from host_bridge.registry import ConvertContext
+from host_bridge.registry import ConvertContext, LogEntry, LogItem
 from host_bridge.stats import STATS_ROOT
 
 TIMER_PREFIX = "/instrumentation/timer/"
+MAP_TYPE = "nav_msgs/msg/OccupancyGrid"
+ANCHOR_FRAME = "map"
+ANCHOR_CHILD = "map_anchor"
 
 IMAGE_TYPES = frozenset({"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"})
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
@@ -42,7 +46,7 @@ TEXT_TYPES = frozenset({
 # Shown by the 3D view only: they log no scalars worth a plot.
 SPATIAL_TYPES = frozenset({
     "tf2_msgs/msg/TFMessage", "sensor_msgs/msg/LaserScan", "sensor_msgs/msg/PointCloud2",
-    "nav_msgs/msg/OccupancyGrid", "map_msgs/msg/OccupancyGridUpdate", "nav_msgs/msg/GridCells",
+    MAP_TYPE, "map_msgs/msg/OccupancyGridUpdate", "nav_msgs/msg/GridCells",
     "nav_msgs/msg/Path", "geometry_msgs/msg/PoseArray", "geometry_msgs/msg/PoseStamped",
     "geometry_msgs/msg/PoseWithCovarianceStamped", "geometry_msgs/msg/PointStamped",
     "geometry_msgs/msg/PolygonStamped", "visualization_msgs/msg/Marker",
@@ -193,25 +197,51 @@ def build_blueprint(topics: Iterable[TopicEntry], *, stats: bool = False) -> rrb
     return rrb.Blueprint(rrb.Tabs(overview, *layouts, active_tab=0))
 
 
+def robots_to_anchor(topics: Iterable[TopicEntry]) -> set[str]:
+    """With several robots, those that publish a map: their ``map`` frame (REP 105) is put at
+    their entity root by :func:`anchor_item`, so one 3D view at ``/`` holds every robot.
+
+    Frames of different robots are never connected otherwise (``R/map``, ``R2/map``), and a view
+    shows one transform tree. Only robots with an OccupancyGrid topic qualify: anchoring a robot
+    that has no ``map`` frame would cut its own 3D view off from its odometry tree.
+    """
+    entries = list(topics)
+    if len({t.robot for t in entries}) < 2:
+        return set()
+    return {t.robot for t in entries if t.msgtype == MAP_TYPE}
+
+
+def anchor_item(robot: str) -> LogItem:
+    transform = rr.Transform3D(parent_frame=f"tf#/{robot}", child_frame=f"{robot}/{ANCHOR_FRAME}")
+    return LogItem(f"/{robot}/{ANCHOR_CHILD}", (transform,), static=True)
+
+
 class BlueprintFollower:
     """Re-sends the layout when the topics change, at most once per ``interval`` seconds.
 
     The first topic of a burst starts a timer; everything that arrives before it fires goes into
     one blueprint. :meth:`close` sends what is still pending (a saved .rrd gets the final layout).
+    With ``log`` (the sink's), robots sharing the 3D view get their :func:`anchor_item`.
     """
 
     def __init__(
-        self, send: Callable[[rrb.Blueprint], None], *, interval: float = 1.0, stats: bool = False
+        self,
+        send: Callable[[rrb.Blueprint], None],
+        *,
+        log: Callable[[Sequence[LogEntry], Mapping[str, int]], None] | None = None,
+        interval: float = 1.0,
+        stats: bool = False,
     ) -> None:
         self._send = send
+        self._log = log
         self._interval = interval
         self._stats = stats
         self._topics: set[TopicEntry] = set()
         self._sent: frozenset[TopicEntry] = frozenset()
+        self._anchored: set[str] = set()
         self._lock = threading.Lock()
         self._timer: threading.Timer | None = None
         self._closed = False
-        self.sends = 0
 
     def topic_seen(self, robot: str, topic: str, msgtype: str, entity_path: str) -> None:
         entry = TopicEntry(robot, topic, msgtype, entity_path)
@@ -233,9 +263,12 @@ class BlueprintFollower:
         topics = frozenset(self._topics)
         if topics == self._sent:
             return
+        new_anchors = robots_to_anchor(topics) - self._anchored
+        if self._log is not None and new_anchors:
+            self._log([anchor_item(robot) for robot in sorted(new_anchors)], {})
+            self._anchored |= new_anchors
         self._send(build_blueprint(topics, stats=self._stats))
         self._sent = topics
-        self.sends += 1
 
     def close(self) -> None:
         with self._lock:

@@ -91,6 +91,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     )
     out.add_argument("--web-port", type=int, metavar="PORT", help="--serve-web: HTTP port (9090)")
     out.add_argument(
+        "--recording-id", metavar="ID",
+        help="Rerun recording id: hosts of one fleet given the same id fill one recording in a "
+        "shared viewer (default: a new id per run)",
+    )
+    out.add_argument(
         "--grpc-port", type=int, metavar="PORT", help="--serve-web: gRPC port the viewer reads (9876)"
     )
     layout = out.add_mutually_exclusive_group()
@@ -145,6 +150,7 @@ def sink_options(args: argparse.Namespace) -> SinkOptions:
         serve_web=args.serve_web,
         web_port=args.web_port,
         grpc_port=args.grpc_port,
+        recording_id=args.recording_id,
     )
     if not options.any:
         options = SinkOptions(spawn=True)
@@ -182,7 +188,7 @@ def start_layout(args: argparse.Namespace, sink: RerunSink) -> BlueprintFollower
     if args.no_blueprint:
         return None
     stats = args.stats if args.stats is not None else args.bag is None
-    return BlueprintFollower(sink.send_blueprint, stats=stats)
+    return BlueprintFollower(sink.send_blueprint, log=sink.log, stats=stats)
 
 
 def convert_bag(args: argparse.Namespace, dispatcher: Dispatcher, stop: threading.Event) -> None:
@@ -251,7 +257,7 @@ def run_live(
             now = time.monotonic()
             if args.duration is not None and now - started >= args.duration:
                 break
-            if args.until_idle is not None and now - queues.last_put >= args.until_idle:
+            if args.until_idle is not None and now - queues.last_activity >= args.until_idle:
                 log.info("no data for %.1f s, stopping", args.until_idle)
                 break
     finally:

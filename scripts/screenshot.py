@@ -10,7 +10,7 @@ written.
 
 The browser is Debian's ``chromium-headless-shell`` (or ``chromium``):
 ``apt-get install -y --no-install-recommends chromium-headless-shell``. Exit status 3 means no
-browser was found.
+browser was found; ``--check`` only looks for one.
 """
 
 from __future__ import annotations
@@ -195,28 +195,37 @@ def capture(
             tools.close()
 
 
+INSTALL_HINT = "apt-get install -y --no-install-recommends chromium-headless-shell"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("url")
-    parser.add_argument("output", type=Path)
+    parser.add_argument("url", nargs="?")
+    parser.add_argument("output", type=Path, nargs="?")
+    parser.add_argument("--check", action="store_true",
+                        help="only print the browser that would be used (exit 3: none)")
     parser.add_argument("--browser", help="Chromium executable (default: search PATH)")
     parser.add_argument("--size", default="1280x800", help="window WIDTHxHEIGHT")
     parser.add_argument("--timeout", type=float, default=90.0, help="seconds to wait at most")
     parser.add_argument("--every", type=float, default=3.0, help="seconds between captures")
+    parser.add_argument("--min-colours", type=int, default=200,
+                        help="a capture with fewer colours is still loading")
     parser.add_argument("--browser-log", type=Path, help="write the browser's own output here")
     args = parser.parse_args(argv)
     browser = find_browser(args.browser)
     if browser is None:
-        print(
-            "screenshot: no Chromium found; install one with "
-            "'apt-get install -y --no-install-recommends chromium-headless-shell'",
-            file=sys.stderr,
-        )
+        print(f"screenshot: no Chromium found; install one with '{INSTALL_HINT}' "
+              "or name it with --browser / $SWANKY_CHROMIUM", file=sys.stderr)
         return NO_BROWSER
+    if args.check:
+        print(browser)
+        return 0
+    if args.url is None or args.output is None:
+        parser.error("URL and OUTPUT are required")
     width, height = (int(v) for v in args.size.lower().split("x"))
     with open(args.browser_log or os.devnull, "wb") as log:
         png = capture(args.url, browser=browser, size=(width, height), timeout=args.timeout,
-                      every=args.every, log=log)
+                      every=args.every, min_colours=args.min_colours, log=log)
     args.output.write_bytes(png)
     print(f"{args.output}: {distinct_colours(png)} colours", flush=True)
     return 0

@@ -76,7 +76,9 @@ class RobotQueues:
     def __init__(self, max_per_robot: int = MAX_PER_ROBOT) -> None:
         self.max_per_robot = max_per_robot
         self.dropped: dict[tuple[str, str], int] = {}
-        self.last_put = time.monotonic()
+        # Data, problems and robots joining or leaving: what --until-idle waits on, so a robot
+        # that joins but starts slowly (loading its bag) keeps the host waiting for it.
+        self.last_activity = time.monotonic()
         self.error: BaseException | None = None
         self._lock = threading.Lock()
         self._any = threading.Condition(self._lock)
@@ -96,8 +98,7 @@ class RobotQueues:
                 self._count_drop(robot, item)
                 return
             state.items.append((item, latched))
-            if isinstance(item, RawMessage | InputProblem):
-                self.last_put = time.monotonic()
+            self.last_activity = time.monotonic()
             state.ready.notify()
             self._any.notify()
 

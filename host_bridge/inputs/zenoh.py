@@ -103,13 +103,13 @@ class ZenohInput:
         joined = sample.kind == zenoh.SampleKind.PUT
         self.queues.put(RobotEvent(robot, joined, "swanky relay"))
         if joined:
-            self._fetch_catalog(robot)
-        else:
             with self._lock:
                 state = self._robots.get(robot)
                 if state is not None:
-                    # A restarted relay may bring other topics or definitions.
+                    # A restarted relay may bring other topics or definitions: its samples wait
+                    # for the new catalog. (Not on leaving: its last samples may still arrive.)
                     state.topics = None
+            self._fetch_catalog(robot)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)

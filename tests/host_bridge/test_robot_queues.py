@@ -79,12 +79,12 @@ def test_worker_error_is_kept_for_the_main_thread() -> None:
     assert isinstance(queues.error, ValueError)
 
 
-def test_robot_events_are_not_data() -> None:
+def test_robot_events_count_as_activity() -> None:
     queues = RobotQueues()
-    before = queues.last_put
+    before = queues.last_activity
     time.sleep(0.01)
     queues.put(RobotEvent("a", True, "rmw_zenoh"))
-    assert queues.last_put == before
+    assert queues.last_activity > before
     assert next(i for i in queues.drain(wait=0.5) if isinstance(i, RobotEvent)).text == (
         "robot a joined (rmw_zenoh)"
     )

@@ -3,6 +3,9 @@ host takes its subset of robots with ``--robots`` and sees exactly those."""
 
 from __future__ import annotations
 
+import re
+import subprocess
+import sys
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
@@ -39,6 +42,16 @@ def logged_fixes(rows: list[dict[str, Any]]) -> list[tuple[int, list[float]]]:
     return [(r["ros_time"], [round(v, 9) for v in r["GeoPoints:positions"][0]]) for r in rows]
 
 
+def recording_id(rrd: Path) -> str:
+    """The recording (store) id of an .rrd, as Rerun's own CLI reads it."""
+    rerun = Path(sys.executable).parent / "rerun"
+    text = subprocess.run([str(rerun), "rrd", "print", str(rrd)], capture_output=True, text=True,
+                          timeout=60, check=True).stdout
+    match = re.search(r'StoreId\(\s*Recording,\s*"[^"]*",\s*"([^"]*)"', text)
+    assert match is not None, text[:500]
+    return match.group(1)
+
+
 def test_two_hosts_split_three_relays_through_a_router(shared_data: Path, tmp_path: Path) -> None:
     # 151 GPS fixes over 15 s: cheap to convert, so the test measures routing, not converters.
     bag = shared_data / "gps_fix_rviz_satellite" / "sample.bag"
@@ -51,7 +64,7 @@ def test_two_hosts_split_three_relays_through_a_router(shared_data: Path, tmp_pa
         hosts = [
             stack.enter_context(running(command(
                 "host_bridge.cli", *zenoh_args, "--robots", robots, "--save", str(out),
-                "--until-idle", "5", "--duration", "120",
+                "--until-idle", "5", "--duration", "120", "--recording-id", "fleet-test",
             )))
             for robots, out in saved.items()
         ]
@@ -72,6 +85,8 @@ def test_two_hosts_split_three_relays_through_a_router(shared_data: Path, tmp_pa
     assert robot_roots(west) == {"west-c"}
     for rows, robot in ((east, "east-a"), (east, "east-b"), (west, "west-c")):
         assert logged_fixes(rows[f"/{robot}/gps/fix"]) == expected, robot
+    # Same recording id: a viewer both hosts send to shows one fleet, not two recordings.
+    assert {recording_id(path) for path in saved.values()} == {"fleet-test"}
     assert {r["TextLog:text"][0] for r in west["/_swanky/robots"]} == {
         "robot west-c joined (swanky relay)", "robot west-c left (swanky relay)"
     }
