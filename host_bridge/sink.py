@@ -4,6 +4,7 @@ the only place that calls ``log`` / ``send_columns``."""
 from __future__ import annotations
 
 import shutil
+import socket
 import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -34,6 +35,16 @@ class SinkOptions:
     @property
     def any(self) -> bool:
         return self.spawn or self.connect is not None or self.save is not None or self.serve_web
+
+
+VIEWER_PORT = 9876
+"""Where ``rr.spawn`` starts the viewer and ``rr.GrpcSink()`` sends by default."""
+
+
+def _listening(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.settimeout(2.0)
+        return sock.connect_ex(("127.0.0.1", port)) == 0
 
 
 class RerunSink:
@@ -68,6 +79,15 @@ class RerunSink:
                     "--save FILE.rrd or --serve-web"
                 )
                 raise SinkError(msg) from err
+            if not _listening(VIEWER_PORT):
+                # rr.spawn only warns when the viewer dies at once (no display): without this
+                # check every later flush would wait forever for it.
+                msg = (
+                    f"cannot spawn the Rerun viewer: it exited without listening on port "
+                    f"{VIEWER_PORT} (no display?); on a headless machine use --save FILE.rrd or "
+                    "--serve-web"
+                )
+                raise SinkError(msg)
             sinks.append(rr.GrpcSink())
         if options.connect is not None:
             sinks.append(rr.GrpcSink(options.connect))

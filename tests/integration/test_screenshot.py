@@ -58,7 +58,8 @@ def test_web_viewer_draws_the_demo(tmp_path: Path) -> None:
     host_cmd = command("host_bridge.cli", "--demo", "--serve-web", "--web-port", str(web),
                        "--grpc-port", str(grpc), "--duration", "300")
     with running(host_cmd) as host:
-        assert host.stdout is not None and host.stderr is not None
+        assert host.stdout is not None
+        assert host.stderr is not None
         drain(host.stderr)
         line = first_line(host.stdout, timeout=60)
         assert line.startswith("Rerun web viewer: http://127.0.0.1:"), line
@@ -73,7 +74,8 @@ def test_web_viewer_draws_the_demo(tmp_path: Path) -> None:
     print(f"screenshot of the demo: {picture}")
 
     image = cv2.imread(str(picture))
-    assert image is not None and image.shape == (SIZE[1], SIZE[0], 3)
+    assert image is not None
+    assert image.shape == (SIZE[1], SIZE[0], 3)
     colours = np.unique(image.reshape(-1, 3), axis=0).shape[0]
     hsv = cv2.cvtColor(image[VIEWPORT], cv2.COLOR_BGR2HSV)
     vivid = float(np.mean((hsv[..., 1] > 80) & (hsv[..., 2] > 60)))
