@@ -145,8 +145,15 @@ class Dispatcher:
                 self.warn(raw.robot, raw.topic, err)
         return topic
 
-    def warn(self, robot: str, topic: str, err: Exception) -> None:
-        """Report an error once per (robot, topic, kind); later ones are only counted."""
+    def warn(
+        self, robot: str, topic: str, err: Exception, times: Mapping[str, int] | None = None
+    ) -> None:
+        """Report an error once per (robot, topic, kind); later ones are only counted.
+
+        The warning goes on the bad message's timelines; without a message (an input or file
+        problem) on the host's receive clock. A row without any time would be static, and each
+        static warning would replace the one before it in the viewer.
+        """
         counters = self.counters.get((robot, topic))
         if counters is not None:
             counters.warnings += 1
@@ -156,7 +163,10 @@ class Dispatcher:
         self._warned.add((robot, topic, kind))
         text = f"[{robot}] {topic}: {err} (further {kind}s on this topic are counted, not shown)"
         log.warning("%s", text)
-        self.sink.log([LogItem(WARNINGS_PATH, (rr.TextLog(text, level=rr.TextLogLevel.WARN),))], {})
+        self.sink.log(
+            [LogItem(WARNINGS_PATH, (rr.TextLog(text, level=rr.TextLogLevel.WARN),))],
+            times or {TIMELINE_RECEIVE: time.time_ns()},
+        )
 
     def _count(self, raw: RawMessage) -> TopicCounters:
         key = (raw.robot, raw.topic)
@@ -195,7 +205,7 @@ class Dispatcher:
                 counters.dropped += 1
                 if self.strict:
                     raise
-                self.warn(raw.robot, raw.topic, err)
+                self.warn(raw.robot, raw.topic, err, message_times(None, raw))
                 continue
             ctx = ConvertContext(
                 robot=raw.robot,
@@ -215,37 +225,42 @@ class Dispatcher:
         spec = self.registry.get(msgtype, decoded[0][2].topic)
         counters = self.counters[(decoded[0][2].robot, decoded[0][2].topic)]
         started = time.perf_counter()
+        # The newest message its fast converter took; the slow converters (walls) get only that
+        # one, so a message the fast path rejected is neither re-warned nor drawn as walls.
+        accepted: tuple[Any, ConvertContext, RawMessage] | None = None
         if spec.convert_run is not None and len(decoded) > 1:
             try:
                 entries = spec.convert_run([d[0] for d in decoded], [d[1] for d in decoded])
                 self.sink.log(entries, decoded[0][1].times)
                 counters.converted += len(decoded)
-                counters.convert_seconds += time.perf_counter() - started
-                return
+                accepted = decoded[-1]
             except Exception:
                 if self.strict:
                     raise
                 # Fall through: convert one by one so only the bad message is lost.
-        for msg, ctx, raw in decoded:
-            try:
-                entries = spec.convert(msg, ctx)
-            except PartialConvertError as err:
-                if self.strict:
-                    raise
-                self.sink.log(err.items, ctx.times)
-                self.warn(raw.robot, raw.topic, err)
+        if accepted is None:
+            for msg, ctx, raw in decoded:
+                try:
+                    entries = spec.convert(msg, ctx)
+                except PartialConvertError as err:
+                    if self.strict:
+                        raise
+                    self.sink.log(err.items, ctx.times)
+                    self.warn(raw.robot, raw.topic, err, ctx.times)
+                    counters.converted += 1
+                    continue
+                except Exception as err:
+                    counters.dropped += 1
+                    if self.strict:
+                        raise
+                    self.warn(raw.robot, raw.topic, err, ctx.times)
+                    continue
+                self.sink.log(entries, ctx.times)
                 counters.converted += 1
-                continue
-            except Exception as err:
-                counters.dropped += 1
-                if self.strict:
-                    raise
-                self.warn(raw.robot, raw.topic, err)
-                continue
-            self.sink.log(entries, ctx.times)
-            counters.converted += 1
+                accepted = (msg, ctx, raw)
         counters.convert_seconds += time.perf_counter() - started
-        self._slow.submit(msgtype, decoded[-1][0], decoded[-1][1], decoded[-1][2])
+        if accepted is not None:
+            self._slow.submit(msgtype, *accepted)
 
     def close(self, timeout: float = 30.0) -> None:
         """Let the slow worker finish what it holds (a saved .rrd then has the walls)."""
@@ -317,9 +332,9 @@ class _SlowWorker:
                 self._dispatcher.sink.log(spec.convert(msg, ctx), ctx.times)
             except PartialConvertError as err:
                 self._dispatcher.sink.log(err.items, ctx.times)
-                self._dispatcher.warn(raw.robot, raw.topic, err)
+                self._dispatcher.warn(raw.robot, raw.topic, err, ctx.times)
             except Exception as err:
-                self._dispatcher.warn(raw.robot, raw.topic, err)
+                self._dispatcher.warn(raw.robot, raw.topic, err, ctx.times)
             with self._cond:
                 self._busy = False
                 self._cond.notify_all()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
@@ -24,6 +25,24 @@ def string_cdr(text: str) -> bytes:
 
 def float_cdr(value: float) -> bytes:
     return bytes(STORE.serialize_cdr(T["std_msgs/msg/Float64"](data=value), "std_msgs/msg/Float64"))
+
+
+def grid_cdr(cells: np.ndarray, resolution: float) -> bytes:
+    """A /map OccupancyGrid at the origin, stamped 1 s."""
+    height, width = cells.shape
+    info = T["nav_msgs/msg/MapMetaData"](
+        map_load_time=T["builtin_interfaces/msg/Time"](sec=0, nanosec=0), resolution=resolution,
+        width=width, height=height,
+        origin=T["geometry_msgs/msg/Pose"](
+            position=T["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+            orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        ),
+    )
+    header = T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="map"
+    )
+    grid = T["nav_msgs/msg/OccupancyGrid"](header=header, info=info, data=cells.ravel())
+    return bytes(STORE.serialize_cdr(grid, "nav_msgs/msg/OccupancyGrid"))
 
 
 def raw(topic: str, msgtype: str, data: bytes, ns: int, **kw: object) -> RawMessage:
@@ -106,24 +125,11 @@ def test_wall_meshes_are_built_off_the_receive_path_and_land_in_the_recording(
 ) -> None:
     """A map goes through the fast GridMap converter at once; its walls come from the slow
     worker, and closing the dispatcher waits for them."""
-    import numpy as np
 
     cells = np.zeros((60, 60), dtype=np.int8)
     cells[10, 10:50] = 100  # a 2 m wall along x at y = 0.5 m
     cells[10:50, 10] = 100  # and one along y: an L corner
-    info = T["nav_msgs/msg/MapMetaData"](
-        map_load_time=T["builtin_interfaces/msg/Time"](sec=0, nanosec=0), resolution=0.05,
-        width=60, height=60,
-        origin=T["geometry_msgs/msg/Pose"](
-            position=T["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
-            orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
-        ),
-    )
-    header = T["std_msgs/msg/Header"](
-        stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="map"
-    )
-    grid = T["nav_msgs/msg/OccupancyGrid"](header=header, info=info, data=cells.ravel())
-    data = bytes(STORE.serialize_cdr(grid, "nav_msgs/msg/OccupancyGrid"))
+    data = grid_cdr(cells, 0.05)
     dispatcher.dispatch([raw("/map", "nav_msgs/msg/OccupancyGrid", data, 1)])
     dispatcher.close()
     dispatcher.sink.close()
@@ -134,3 +140,21 @@ def test_wall_meshes_are_built_off_the_receive_path_and_land_in_the_recording(
     assert vertices[:, 0].max() == pytest.approx(2.5, abs=0.1)
     assert vertices[:, 1].max() == pytest.approx(2.5, abs=0.1)
     assert rows["/tb3/map/walls"][-1]["ros_time"] == 1_000_000_000
+
+
+def test_warnings_keep_their_time_and_a_rejected_map_is_warned_once(
+    dispatcher: Dispatcher, tmp_path: Path
+) -> None:
+    """Two different warnings both stay in the recording (a static row would replace the one
+    before), each at its message's time; a map the GridMap converter rejects (resolution 0, as
+    in ros_numpy's bag) is not handed on to the wall builder to be warned about again."""
+    dispatcher.dispatch([
+        raw("/map", "nav_msgs/msg/OccupancyGrid", grid_cdr(np.zeros((2, 2), dtype=np.int8), 0.0), 7),
+        raw("/speed", "std_msgs/msg/Float64", float_cdr(1.0)[:5], 9),
+    ])
+    dispatcher.close()
+    dispatcher.sink.close()
+    assert dispatcher.counters[("tb3", "/map")].warnings == 1
+    warnings = sorted(entity_rows(tmp_path / "out.rrd")["/_swanky/warnings"], key=lambda w: w["log_time"])
+    assert [(w["static"], w["log_time"]) for w in warnings] == [(False, 7), (False, 9)]
+    assert ["/map" in w["TextLog:text"][0] for w in warnings] == [True, False]
