@@ -8,7 +8,7 @@ because a static entity keeps only its last value.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -28,15 +28,31 @@ def _remember_children(ctx: ConvertContext, transforms: Sequence[Any]) -> None:
     children.update(t.child_frame_id.strip("/") for t in transforms)
 
 
+STATIC_ROOT_KEY = "tf_static_entity"
+
+
+def static_transform_path(robot: str, robot_state: Mapping[str, Any], child_frame_id: str) -> str:
+    """The one static entity holding the relation into ``child_frame_id``.
+
+    Rerun wants each frame relation on a single entity. A URDF's fixed joints are usually also
+    on /tf_static (robot_state_publisher), so the model logs them here too and whichever of the
+    two arrives last holds the value. The root is the robot's /tf_static entity (configurable),
+    ``/<robot>/tf_static`` until a /tf_static message shows it.
+    """
+    root = robot_state.get(STATIC_ROOT_KEY, f"/{robot}/tf_static")
+    return f"{root}/{rr.escape_entity_path_part(child_frame_id.strip('/'))}"
+
+
 def _static_items(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     _remember_children(ctx, msg.transforms)
+    ctx.robot_state[STATIC_ROOT_KEY] = ctx.entity_path
     items: list[LogEntry] = []
     for t in msg.transforms:
         child = ctx.frame(t.child_frame_id)
         parent = ctx.frame(t.header.frame_id)
         if child is None or parent is None:
             continue
-        path = ctx.child_path(rr.escape_entity_path_part(t.child_frame_id.strip("/")))
+        path = static_transform_path(ctx.robot, ctx.robot_state, t.child_frame_id)
         transform = rr.Transform3D(
             translation=xyz(t.transform.translation),
             quaternion=rr.Quaternion(xyzw=xyzw(t.transform.rotation)),

@@ -14,8 +14,10 @@ so it moves with the named link frame whoever drives it (/tf, /tf_static, joint 
 ``InstancePoses3D`` holding the visual's ``<origin>`` relative to that frame. The pose stays an
 instance pose rather than a Transform3D so the frame graph holds only the robot's real frames.
 Mesh scale is applied to the vertices, so positions are metres as in trimesh's own load times
-the scale. Fixed joints are static ``Transform3D(parent_frame, child_frame)`` at
-``/<robot>/robot_model/joints/<joint>``; movable joints are left to joints.py or /tf (a static
+the scale. Fixed joints are static ``Transform3D(parent_frame, child_frame)`` on the entity
+/tf_static uses for that child frame (``/<robot>/tf_static/<child>``, see
+:func:`host_bridge.converters.tf.static_transform_path`), so a fixed joint robot_state_publisher
+also broadcasts sits on one entity, as Rerun requires; movable joints are left to joints.py or /tf (a static
 transform would hide their later motion). Everything carries the robot prefix, so two robots
 with one URDF do not collide.
 
@@ -42,13 +44,13 @@ from host_bridge.converters.joints import (
     JointModel,
     MimicModel,
     RobotModel,
-    joint_entity_path,
     joint_transform,
     link_frame,
     pose_of_matrix,
     robot_model,
     tf_carries,
 )
+from host_bridge.converters.tf import static_transform_path
 from host_bridge.errors import ConvertError, PartialConvertError
 from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.resources import ResourceResolver
@@ -101,7 +103,7 @@ def model_items(xml: str, ctx: ConvertContext, source: str, base: Path | None = 
         items.append(LogItem(path, archetypes, static=True))
     items += [
         LogItem(
-            joint_entity_path(ctx.robot, joint.name),
+            static_transform_path(ctx.robot, ctx.robot_state, joint.child),
             (joint_transform(ctx, joint, 0.0),),
             static=True,
         )

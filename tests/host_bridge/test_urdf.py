@@ -96,7 +96,7 @@ def load_mesh(path: Path) -> trimesh.Trimesh:
 @pytest.mark.parametrize("model", ["burger", "waffle_pi"])
 def test_turtlebot_meshes_match_trimesh_in_metres(tb3: Path, model: str) -> None:
     items = by_path(convert(urdf_text(tb3, model), make_ctx("tb1", ResourceResolver(search_paths=[tb3]))))
-    meshes = {path: item for path, item in items.items() if "/joints/" not in path}
+    meshes = {path: item for path, item in items.items() if "/tf_static/" not in path}
     assert sorted(meshes) == sorted(f"/tb1/robot_model/{link}/visual_0" for link in MESHES[model])
     for link, relpath in MESHES[model].items():
         item = meshes[f"/tb1/robot_model/{link}/visual_0"]
@@ -135,12 +135,12 @@ def test_visual_origin_and_material_colour(tb3: Path) -> None:
 def test_fixed_joints_static_movable_left_out(tb3: Path) -> None:
     ctx = make_ctx("tb1", ResourceResolver(search_paths=[tb3]))
     items = by_path(convert(urdf_text(tb3, "burger"), ctx))
-    joints = sorted(path for path in items if "/joints/" in path)
+    # On the entity /tf_static uses for the child frame: one entity per relation (see tf.py).
+    joints = sorted(path for path in items if "/tf_static/" in path)
     assert joints == [
-        f"/tb1/robot_model/joints/{name}"
-        for name in ("base_joint", "caster_back_joint", "imu_joint", "scan_joint")
+        f"/tb1/tf_static/{child}" for child in ("base_link", "base_scan", "caster_back_link", "imu_link")
     ]
-    scan = items["/tb1/robot_model/joints/scan_joint"]
+    scan = items["/tb1/tf_static/base_scan"]
     assert scan.static
     transform = archetype(scan, rr.Transform3D)
     assert values(transform.parent_frame).tolist() == ["tb1/base_link"]
@@ -154,11 +154,8 @@ def test_fixed_joints_static_movable_left_out(tb3: Path) -> None:
 def test_fixed_joint_already_on_tf_is_left_to_tf(tb3: Path) -> None:
     ctx = make_ctx("tb1", ResourceResolver(search_paths=[tb3]))
     ctx.robot_state["tf_children"] = {"base_scan", "tb1/imu_link"}
-    joints = sorted(path for path in by_path(convert(urdf_text(tb3, "burger"), ctx)) if "/joints/" in path)
-    assert joints == [
-        "/tb1/robot_model/joints/base_joint",
-        "/tb1/robot_model/joints/caster_back_joint",
-    ]
+    joints = sorted(path for path in by_path(convert(urdf_text(tb3, "burger"), ctx)) if "/tf_static/" in path)
+    assert joints == ["/tb1/tf_static/base_link", "/tb1/tf_static/caster_back_link"]
 
 
 def test_missing_mesh_one_error_rest_logged(tb3: Path) -> None:
@@ -171,12 +168,12 @@ def test_missing_mesh_one_error_rest_logged(tb3: Path) -> None:
     assert "'base_scan'" in message
     assert message.count("package://") == 1
     logged = by_path(caught.value.items)
-    assert sorted(path for path in logged if "/joints/" not in path) == [
+    assert sorted(path for path in logged if "/tf_static/" not in path) == [
         "/tb1/robot_model/base_link/visual_0",
         "/tb1/robot_model/wheel_left_link/visual_0",
         "/tb1/robot_model/wheel_right_link/visual_0",
     ]
-    assert "/tb1/robot_model/joints/scan_joint" in logged
+    assert "/tb1/tf_static/base_scan" in logged
 
 
 def test_two_robots_never_share_paths_or_frames(tb3: Path) -> None:
@@ -184,12 +181,12 @@ def test_two_robots_never_share_paths_or_frames(tb3: Path) -> None:
     xml = urdf_text(tb3, "burger")
     tb1, tb2 = make_ctx("tb1", resolver), make_ctx("tb2", resolver)
     first, second = by_path(convert(xml, tb1)), by_path(convert(xml, tb2))
-    assert all(path.startswith("/tb1/robot_model/") for path in first)
-    assert all(path.startswith("/tb2/robot_model/") for path in second)
+    assert all(path.startswith(("/tb1/robot_model/", "/tb1/tf_static/")) for path in first)
+    assert all(path.startswith(("/tb2/robot_model/", "/tb2/tf_static/")) for path in second)
     assert {p.replace("/tb1/", "/tb2/", 1) for p in first} == set(second)
     frame = archetype(second["/tb2/robot_model/base_scan/visual_0"], rr.CoordinateFrame)
     assert values(frame.frame).tolist() == ["tb2/base_scan"]
-    scan = archetype(second["/tb2/robot_model/joints/scan_joint"], rr.Transform3D)
+    scan = archetype(second["/tb2/tf_static/base_scan"], rr.Transform3D)
     assert values(scan.parent_frame).tolist() == ["tb2/base_link"]
     assert tb1.robot_state["urdf"] is not tb2.robot_state["urdf"]
 
@@ -235,7 +232,7 @@ def test_primitives_colours_and_origins() -> None:
     sphere_item = items["/bot/robot_model/head/visual_0"]
     np.testing.assert_allclose(values(archetype(sphere_item, rr.Ellipsoids3D).half_sizes), [[0.1] * 3])
     assert values(archetype(sphere_item, rr.CoordinateFrame).frame).tolist() == ["bot/head"]
-    neck = archetype(items["/bot/robot_model/joints/neck"], rr.Transform3D)
+    neck = archetype(items["/bot/tf_static/head"], rr.Transform3D)
     np.testing.assert_allclose(values(neck.translation), [[0.0, 0.0, 0.5]])
 
 
