@@ -429,6 +429,8 @@ def test_camera_info_projects_world_edges_onto_the_image(short: Messages) -> Non
     assert view.depth_mm[row, 72] == pytest.approx(WALL_DEPTH * 1000.0, abs=1)
     assert view.depth_mm[row, 71] > WALL_DEPTH * 1000.0 + 500.0
     # that wall piece has its own colour: blue-grey, lit square on
+    assert len(sim.WALL_COLORS) == len(sim.WALLS)
+    assert sim.WALL_COLORS[4].tolist() == [170, 200, 215]
     r, g, b = (int(c) for c in view.rgb[row, 72])
     assert b > g > r
     assert view.rgb[row, 71].tolist() != view.rgb[row, 72].tolist()
