@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 import signal
 import socket
@@ -9,6 +10,17 @@ import subprocess
 import sys
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+
+import zenoh
+
+from robot_relay.session import add_zenoh_arguments, open_session
+
+
+def open_loopback(*flags: str) -> zenoh.Session:
+    """A Zenoh session opened through the commands' own flags, never scouting the network."""
+    parser = argparse.ArgumentParser()
+    add_zenoh_arguments(parser)
+    return open_session(parser.parse_args(["--no-multicast-scouting", *flags]))
 
 
 def free_port() -> int:

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import argparse
 import time
-from collections.abc import Iterator
 
 import pytest
 import zenoh
@@ -12,29 +10,13 @@ from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.inputs.zenoh import InputProblem, QueueItem, ZenohInput
 from robot_relay.relay import Relay
-from robot_relay.session import add_zenoh_arguments, open_session
 from robot_relay.wire import Attachment, Catalog, RawMessage, TopicInfo, cdr_encoding, data_key
-from tests.integration.procs import free_port
 
 pytestmark = pytest.mark.integration
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
 
 
-def zenoh_args(flag: str, endpoint: str) -> argparse.Namespace:
-    parser = argparse.ArgumentParser()
-    add_zenoh_arguments(parser)
-    return parser.parse_args([flag, endpoint, "--no-multicast-scouting"])
-
-
-@pytest.fixture
-def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    host = open_session(zenoh_args("--listen", endpoint))
-    robot = open_session(zenoh_args("--connect", endpoint))
-    yield host, robot
-    robot.close()
-    host.close()
 
 
 def collect(source: ZenohInput, count: int, timeout: float = 10.0) -> list[QueueItem]:

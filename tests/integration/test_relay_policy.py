@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +20,6 @@ from host_bridge.cli import main as host_main
 from host_bridge.inputs.zenoh import ZenohInput
 from robot_relay.policy import PolicyTable
 from robot_relay.relay import Relay
-from robot_relay.session import add_zenoh_arguments, open_session
 from robot_relay.sources.ros2 import Ros2Source
 from robot_relay.wire import (
     FLAG_LZ4,
@@ -41,22 +39,6 @@ from tests.rrd import entity_rows
 pytestmark = pytest.mark.integration
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
-
-
-def open_loopback(*flags: str) -> zenoh.Session:
-    parser = argparse.ArgumentParser()
-    add_zenoh_arguments(parser)
-    return open_session(parser.parse_args(["--no-multicast-scouting", *flags]))
-
-
-@pytest.fixture
-def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    host = open_loopback("-l", endpoint)
-    robot = open_loopback("-e", endpoint)
-    yield host, robot
-    robot.close()
-    host.close()
 
 
 def wait_until(condition: Callable[[], bool], timeout: float = 10.0) -> bool:

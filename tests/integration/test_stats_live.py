@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +17,6 @@ from host_bridge.inputs.zenoh import ZenohInput
 from host_bridge.sink import RerunSink, SinkOptions
 from host_bridge.stats import StatsTap
 from robot_relay.relay import Relay
-from robot_relay.session import add_zenoh_arguments, open_session
 from robot_relay.stats import stats_key
 from robot_relay.wire import Catalog, RawMessage, TopicInfo
 from tests.integration.procs import command, free_port, running
@@ -30,20 +27,6 @@ pytestmark = pytest.mark.integration
 STORE = get_typestore(Stores.ROS2_HUMBLE)
 
 
-def zenoh_args(*flags: str) -> argparse.Namespace:
-    parser = argparse.ArgumentParser()
-    add_zenoh_arguments(parser)
-    return parser.parse_args([*flags, "--no-multicast-scouting"])
-
-
-@pytest.fixture
-def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    host = open_session(zenoh_args("-l", endpoint))
-    robot = open_session(zenoh_args("-e", endpoint))
-    yield host, robot
-    robot.close()
-    host.close()
 
 
 def test_relay_reports_cpu_and_the_host_logs_stats(
