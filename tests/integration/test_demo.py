@@ -234,3 +234,26 @@ def test_recorded_mcap_holds_the_bytes_the_robot_sent(demo: DemoRun) -> None:
     for topic, message in checked:
         assert message.data == sent[topic, message.publish_time], topic
         assert message.log_time > message.publish_time  # relay receive (now) after the sim time
+
+
+def test_fleet_demo_keeps_each_robot_apart(tmp_path: Path) -> None:
+    """``--demo --robots 2``: two simulated robots, each through its own relay, in one host;
+    each has its own entity root, frames and position along the route."""
+    out = tmp_path / "fleet.rrd"
+    with running(command("host_bridge.cli", "--demo", "--robots", "2", "--duration", "4",
+                         "--save", str(out), "--no-stats")) as proc:
+        _, stderr = proc.communicate(timeout=TIMEOUT_S)
+    assert proc.returncode == 0, stderr[-3000:]
+    rows = entity_rows(out)
+    starts = {}
+    for robot in ("sim", "sim2"):
+        assert f"robot {robot} joined" in stderr
+        odom = [row for row in rows[f"/{robot}/tf"]
+                if row["Transform3D:child_frame"] == [f"{robot}/base_footprint"]]
+        assert odom, f"no odometry transform for {robot}"
+        assert {row["Transform3D:parent_frame"][0] for row in odom} == {f"{robot}/odom"}
+        starts[robot] = np.asarray(odom[0]["Transform3D:translation"][0])
+        assert rows[f"/{robot}/scan"]
+    assert not any(path.startswith("/sim3") for path in rows)
+    # Spread along the loop: the two robots do not start on top of each other.
+    assert np.linalg.norm(starts["sim"] - starts["sim2"]) > 0.5
