@@ -15,12 +15,10 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import zenoh
 
-from robot_relay.errors import WireError
-from robot_relay.wire import PREFIX
+from robot_relay.wire import PREFIX, parse_versioned_json
 
 log = logging.getLogger("swanky.relay")
 
@@ -56,23 +54,16 @@ class RelayReport:
 
     @classmethod
     def from_json(cls, text: str | bytes, key: str) -> RelayReport:
-        try:
-            doc: Any = json.loads(text)
-            if doc["version"] != STATS_VERSION:
-                msg = f"relay stats on {key!r} have version {doc['version']}, expected {STATS_VERSION}"
-                raise WireError(msg)
-            return cls(
+        return parse_versioned_json(
+            text, key, "relay stats", STATS_VERSION,
+            lambda doc: cls(
                 robot=str(doc["robot"]),
                 time_ns=int(doc["time_ns"]),
                 cpu_percent=float(doc["cpu_percent"]),
                 messages=int(doc["messages"]),
                 payload_bytes=int(doc["bytes"]),
-            )
-        except WireError:
-            raise
-        except (ValueError, KeyError, TypeError) as err:
-            msg = f"relay stats on {key!r} are not valid: {err!r}"
-            raise WireError(msg) from err
+            ),
+        )
 
 
 def process_cpu_seconds() -> float:

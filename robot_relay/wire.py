@@ -10,7 +10,7 @@ import re
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 from robot_relay.errors import WireError
 
@@ -199,6 +199,27 @@ class TopicInfo:
         return self.qos.durability == "transient_local"
 
 
+T = TypeVar("T")
+
+
+def parse_versioned_json(
+    text: str | bytes, key: str, what: str, version: int, build: Callable[[Any], T]
+) -> T:
+    """``build(doc)`` of a JSON document carrying ``"version": version``; anything else (bad JSON,
+    another version, a missing or mistyped field) is a WireError naming ``what`` and ``key``."""
+    try:
+        doc: Any = json.loads(text)
+        if doc["version"] != version:
+            msg = f"{what} on {key!r} has version {doc['version']}, expected {version}"
+            raise WireError(msg)
+        return build(doc)
+    except WireError:
+        raise
+    except (ValueError, KeyError, TypeError) as err:
+        msg = f"{what} on {key!r} is not valid: {err!r}"
+        raise WireError(msg) from err
+
+
 @dataclass(frozen=True, slots=True)
 class Catalog:
     robot: str
@@ -232,11 +253,7 @@ class Catalog:
 
     @classmethod
     def from_json(cls, text: str | bytes, key: str) -> Catalog:
-        try:
-            doc: Any = json.loads(text)
-            if doc["version"] != CATALOG_VERSION:
-                msg = f"catalog on {key!r} has version {doc['version']}, expected {CATALOG_VERSION}"
-                raise WireError(msg)
+        def build(doc: Any) -> Catalog:
             topics = tuple(
                 TopicInfo(
                     topic=t["topic"],
@@ -249,11 +266,8 @@ class Catalog:
                 for t in doc["topics"]
             )
             return cls(robot=doc["robot"], source=doc["source"], topics=topics)
-        except WireError:
-            raise
-        except (ValueError, KeyError, TypeError) as err:
-            msg = f"catalog on {key!r} is not valid: {err!r}"
-            raise WireError(msg) from err
+
+        return parse_versioned_json(text, key, "catalog", CATALOG_VERSION, build)
 
 
 @dataclass(frozen=True, slots=True)
