@@ -74,6 +74,12 @@ def model_items_from_file(path: Path, ctx: ConvertContext) -> list[LogEntry]:
     return model_items(xml, ctx, source=str(path), base=Path(path).parent)
 
 
+def robot_kinematics(xml: str, source: str) -> RobotModel:
+    """The joint table of a URDF without its visuals; the demo robot places its frames and
+    sensors from it, so what it publishes and what the host draws come from one parser."""
+    return _kinematics(_parse(xml, source).robot, source)
+
+
 def model_items(xml: str, ctx: ConvertContext, source: str, base: Path | None = None) -> list[LogEntry]:
     """Log items of the whole model; also stores its kinematics for joints.py."""
     urdf = _parse(xml, source)
