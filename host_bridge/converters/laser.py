@@ -1,6 +1,8 @@
 """sensor_msgs/LaserScan -> points (and optionally rays) in the scan's frame, vectorised.
 
-Invalid returns (NaN, ±inf, outside [range_min, range_max]) are dropped, as RViz does.
+Only finite returns with ``range_min <= r < range_max`` are drawn, laser_geometry's rule (which
+RViz and most ROS consumers share): many drivers (Stage, several 2D lidars) report "no echo" as
+exactly ``range_max``, which would otherwise draw an arc of points at the maximum range.
 Options: ``mode`` points|rays|both, ``color_by`` range|intensity, ``colormap``, ``radius`` (m).
 """
 
@@ -25,7 +27,7 @@ def scan_points(msg: Any) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_
     ranges = np.asarray(msg.ranges, dtype=np.float32)
     angles = np.float64(msg.angle_min) + np.arange(ranges.size) * np.float64(msg.angle_increment)
     with np.errstate(invalid="ignore"):
-        valid = np.isfinite(ranges) & (ranges >= msg.range_min) & (ranges <= msg.range_max)
+        valid = np.isfinite(ranges) & (ranges >= msg.range_min) & (ranges < msg.range_max)
     r = ranges[valid]
     a = angles[valid]
     points = np.empty((r.size, 3), dtype=np.float32)

@@ -256,7 +256,7 @@ def test_hokuyo_scans_keep_exactly_the_valid_returns(
     assert len(clouds) == len(scans) == 360
     for scan, cloud in zip(scans[:: 60], clouds[:: 60], strict=True):
         ranges = np.asarray(scan.ranges)
-        valid = np.isfinite(ranges) & (ranges >= scan.range_min) & (ranges <= scan.range_max)
+        valid = np.isfinite(ranges) & (ranges >= scan.range_min) & (ranges < scan.range_max)
         assert len(cloud) == int(valid.sum())
         distances = np.hypot(*np.array(cloud)[:, :2].T)
         np.testing.assert_allclose(distances, ranges[valid], rtol=1e-5)

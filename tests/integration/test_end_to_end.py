@@ -29,7 +29,7 @@ def expected_scans(bag: Path) -> list[tuple[int, int]]:
         for connection, _, data in reader.messages():
             msg: Any = reader.deserialize(data, connection.msgtype)
             ranges = np.asarray(msg.ranges)
-            valid = np.isfinite(ranges) & (ranges >= msg.range_min) & (ranges <= msg.range_max)
+            valid = np.isfinite(ranges) & (ranges >= msg.range_min) & (ranges < msg.range_max)
             out.append((msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec, int(valid.sum())))
     return out
 
