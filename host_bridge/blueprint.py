@@ -34,7 +34,9 @@ MAP_TYPE = "nav_msgs/msg/OccupancyGrid"
 ANCHOR_FRAME = "map"
 ANCHOR_CHILD = "map_anchor"
 
-IMAGE_TYPES = frozenset({"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"})
+IMAGE_TYPES = frozenset({
+    "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "foxglove_msgs/msg/CompressedVideo",
+})
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 # Drawn over the images of their camera namespace.
 IMAGE_OVERLAY_TYPES = frozenset({"vision_msgs/msg/Detection2D", "vision_msgs/msg/Detection2DArray"})

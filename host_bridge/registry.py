@@ -176,6 +176,7 @@ def default_registry() -> Registry:
         scalars,
         tf,
         urdf,
+        video,
         vision,
     )
 
@@ -187,7 +188,7 @@ def default_registry() -> Registry:
     registry.add_all(plots)
     registry.add_all(kinematics)
     for module in (tf, laser, odometry, pointcloud, imu, geo, proximity, markers, vision, images,
-                   camera, geometry, nav, logs, diagnostics):
+                   camera, geometry, nav, logs, diagnostics, video):
         registry.add_all(module.CONVERTERS)
     registry.add_for_topics("std_msgs/msg/String", urdf.is_robot_description, urdf.SPEC)
     registry.add_all(occupancy.CONVERTERS)

@@ -19,7 +19,9 @@ Why it is built this way:
   (REP 118: integer depth is millimetres -> ``meter=1000``, float depth is metres -> ``meter=1``).
   3- and 4-channel generic types are BGR/BGRA (OpenCV's order, which is what cv_bridge publishes);
   2-channel ones (and any other count) are logged one grey image per channel under ``ch<i>``.
-* JPEG/PNG CompressedImages are logged as ``EncodedImage`` without decoding. ``compressedDepth``
+* JPEG/PNG CompressedImages are logged as ``EncodedImage`` without decoding; those whose format
+  names a video codec (``h264``, ``hevc``, ...) become ``VideoStream`` samples, also undecoded
+  (see :mod:`host_bridge.converters.video`). ``compressedDepth``
   (image_transport's compressed_depth plugin: PNG or RVL after a 12-byte config header) is decoded
   here into a ``DepthImage``, because a 32FC1 payload holds inverse-quantized values only the
   host-side formula turns back into metres.
@@ -35,6 +37,7 @@ depth or grey), ``depth_meter`` (raw units per metre), ``colormap`` (a Rerun col
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from typing import Any
 
 import cv2
@@ -43,6 +46,7 @@ import numpy.typing as npt
 import pyarrow as pa
 import rerun as rr
 
+from host_bridge.converters.video import CODEC_SPELLINGS, VideoFrame, video_codec, video_entries
 from host_bridge.errors import ConvertError
 from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
 
@@ -504,25 +508,65 @@ def _decode_compressed_depth(msg: Any, ctx: ConvertContext) -> tuple[Pixels, int
     return depth, width, height
 
 
-def convert_compressed_image(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+def _still_image(msg: Any, ctx: ConvertContext) -> LogItem:
+    """A JPEG, PNG or compressedDepth CompressedImage (anything but video)."""
     if "compresseddepth" in msg.format.lower():
         depth, width, height = _decode_compressed_depth(msg, ctx)
         image = _single_channel(depth, width, height, ctx, depth_by_default=True)
-        return [LogItem(ctx.entity_path, (image,))]
+        return LogItem(ctx.entity_path, (image,), times=ctx.times)
     media_type = _media_type(msg.format, msg.data)
     if media_type is None:
         msg_ = (
-            f"{ctx.topic}: CompressedImage format {msg.format!r} is neither JPEG nor PNG (nor "
-            "compressedDepth), and the payload does not start like either; Rerun cannot show it"
+            f"{ctx.topic}: CompressedImage format {msg.format!r} is not one Rerun can show: "
+            f"neither JPEG, PNG nor compressedDepth, nor a video codec ({CODEC_SPELLINGS}), and "
+            "the payload does not start like a JPEG or PNG; its messages are dropped"
         )
         raise ConvertError(msg_)
     encoded = rr.EncodedImage.from_fields(blob=_blob(msg.data), media_type=media_type)
-    return [LogItem(ctx.entity_path, (encoded,))]
+    return LogItem(ctx.entity_path, (encoded,), times=ctx.times)
+
+
+def _video_codec(msg: Any) -> rr.VideoCodec | None:
+    """The codec of a CompressedImage carrying video: its format names one and neither
+    compressedDepth nor JPEG/PNG (by name or by the payload's first bytes)."""
+    if "compresseddepth" in msg.format.lower() or _media_type(msg.format, msg.data) is not None:
+        return None
+    return video_codec(msg.format)
+
+
+def convert_compressed_image_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
+    """Stills become one image each (each on its own message's times); video messages of the
+    run become the rows of one ``VideoStream`` column batch."""
+    codecs = [_video_codec(m) for m in msgs]
+    entries: list[LogEntry] = [
+        _still_image(m, c) for m, c, codec in zip(msgs, ctxs, codecs, strict=True) if codec is None
+    ]
+    video = [
+        (VideoFrame(codec, m.data), c)
+        for m, c, codec in zip(msgs, ctxs, codecs, strict=True)
+        if codec is not None
+    ]
+    if video:
+        frames, video_ctxs = zip(*video, strict=True)
+        entries.extend(video_entries(frames, video_ctxs))
+    return entries
+
+
+def convert_compressed_image(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+    return convert_compressed_image_run([msg], [ctx])
 
 
 CONVERTERS: dict[str, ConverterSpec] = {
     "sensor_msgs/msg/Image": ConverterSpec(convert=convert_image),
-    "sensor_msgs/msg/CompressedImage": ConverterSpec(convert=convert_compressed_image),
+    "sensor_msgs/msg/CompressedImage": ConverterSpec(
+        convert=convert_compressed_image, convert_run=convert_compressed_image_run
+    ),
 }
 
-__all__ = ["CONVERTERS", "convert_compressed_image", "convert_image", "rvl_decode"]
+__all__ = [
+    "CONVERTERS",
+    "convert_compressed_image",
+    "convert_compressed_image_run",
+    "convert_image",
+    "rvl_decode",
+]

@@ -16,9 +16,14 @@ import rerun as rr
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.converters.images import CONVERTERS, convert_compressed_image, convert_image
+from host_bridge.converters.images import (
+    CONVERTERS,
+    convert_compressed_image,
+    convert_compressed_image_run,
+    convert_image,
+)
 from host_bridge.errors import ConvertError
-from host_bridge.registry import ConvertContext, LogEntry, LogItem
+from host_bridge.registry import ColumnsItem, ConvertContext, LogEntry, LogItem
 
 TYPESTORE = get_typestore(Stores.ROS2_HUMBLE)
 T = TYPESTORE.types
@@ -455,9 +460,63 @@ def test_jpeg_and_png_are_passed_through_undecoded(fmt: str, ext: str, media_typ
     assert arrow_address(archetype.blob) == msg.data.ctypes.data
 
 
-def test_unrecognised_compressed_payload_raises() -> None:
-    with pytest.raises(ConvertError, match=COMPRESSED_TOPIC):
-        convert_compressed(make_compressed("h264", b"\x00\x00\x00\x01gd"))
+def test_a_run_of_jpegs_keeps_each_message_on_its_own_times() -> None:
+    """The dispatcher logs a run's entries with the first message's times unless an entry
+    carries its own: each JPEG of a run must stay on its own stamp."""
+    payload = encode(".jpg", random_pixels((H, W, 3), np.uint8))
+    msgs = [make_compressed("jpeg", payload) for _ in range(3)]
+    ctxs = [
+        ConvertContext(ROBOT, COMPRESSED_TOPIC, f"/{ROBOT}{COMPRESSED_TOPIC}", {"ros_time": ns})
+        for ns in (10, 20, 30)
+    ]
+    entries = convert_compressed_image_run(msgs, ctxs)
+    assert [e.times for e in entries] == [{"ros_time": 10}, {"ros_time": 20}, {"ros_time": 30}]
+    assert all(isinstance(e, LogItem) and isinstance(e.archetypes[0], rr.EncodedImage) for e in entries)
+
+
+def test_unrecognised_compressed_format_raises_naming_topic_and_format() -> None:
+    """The dispatcher shows a ConvertError once per topic and counts the rest, so this text is
+    the one warning a user with an unsupported camera format sees."""
+    with pytest.raises(ConvertError) as caught:
+        convert_compressed(make_compressed("theora", b"\x00\x00\x00\x01gd"))
+    assert str(caught.value) == (
+        f"{COMPRESSED_TOPIC}: CompressedImage format 'theora' is not one Rerun can show: neither "
+        "JPEG, PNG nor compressedDepth, nor a video codec (h264/avc, h265/hevc, av1, vp8, vp9), "
+        "and the payload does not start like a JPEG or PNG; its messages are dropped"
+    )
+
+
+# The start of a picture of each codec: an H.264 IDR slice, an H.265 IDR_W_RADL slice, an AV1
+# temporal delimiter OBU.
+VIDEO_PAYLOADS = {
+    rr.VideoCodec.H264: b"\x00\x00\x00\x01\x65\x88\x84",
+    rr.VideoCodec.H265: b"\x00\x00\x00\x01\x26\x01\xaf",
+    rr.VideoCodec.AV1: b"\x12\x00",
+}
+
+
+@pytest.mark.parametrize(
+    ("fmt", "codec"),
+    [("h264", rr.VideoCodec.H264), ("H264", rr.VideoCodec.H264), ("rgb8; h264", rr.VideoCodec.H264),
+     ("hevc", rr.VideoCodec.H265), ("H.265", rr.VideoCodec.H265), ("av1", rr.VideoCodec.AV1)],
+)
+def test_compressed_images_carrying_video_become_video_stream_samples(
+    fmt: str, codec: rr.VideoCodec
+) -> None:
+    """Any spelling of a video codec turns the topic into a VideoStream (tests/host_bridge/
+    test_video.py checks real encoded streams); JPEG and PNG stay EncodedImages above."""
+    payload = VIDEO_PAYLOADS[codec]
+    entries = convert_compressed_image(make_compressed(fmt, payload), make_ctx(COMPRESSED_TOPIC))
+    static, rows = entries
+    assert isinstance(static, LogItem)
+    assert static.static
+    (video,) = static.archetypes
+    assert isinstance(video, rr.VideoStream)
+    assert video.codec is not None
+    assert video.codec.as_arrow_array().to_pylist() == [codec.value]
+    assert isinstance(rows, ColumnsItem)
+    (sample,) = [c for c in rows.columns if c.component_descriptor().component == "VideoStream:sample"]
+    assert sample.as_arrow_array().to_pylist() == [[list(payload)]]
 
 
 def depth_header(quant_a: float = 0.0, quant_b: float = 0.0) -> bytes:
