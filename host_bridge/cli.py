@@ -309,7 +309,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"swanky-host: error: bag {args.bag} does not exist", file=sys.stderr)
             return 2
         if args.demo:
-            from host_bridge.demo import configure_demo
+            from host_bridge.demo.run import configure_demo
 
             configure_demo(args)  # checks --robots N before a viewer opens
         if args.blueprint is not None:
@@ -340,7 +340,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print("bag converted; serving the web viewer until Ctrl-C", file=sys.stderr)
                 stop.wait(args.duration)
         elif args.demo:
-            from host_bridge.demo import run_demo
+            from host_bridge.demo.run import run_demo
 
             run_demo(args, lambda: run_live(args, dispatcher, stop, robot_files), stop)
         else:

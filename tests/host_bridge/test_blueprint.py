@@ -13,9 +13,9 @@ from rerun.chunk import RrdReader
 
 from host_bridge.blueprint import BlueprintFollower, TopicEntry, build_blueprint
 from host_bridge.cli import main as host_main
+from host_bridge.demo.bag import write_demo_bag
 from host_bridge.dispatch import Dispatcher
 from host_bridge.registry import LogItem
-from host_bridge.sim import write_demo_bag
 from host_bridge.sink import APPLICATION_ID, RerunSink, SinkOptions
 from robot_relay.wire import RawMessage
 from tests.host_bridge.test_dispatch import float_cdr, string_cdr

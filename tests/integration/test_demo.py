@@ -19,7 +19,10 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from host_bridge import sim
+from host_bridge.demo.messages import STEP_TIMER_TOPIC, TOPICS, simulate
+from host_bridge.demo.robot import BASE_LINK_Z, SCAN_XYZ, WHEEL_RADIUS
+from host_bridge.demo.sensors import DEPTH_MAX, camera_matrix
+from host_bridge.demo.world import BOUNDS, distance_to_walls
 from tests.integration.procs import command, running
 from tests.rrd import entity_rows
 
@@ -74,7 +77,7 @@ def test_demo_ends_by_itself_with_a_summary(demo: DemoRun) -> None:
     assert f"robot {ROBOT} joined" in demo.stderr
     summary = {line.split()[1]: line.split() for line in demo.stderr.splitlines()
                if line.startswith(f"{ROBOT} ")}
-    assert set(summary) == {spec.topic for spec in sim.TOPICS}
+    assert set(summary) == {spec.topic for spec in TOPICS}
 
 
 def _scalars(rows: list[dict[str, Any]]) -> NDArray[np.float64]:
@@ -97,7 +100,7 @@ def test_scan_points_lie_on_the_apartment_walls(demo: DemoRun) -> None:
         r["ros_time"]: r for r in demo.entity(f"/{ROBOT}/tf")
         if r.get("Transform3D:child_frame") == [f"{ROBOT}/base_footprint"]
     }
-    offset = np.add(sim.SCAN_XYZ, (0.0, 0.0, sim.BASE_LINK_Z))
+    offset = np.add(SCAN_XYZ, (0.0, 0.0, BASE_LINK_Z))
     checked = 0
     for scan in scans:
         pose = body.get(scan["ros_time"])
@@ -106,10 +109,10 @@ def test_scan_points_lie_on_the_apartment_walls(demo: DemoRun) -> None:
         local = np.asarray(scan["Points3D:positions"], np.float64) + offset
         world = _quaternion_rotate(pose["Transform3D:quaternion"][0], local)
         world += pose["Transform3D:translation"][0]
-        x0, y0, x1, y1 = sim.BOUNDS
+        x0, y0, x1, y1 = BOUNDS
         assert np.all((world[:, 0] > x0 - 0.01) & (world[:, 0] < x1 + 0.01))
         assert np.all((world[:, 1] > y0 - 0.01) & (world[:, 1] < y1 + 0.01))
-        assert sim.distance_to_walls(world[:, :2]).max() < 0.01
+        assert distance_to_walls(world[:, :2]).max() < 0.01
         checked += 1
     assert checked >= len(scans) // 2
 
@@ -117,7 +120,7 @@ def test_scan_points_lie_on_the_apartment_walls(demo: DemoRun) -> None:
 def test_camera_image_depth_and_cloud(demo: DemoRun) -> None:
     (pinhole, *_) = demo.entity(f"/{ROBOT}/camera")
     k = np.asarray(pinhole["Pinhole:image_from_camera"][0]).reshape(3, 3).T  # column-major
-    np.testing.assert_allclose(k, sim.camera_matrix())
+    np.testing.assert_allclose(k, camera_matrix())
     assert pinhole["Pinhole:resolution"] == [[160.0, 120.0]]
     assert pinhole["Pinhole:parent_frame"] == [f"{ROBOT}/camera_optical_frame"]
 
@@ -135,7 +138,7 @@ def test_camera_image_depth_and_cloud(demo: DemoRun) -> None:
     for row in depths[::10]:
         mm = np.asarray(row["DepthImage:buffer"][0], np.uint8).view("<u2").reshape(120, 160)
         assert mm.min() >= 200  # the floor just below the lens
-        assert mm.max() <= sim.DEPTH_MAX * 1000
+        assert mm.max() <= DEPTH_MAX * 1000
         # the sky is a ceiling, the horizon a wall: the middle row is the farthest
         assert mm[59].mean() > mm[-1].mean()
 
@@ -145,7 +148,7 @@ def test_camera_image_depth_and_cloud(demo: DemoRun) -> None:
     assert clouds[0]["CoordinateFrame:frame"] == [f"{ROBOT}/camera_optical_frame"]
     points = np.asarray(clouds[-1]["Points3D:positions"], np.float64)
     assert points.shape == (30 * 40, 3)
-    assert np.all((points[:, 2] > 0.2) & (points[:, 2] <= sim.DEPTH_MAX))
+    assert np.all((points[:, 2] > 0.2) & (points[:, 2] <= DEPTH_MAX))
     assert len(clouds[-1]["Points3D:colors"]) == len(points)
 
 
@@ -171,7 +174,7 @@ def test_robot_model_and_frames(demo: DemoRun) -> None:
     assert links >= {"base_link", "wheel_left_link", "wheel_right_link", "caster_back_link",
                      "base_scan", "camera_link"}
     (wheel,) = demo.entity(f"/{ROBOT}/robot_model/wheel_left_link/visual_0")
-    assert wheel["Cylinders3D:radii"] == [pytest.approx(sim.WHEEL_RADIUS)]
+    assert wheel["Cylinders3D:radii"] == [pytest.approx(WHEEL_RADIUS)]
     statics = {p.rsplit("/", 1)[1] for p in demo.rows if p.startswith(f"/{ROBOT}/tf_static/")}
     assert statics == {"odom", "base_link", "caster_back_link", "imu_link", "base_scan",
                        "camera_link", "camera_optical_frame"}
@@ -198,7 +201,7 @@ def test_imu_battery_timer_and_logs(demo: DemoRun) -> None:
     voltage = _scalars(demo.entity(f"/{ROBOT}/battery_state/voltage"))
     assert np.all((voltage > 10.5) & (voltage < 12.6))
 
-    timer = _scalars(demo.entity(f"/{ROBOT}{sim.STEP_TIMER_TOPIC}"))
+    timer = _scalars(demo.entity(f"/{ROBOT}{STEP_TIMER_TOPIC}"))
     assert len(timer) >= 10 * DEMO_SECONDS
     assert np.all((timer > 0.5) & (timer < 8.0))
 
@@ -222,14 +225,14 @@ def test_recorded_mcap_holds_the_bytes_the_robot_sent(demo: DemoRun) -> None:
         records = [(c.topic, m) for _, c, m in reader.iter_messages(log_time_order=False)]
     assert summary is not None
     schemas = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
-    assert schemas == {spec.topic: spec.msgtype for spec in sim.TOPICS}  # one robot: ROS names
+    assert schemas == {spec.topic: spec.msgtype for spec in TOPICS}  # one robot: ROS names
     received = {line.split()[1]: int(line.split()[3]) for line in demo.stderr.splitlines()
                 if line.startswith(f"{ROBOT} ")}
     assert Counter(topic for topic, _ in records) == received
     # The simulation is a pure function of time, except the measured step time.
-    sent = {(m.topic, m.log_ns): m.data for m in sim.simulate(DEMO_SECONDS)
-            if m.topic != sim.STEP_TIMER_TOPIC}
-    checked = [(topic, m) for topic, m in records if topic != sim.STEP_TIMER_TOPIC]
+    sent = {(m.topic, m.log_ns): m.data for m in simulate(DEMO_SECONDS)
+            if m.topic != STEP_TIMER_TOPIC}
+    checked = [(topic, m) for topic, m in records if topic != STEP_TIMER_TOPIC]
     assert len(checked) >= 10 * DEMO_SECONDS
     for topic, message in checked:
         assert message.data == sent[topic, message.publish_time], topic

@@ -7,7 +7,7 @@ import re
 import pytest
 
 from host_bridge.cli import parse_args
-from host_bridge.demo import configure_demo, demo_robot_names
+from host_bridge.demo.run import configure_demo, demo_robot_names
 from host_bridge.errors import ConfigError
 from host_bridge.inputs.zenoh import robot_matches
 

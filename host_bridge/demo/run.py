@@ -1,6 +1,6 @@
 """``swanky-host --demo [--robots N]``: simulated robots through the real relay -> Zenoh -> host path.
 
-The simulator (:mod:`host_bridge.sim`) writes one real rosbag2 per robot; for each robot an
+The simulator (:mod:`host_bridge.demo.bag`) writes one real rosbag2 per robot; for each robot an
 in-process relay replays its bag (looping, real time) over a loopback Zenoh link to this host,
 exactly as ``swanky-relay --bag`` on that robot would. Robots are named ``sim``, ``sim2``,
 ``sim3``...; they drive the same loop through the same apartment, spread evenly along it, each
@@ -21,8 +21,9 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+from host_bridge.demo.bag import write_demo_bag
+from host_bridge.demo.robot import lap_length
 from host_bridge.errors import ConfigError
-from host_bridge.sim import lap_length, write_demo_bag
 from robot_relay.relay import Relay
 from robot_relay.session import add_zenoh_arguments, open_session
 from robot_relay.sources.bag import BagSource
