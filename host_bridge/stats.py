@@ -13,7 +13,9 @@ Once per second of each robot's clock (the relay's receive time live; the bag's 
 - ``/_stats/<robot>/host/convert_load_percent``: host time spent converting this robot's
   messages, in % of the period;
 - ``/_stats/<robot>/relay/cpu_percent`` (% of one core), ``sent_hz``, ``sent_kbps``: the
-  relay's own report (``swanky/<robot>/stats``), to compare what was sent with what arrived.
+  relay's own report (``swanky/<robot>/stats``), to compare what was sent with what arrived;
+- ``/_stats/<robot><topic>/ros_drops``: messages the relay saw lost between the ROS publisher
+  and itself (publication sequence gaps) since its previous report, for topics with any.
 
 Latency compares two clocks: it is only meaningful when robot and PC are synchronised (chrony /
 NTP). An offset shows as a constant shift of every topic's latency (negative when the robot's
@@ -214,6 +216,11 @@ class RelayRates:
         items = [LogItem(f"{root}/cpu_percent", (rr.Scalars(report.cpu_percent),), times=times)]
         last = self._last.get(report.robot)
         self._last[report.robot] = report
+        for topic, dropped in sorted(report.drops.items()):
+            before = 0 if last is None else last.drops.get(topic, 0)
+            if dropped >= before:  # smaller: the relay restarted; its counts began again
+                items.append(LogItem(f"{STATS_ROOT}/{report.robot}{topic}/ros_drops",
+                                     (rr.Scalars(float(dropped - before)),), times=times))
         if last is not None and report.time_ns > last.time_ns and report.messages >= last.messages:
             seconds = (report.time_ns - last.time_ns) / 1e9
             sent_hz = (report.messages - last.messages) / seconds

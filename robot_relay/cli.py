@@ -6,6 +6,7 @@ import argparse
 import fnmatch
 import logging
 import math
+import os
 import signal
 import socket
 import sys
@@ -83,11 +84,15 @@ def apply_config(args: argparse.Namespace, config: RelayConfig) -> None:
 
 
 def topic_filter(include: Sequence[str], exclude: Sequence[str]) -> Callable[[str], bool]:
+    """Topics matching an ``include`` glob and no ``exclude`` glob; a topic named exactly in
+    ``include`` is taken whatever ``exclude`` says (asking for /parameter_events by name)."""
+    named = {g for g in include if not any(c in g for c in "*?[")}
+
     def accept(topic: str) -> bool:
         name = "/" + topic.lstrip("/")
-        return any(fnmatch.fnmatchcase(name, g) for g in include) and not any(
+        return name in named or (any(fnmatch.fnmatchcase(name, g) for g in include) and not any(
             fnmatch.fnmatchcase(name, g) for g in exclude
-        )
+        ))
 
     return accept
 
@@ -137,6 +142,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
 
     def on_signal(signum: int, frame: object) -> None:
+        if stop.is_set():  # a second Ctrl-C / SIGTERM: the user does not want to wait
+            print(f"swanky-relay: {signal.Signals(signum).name} again, exiting at once",
+                  file=sys.stderr, flush=True)
+            os._exit(128 + signum)
+        log.info("%s: stopping (again to force)", signal.Signals(signum).name)
         stop.set()
 
     signal.signal(signal.SIGINT, on_signal)

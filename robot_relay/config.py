@@ -14,8 +14,10 @@ from robot_relay.wire import COMPRESSION_PACKAGES, compressor
 
 DEFAULT_ALLOW = ("*",)
 # Hidden topics (a name segment starting with '_', e.g. action internals) stay out unless
-# asked for, as with `ros2 bag record` without --include-hidden-topics.
-DEFAULT_DENY = ("*/_*",)
+# asked for, as with `ros2 bag record` without --include-hidden-topics, and so does
+# /parameter_events (every node's parameter chatter); a topic named exactly in `allow` (or
+# --topics) is forwarded all the same.
+DEFAULT_DENY = ("*/_*", "/parameter_events")
 
 
 @dataclass(frozen=True, slots=True)

@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, Protocol
 
 import zenoh
@@ -215,12 +215,15 @@ class _Flusher:
 class Relay:
     """Publishes RawMessages of one robot; answers its catalog; holds its liveliness token.
 
-    ``demand`` (a live source) hears when a host starts or stops listening to each topic.
+    ``demand`` (a live source) hears when a host starts or stops listening to each topic;
+    ``source_drops`` gives the messages per topic the source saw lost before the relay, for
+    the stats report.
     """
 
     def __init__(
         self, session: zenoh.Session, catalog: Catalog, policies: PolicyTable | None = None,
         demand: DemandListener | None = None,
+        source_drops: Callable[[], Mapping[str, int]] | None = None,
     ) -> None:
         self.session = session
         self.robot = check_robot_name(catalog.robot)
@@ -241,7 +244,7 @@ class Relay:
         self._queryable = session.declare_queryable(catalog_key(self.robot), self._answer_catalog)
         self._token = session.liveliness().declare_token(alive_key(self.robot))
         self._stats = RelayStatsPublisher(
-            session, self.robot, lambda: (self.published, self.published_bytes)
+            session, self.robot, lambda: (self.published, self.published_bytes), source_drops
         )
 
     def _count_sent(self, size: int) -> None:
@@ -274,9 +277,17 @@ class Relay:
             payload = self._catalog_json
         query.reply(catalog_key(self.robot), payload, encoding=zenoh.Encoding.APPLICATION_JSON)
 
+    def _still_fits(self, publisher: _TopicPublisher, info: TopicInfo | None) -> bool:
+        """Whether ``publisher`` can go on publishing ``info``: same type, latched or not, same
+        policy. A depth or (latched) reliability change keeps it, and with it a latched topic's
+        cache: a new publisher would send the cached history to the hosts once more."""
+        return info is not None and (info.msgtype, info.latched) == (
+            publisher.info.msgtype, publisher.info.latched
+        ) and self.policies.resolve(info.topic, info.msgtype, info.qos) == publisher.policy
+
     def update_catalog(self, catalog: Catalog) -> None:
         """The live graph changed: publish new topics, drop vanished ones, re-declare topics
-        whose type or QoS changed, and answer the new catalog.
+        whose type, durability or policy changed, and answer the new catalog.
 
         A topic that cannot be published (its compression is not installed) is reported once
         and left out; the others go on.
@@ -285,7 +296,12 @@ class Relay:
         with self._lock:
             self.catalog = catalog
             self._catalog_json = catalog.to_json()
-            stale = [p for topic, p in self._publishers.items() if infos.get(topic) != p.info]
+            stale = []
+            for topic, publisher in self._publishers.items():
+                if self._still_fits(publisher, infos.get(topic)):
+                    publisher.info = infos[topic]
+                else:
+                    stale.append(publisher)
             for publisher in stale:
                 del self._publishers[publisher.info.topic]
             unwanted = [p.info.topic for p in stale if self._wanted.pop(p.info.topic, False)]

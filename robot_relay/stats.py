@@ -2,8 +2,8 @@
 
 CPU comes from ``os.times()`` (user + system time of this process, every thread) against
 ``time.monotonic()``: no psutil on the robot. 100 % is one full core, so the value lies in
-``[0, 100 * cores]``. Counts are cumulative, so a lost report loses no messages; the host turns
-consecutive reports into rates.
+``[0, 100 * cores]``. Counts are cumulative (messages, bytes, and per topic the drops a live source saw before the relay),
+so a lost report loses nothing; the host turns consecutive reports into rates.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 
 import zenoh
 
@@ -36,11 +36,14 @@ def stats_selector(robots: str = "*") -> str:
 
 @dataclass(frozen=True, slots=True)
 class RelayReport:
+    """``drops``: per topic, messages lost before the relay (publication sequence gaps)."""
+
     robot: str
     time_ns: int
     cpu_percent: float
     messages: int
     payload_bytes: int
+    drops: Mapping[str, int] = field(default_factory=dict)
 
     def to_json(self) -> str:
         return json.dumps({
@@ -50,6 +53,7 @@ class RelayReport:
             "cpu_percent": round(self.cpu_percent, 2),
             "messages": self.messages,
             "bytes": self.payload_bytes,
+            "drops": dict(self.drops),
         })
 
     @classmethod
@@ -62,6 +66,8 @@ class RelayReport:
                 cpu_percent=float(doc["cpu_percent"]),
                 messages=int(doc["messages"]),
                 payload_bytes=int(doc["bytes"]),
+                # Added to version 1 later: a relay without it reports no drops.
+                drops={str(topic): int(count) for topic, count in doc.get("drops", {}).items()},
             ),
         )
 
@@ -91,17 +97,20 @@ class CpuMeter:
 
 
 class RelayStatsPublisher:
-    """A thread putting one RelayReport per period; ``counts`` gives (messages, bytes) sent."""
+    """A thread putting one RelayReport per period; ``counts`` gives (messages, bytes) sent,
+    ``drops`` the source's cumulative drops per topic."""
 
     def __init__(
         self,
         session: zenoh.Session,
         robot: str,
         counts: Callable[[], tuple[int, int]],
+        drops: Callable[[], Mapping[str, int]] | None = None,
         period_s: float = REPORT_PERIOD_S,
     ) -> None:
         self.robot = robot
         self._counts = counts
+        self._drops = drops or dict
         self._period_s = period_s
         self._meter = CpuMeter()
         self._publisher = session.declare_publisher(
@@ -113,7 +122,9 @@ class RelayStatsPublisher:
 
     def report(self) -> RelayReport:
         messages, sent = self._counts()
-        return RelayReport(self.robot, time.time_ns(), self._meter.percent(), messages, sent)
+        return RelayReport(
+            self.robot, time.time_ns(), self._meter.percent(), messages, sent, self._drops()
+        )
 
     def _run(self) -> None:
         while not self._stop.wait(self._period_s):

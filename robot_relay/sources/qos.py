@@ -10,16 +10,24 @@ from robot_relay.wire import QosProfile
 # lower case: "reliable" / "best_effort" / ..., "transient_local" / "volatile" / ...
 Offer = tuple[str, str, int]
 
+# The live relay's queues hold at least this many messages (rosbag2 subscribes with depth 10,
+# rmw_qos_profile_default). Fast DDS reports depth 0 for every publisher: without a floor the
+# queue would hold one message, and any stall of the relay longer than one message period would
+# overwrite reliable messages before they are forwarded.
+LIVE_DEPTH_FLOOR = 10
 
-def adapted_qos(offers: Sequence[Offer]) -> QosProfile:
+
+def adapted_qos(offers: Sequence[Offer], floor: int = 1) -> QosProfile:
     """Request what every publisher can serve, as rosbag2_transport's
     ``Rosbag2QoS::adapt_request_to_offers`` does: reliable only when all publishers are reliable
     (a reliable request does not match a best-effort publisher), transient-local only when all
     are (a transient-local request does not match a volatile one).
 
-    Depth differs on purpose: rosbag2 keeps its default of 10, but a latched topic's cache must
-    hold every publisher's latched history (several /tf_static broadcasters keep one message
-    each), so transient-local topics get the sum of the publishers' depths; others the deepest.
+    Depth (the queue of messages received and not yet forwarded, and a latched topic's cache for
+    late hosts): the deepest publisher's, and for transient-local topics the sum of the
+    publishers' depths, since a new subscription receives every publisher's latched history at
+    once (several /tf_static broadcasters); a publisher reporting 0 counts as 1. Never below
+    ``floor``: :data:`LIVE_DEPTH_FLOOR` live, 1 for a bag's recorded offers.
     """
     if not offers:
         return QosProfile()
@@ -29,5 +37,5 @@ def adapted_qos(offers: Sequence[Offer]) -> QosProfile:
     return QosProfile(
         reliability="reliable" if reliable else "best_effort",
         durability="transient_local" if latched else "volatile",
-        depth=sum(depths) if latched else max(depths),
+        depth=max(floor, sum(depths) if latched else max(depths)),
     )

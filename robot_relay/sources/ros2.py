@@ -2,47 +2,44 @@
 
 Every ``DISCOVERY_PERIOD_S`` the graph is read again (:meth:`Ros2Source.discover`): a topic with
 at least one publisher that passes the allow/deny globs enters the catalog with the QoS adapted
-to all its publishers (:func:`robot_relay.sources.qos.adapted_qos`, the ``ros2 bag record``
-rule) and the full definition of its type read from the ament share directories (.msg, else
-.idl, as rosbag2 does), so custom packages decode on a host without them. A topic whose last
-publisher leaves drops out; one whose type or publishers' QoS changes is re-declared.
+to all its publishers (:func:`robot_relay.sources.qos.adapted_qos`: the ``ros2 bag record``
+rule, with a queue of at least 10) and the full definition of its type read from the ament share
+directories (.msg, else .idl, as rosbag2 does), so custom packages decode on a host without
+them. A topic whose last publisher leaves drops out; one whose type or policies change, or whose
+publishers need a deeper queue, is subscribed again. Publishers merely coming and going change
+nothing, so a latched topic's history is not delivered again (and what a new subscription does
+re-deliver is recognised and dropped: :class:`_Delivered`).
 
 Subscriptions follow demand: the Relay calls :meth:`Ros2Source.on_demand` from Zenoh's threads
 when a host starts or stops listening, and the discovery thread applies it (create or destroy
 the subscription), so the node is only touched by that thread and rclpy's executor. Latched
 topics are always wanted (the Relay says so at once): their cache must be warm for late hosts.
 
-How this was checked -- honestly. rclpy cannot be installed on the development machine (no ROS
-2, no apt ROS repository), so :func:`run_ros2_relay`, the only function that imports rclpy, has
-NOT run against a live ROS graph here. What runs for real in the tests:
+Loss the relay can see: with one publisher on a topic, a gap in the publication sequence numbers
+rclpy hands the callback (Iron and later) counts as drops, reported in the relay's stats.
 
-- :class:`Ros2Source` (discovery, vanished and changed topics, QoS adaptation, demand-driven
-  subscribe/unsubscribe, the message callback) against a fake node that answers
-  ``get_topic_names_and_types`` / ``get_publishers_info_by_topic`` the way rclpy documents them
-  (``TopicEndpointInfo.qos_profile`` with ``ReliabilityPolicy`` / ``DurabilityPolicy`` enums),
-  both alone and behind a real Relay and a real Zenoh subscriber on loopback;
-- :func:`message_definition` on fake share trees (.msg with relative, nested, bounded and
-  Header fields; an .idl-only package), its output parsed back by rosbags.
-
-Not checked here: rclpy's exact enum names (``.name`` of the policies, lower-cased), that
-``create_subscription(..., raw=True)`` hands the callback ``bytes``, the QoS profile built in
-:func:`run_ros2_relay`, and rclpy's thread safety when subscriptions are created while
-``rclpy.spin`` runs in another thread. Keep this adapter thin.
+How this was checked: the source alone against fake nodes answering like rclpy's graph API
+(tests/robot_relay/test_ros2_source.py), and :func:`run_ros2_relay` as ``swanky-relay`` against
+real rclpy nodes of ROS 2 Jazzy with Fast DDS, from the ros-jazzy PyPI wheels
+(tests/integration/test_ros2_live.py). Humble's rclpy (no message info in callbacks) has not run
+here; keep this adapter thin.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
+import importlib
 import logging
 import os
 import re
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from robot_relay.sources.qos import Offer, adapted_qos
+from robot_relay.sources.qos import LIVE_DEPTH_FLOOR, Offer, adapted_qos
 from robot_relay.wire import Catalog, MessageDefinition, RawMessage, TopicInfo
 
 log = logging.getLogger("swanky.relay")
@@ -55,7 +52,11 @@ _PRIMITIVES = frozenset({
 _SEPARATOR = "=" * 80
 _IDL_INCLUDE = re.compile(r'^#include\s+"([^"/]+/[^"/]+/[^"/]+)\.idl"', re.MULTILINE)
 
-Subscribe = Callable[[TopicInfo, Callable[[bytes], None]], Any]
+# rclpy's message info (Iron and later): source_timestamp, received_timestamp,
+# publication_sequence_number, reception_sequence_number (None where the RMW has none).
+MessageInfo = Mapping[str, Any]
+Forward = Callable[[bytes, MessageInfo | None], None]
+Subscribe = Callable[[TopicInfo, Forward], Any]
 Publish = Callable[[RawMessage], None]
 
 
@@ -148,11 +149,77 @@ def publisher_offer(endpoint: Any) -> Offer:
     return (qos.reliability.name.lower(), qos.durability.name.lower(), int(qos.depth))
 
 
+def _same_request(old: TopicInfo, new: TopicInfo) -> bool:
+    """Whether ``old`` still serves ``new``'s publishers: same type and policies, deep enough."""
+    return (old.msgtype, old.qos.reliability, old.qos.durability) == (
+        new.msgtype, new.qos.reliability, new.qos.durability
+    ) and old.qos.depth >= new.qos.depth
+
+
+class _Delivered:
+    """Identities of the messages of one transient-local topic forwarded lately, kept across its
+    subscriptions: a new subscription receives every publisher's latched history again, and
+    what the hosts (and the relay's cache) already have must not go out twice."""
+
+    def __init__(self, msgtype: str, capacity: int) -> None:
+        self.msgtype = msgtype
+        self.capacity = capacity
+        self._order: collections.deque[Hashable] = collections.deque()
+        self._seen: set[Hashable] = set()
+
+    def first_time(self, identity: Hashable) -> bool:
+        if identity in self._seen:
+            return False
+        self._seen.add(identity)
+        self._order.append(identity)
+        while len(self._order) > self.capacity:
+            self._seen.discard(self._order.popleft())
+        return True
+
+
+def message_identity(data: bytes, info: MessageInfo | None) -> Hashable:
+    """The same for a message and its re-delivery: source time and the publisher's sequence
+    number where the RMW gives them (Iron and later), else the bytes themselves (Humble)."""
+    if info is not None and info.get("publication_sequence_number") is not None:
+        return (info.get("source_timestamp"), info["publication_sequence_number"])
+    return hash(data)
+
+
+class _Forwarder:
+    """The callback of one subscription: drops re-deliveries, counts publication sequence gaps
+    (only while the topic has one publisher: the numbers are per publisher and the message info
+    does not say which one sent), publishes the rest."""
+
+    def __init__(self, source: Ros2Source, info: TopicInfo, publish: Publish) -> None:
+        self.source = source
+        self.info = info
+        self.publish = publish
+        self.delivered = source.delivered.get(info.topic)
+        self.last_sequence: int | None = None
+
+    def __call__(self, data: bytes, message_info: MessageInfo | None) -> None:
+        if self.delivered is not None and not self.delivered.first_time(
+            message_identity(data, message_info)
+        ):
+            return
+        sequence = None if message_info is None else message_info.get("publication_sequence_number")
+        if sequence is not None:
+            if self.last_sequence is not None and sequence > self.last_sequence + 1 and (
+                self.source.publisher_counts.get(self.info.topic) == 1
+            ):
+                self.source.count_drops(self.info.topic, sequence - self.last_sequence - 1)
+            self.last_sequence = sequence
+        info = self.info
+        self.publish(RawMessage(self.source.robot, info.topic, info.msgtype, data, info.definition))
+
+
 class Ros2Source:
     """The ROS graph seen through ``graph`` (an rclpy Node), as a catalog and demanded streams.
 
-    ``subscribe(info, callback)`` creates a raw subscription (None if it cannot) and
-    ``unsubscribe(handle)`` destroys one: injected, so everything but rclpy itself is testable.
+    ``subscribe(info, callback)`` creates a raw subscription (None if it cannot) whose messages go
+    to ``callback(data, message_info)`` (rclpy's message info dict, or None where rclpy has none)
+    and ``unsubscribe(handle)`` destroys one: injected, so everything but rclpy itself is testable.
+    ``drops`` counts, per topic, messages the relay can tell it never received.
     """
 
     def __init__(
@@ -166,7 +233,10 @@ class Ros2Source:
         self._subscribe = subscribe
         self._unsubscribe = unsubscribe
         self.topics: dict[str, TopicInfo] = {}
+        self.publisher_counts: dict[str, int] = {}
+        self.delivered: dict[str, _Delivered] = {}
         self.subscriptions: dict[str, tuple[TopicInfo, Any]] = {}
+        self.drops: dict[str, int] = {}
         self.wake = threading.Event()
         self._demand: dict[str, bool] = {}
         self._lock = threading.Lock()
@@ -183,9 +253,23 @@ class Ros2Source:
             self._definitions[msgtype] = message_definition(msgtype, self.share_dirs)
         return self._definitions[msgtype]
 
+    def count_drops(self, topic: str, count: int) -> None:
+        with self._lock:
+            self.drops[topic] = self.drops.get(topic, 0) + count
+
+    def drop_counts(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self.drops)
+
     def discover(self) -> Catalog | None:
-        """The graph's catalog now, or None when it is the same as at the previous call."""
+        """The graph's catalog now, or None when it is the same as at the previous call.
+
+        A topic keeps its request while it still serves the publishers (same type and policies,
+        deep enough): publishers coming and going re-subscribe nothing, and its depth never
+        shrinks while it lives.
+        """
         found: dict[str, TopicInfo] = {}
+        counts: dict[str, int] = {}
         for topic, types in self.graph.get_topic_names_and_types():
             if not self.accept(topic):
                 continue
@@ -200,17 +284,36 @@ class Ros2Source:
             if definition is None:
                 self._warn_once(topic, "%s: no definition of %s in AMENT_PREFIX_PATH; hosts decode "
                                 "it with their bundled types only", msgtype)
-            found[topic] = TopicInfo(topic, msgtype, definition, adapted_qos(offers))
+            info = TopicInfo(topic, msgtype, definition, adapted_qos(offers, LIVE_DEPTH_FLOOR))
+            old = self.topics.get(topic)
+            found[topic] = old if old is not None and _same_request(old, info) else info
+            counts[topic] = len(offers)
+        self.publisher_counts = counts
         if found == self.topics:
             return None
         for topic in self.topics.keys() - found.keys():
             log.info("%s vanished", topic)
         for topic, info in found.items():
             if self.topics.get(topic) != info:
-                log.info("forwarding %s (%s, %s, %s)", topic, info.msgtype, info.qos.reliability,
-                         info.qos.durability)
+                log.info("forwarding %s (%s, %s, %s, depth %d)", topic, info.msgtype,
+                         info.qos.reliability, info.qos.durability, info.qos.depth)
         self.topics = found
+        self._follow_deliveries()
         return Catalog(self.robot, "ros2", tuple(found[t] for t in sorted(found)))
+
+    def _follow_deliveries(self) -> None:
+        """One window per transient-local topic, as long as its type stays and it stays latched
+        (the relay keeps its Zenoh publisher, and cache, just as long)."""
+        for topic, info in self.topics.items():
+            window = self.delivered.get(topic)
+            if not info.latched:
+                self.delivered.pop(topic, None)
+            elif window is None or window.msgtype != info.msgtype:
+                self.delivered[topic] = _Delivered(info.msgtype, info.qos.depth)
+            else:
+                window.capacity = info.qos.depth
+        for topic in self.delivered.keys() - self.topics.keys():
+            del self.delivered[topic]
 
     def on_demand(self, topic: str, wanted: bool) -> None:
         """From the Relay (Zenoh's threads): remember, and wake the discovery thread."""
@@ -219,9 +322,15 @@ class Ros2Source:
         self.wake.set()
 
     def apply_demand(self, publish: Publish) -> None:
-        """Create or destroy subscriptions as demanded since the last call."""
+        """Create or destroy subscriptions as demanded since the last call; a subscription whose
+        topic changed (QoS, type) is made again, or dropped when the topic vanished."""
+        outdated = {
+            topic: topic in self.topics
+            for topic, (info, _) in self.subscriptions.items()
+            if self.topics.get(topic) != info
+        }
         with self._lock:
-            demand, self._demand = self._demand, {}
+            demand, self._demand = {**outdated, **self._demand}, {}
         for topic, wanted in demand.items():
             info = self.topics.get(topic) if wanted else None
             current = self.subscriptions.get(topic)
@@ -230,19 +339,14 @@ class Ros2Source:
             if current is not None:
                 del self.subscriptions[topic]
                 self._unsubscribe(current[1])
-                log.info("%s: no host listens, unsubscribed", topic)
+                log.info("%s: unsubscribed (%s)", topic, "changed" if info else "no host listens")
             if info is None:
                 continue
-            handle = self._subscribe(info, self._forwarder(info, publish))
+            handle = self._subscribe(info, _Forwarder(self, info, publish))
             if handle is not None:
                 self.subscriptions[topic] = (info, handle)
-                log.info("%s: a host listens, subscribed", topic)
-
-    def _forwarder(self, info: TopicInfo, publish: Publish) -> Callable[[bytes], None]:
-        def forward(data: bytes) -> None:
-            publish(RawMessage(self.robot, info.topic, info.msgtype, data, info.definition))
-
-        return forward
+                log.info("%s: subscribed (%s, %s, depth %d)", topic, info.qos.reliability,
+                         info.qos.durability, info.qos.depth)
 
     def run(self, update_catalog: Callable[[Catalog], None], publish: Publish,
             stop: threading.Event, period: float = DISCOVERY_PERIOD_S) -> None:
@@ -265,24 +369,40 @@ class Ros2Source:
         self.subscriptions.clear()
 
 
+def message_class(msgtype: str) -> Any:
+    """The Python class of ``pkg/msg/Name`` (create_subscription needs it even in raw mode),
+    imported as a ROS install provides it: ``pkg.msg.Name``, no rosidl_runtime_py needed."""
+    package, interface, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{package}.{interface}"), name)
+
+
 def run_ros2_relay(
     args: argparse.Namespace, stop: threading.Event, accept: Callable[[str], bool]
 ) -> int:
+    """The live relay: a node ``swanky_relay`` whose executor runs on its own thread, the
+    source's discovery on this one, until ``stop``; then ROS, the relay and Zenoh are left in
+    that order (rclpy's own signal handlers are not installed: the command's are)."""
     try:
         import rclpy
+        from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-    except ImportError:
-        log.error("rclpy is not importable: source ROS 2 (e.g. /opt/ros/humble/setup.bash) "
-                  "or use --bag to replay a bag")
+        from rclpy.signals import SignalHandlerOptions
+        from rclpy.subscription import Subscription
+    except ImportError as err:
+        log.error("rclpy is not importable (%s): source ROS 2 (e.g. /opt/ros/humble/setup.bash) "
+                  "or use --bag to replay a bag", err)
         return 2
     from robot_relay.files import serve_files
     from robot_relay.relay import Relay
     from robot_relay.session import open_session
 
-    rclpy.init()
+    # Jazzy (and Iron) hand a callback taking two arguments the message info too; Humble never.
+    with_message_info = hasattr(Subscription, "CallbackType")
+    session = open_session(args)
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("swanky_relay")
 
-    def subscribe(info: TopicInfo, callback: Callable[[bytes], None]) -> Any:
+    def subscribe(info: TopicInfo, forward: Forward) -> Any:
         profile = QoSProfile(
             depth=info.qos.depth,
             reliability=ReliabilityPolicy.BEST_EFFORT if info.qos.reliability == "best_effort"
@@ -291,39 +411,46 @@ def run_ros2_relay(
             else DurabilityPolicy.VOLATILE,
         )
         try:
-            message_class = _message_class(info.msgtype)
-        except Exception as err:  # the type's package is not installed beside the relay
+            message_type = message_class(info.msgtype)
+        except (ImportError, AttributeError, ValueError) as err:  # its package is not installed
             log.error("%s: cannot subscribe, %s is not importable here: %s", info.topic,
                       info.msgtype, err)
             return None
-        return node.create_subscription(message_class, info.topic, callback, profile, raw=True)
+        callback: Callable[..., None] = forward if with_message_info else (
+            lambda data: forward(data, None)
+        )
+        return node.create_subscription(message_type, info.topic, callback, profile, raw=True)
 
     source = Ros2Source(node, args.robot, accept, ament_share_dirs(), subscribe=subscribe,
                         unsubscribe=node.destroy_subscription)
-    session = open_session(args)
-    relay = Relay(session, Catalog(args.robot, "ros2", ()), args.policies, demand=source)
+    relay = Relay(session, Catalog(args.robot, "ros2", ()), args.policies, demand=source,
+                  source_drops=source.drop_counts)
     files = serve_files(session, args.robot, args.package_path)
 
     def forward(raw: RawMessage) -> None:
         files.learn(raw)
         relay.publish(raw)
 
-    spinner = threading.Thread(target=rclpy.spin, args=(node,), daemon=True)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+
+    def spin() -> None:
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)
+
+    spinner = threading.Thread(target=spin, name="rclpy-executor")
     spinner.start()
     try:
         source.run(relay.update_catalog, forward, stop)
     finally:
+        stop.set()
+        spinner.join()
         source.close()
-        files.close()
-        relay.close()
+        executor.shutdown()
         node.destroy_node()
         rclpy.shutdown()
+        files.close()
+        relay.close()
         session.close()
+        log.info("robot %s: stopped, %d messages sent", args.robot, relay.published)
     return 0
-
-
-def _message_class(msgtype: str) -> Any:
-    """The rclpy message class (needed by create_subscription even in raw mode)."""
-    from rosidl_runtime_py.utilities import get_message
-
-    return get_message(msgtype)
