@@ -272,11 +272,12 @@ def _sample(
             "(publish the new stream on its own topic)"
         )
         raise ConvertError(msg)
+    if frame.data.size == 0:
+        msg = f"{topic}: {frame.codec.name} message holds no data; there is no picture to show"
+        raise ConvertError(msg)
     state = replace(state, codec=frame.codec)
     if frame.codec in _ANNEX_B:
         return _annex_b_sample(state, frame, topic)
-    if frame.data.size == 0:
-        return state, None
     return state, _Sample(frame.data, _OTHER_KEYFRAMES[frame.codec](frame.data.tobytes()))
 
 

@@ -334,6 +334,16 @@ def test_a_codec_change_is_refused_and_a_failed_run_leaves_the_topic_state_as_it
     assert state.codec == H264
 
 
+@pytest.mark.parametrize("codec", [H264, rr.VideoCodec.VP9], ids=lambda c: c.name)
+def test_an_empty_message_is_refused(codec: rr.VideoCodec) -> None:
+    ctx = contexts("/camera/video", [T0_NS], header=False)[0]
+    with pytest.raises(ConvertError) as caught:
+        convert_compressed_video(compressed_video(codec.name, b"", T0_NS), ctx)
+    assert str(caught.value) == (
+        f"/camera/video: {codec.name} message holds no data; there is no picture to show"
+    )
+
+
 def test_unknown_compressed_video_format_is_refused() -> None:
     ctx = contexts("/camera/video", [T0_NS], header=False)[0]
     with pytest.raises(ConvertError) as caught:
