@@ -3,8 +3,8 @@
 Robots on Wi-Fi send their cameras as video: ``foxglove_msgs/msg/CompressedVideo`` (Foxglove's
 schema, definition bundled in ``schemas/msg``) and ``sensor_msgs/msg/CompressedImage`` whose
 ``format`` names a video codec (Isaac ROS's H.264 encoder, ffmpeg-based image transports, ...).
-An H.264 Pi camera costs 1-2 Mbit/s where the same frames as JPEG or raw cost 30 and more, so
-the samples are logged as they came: one ``VideoStream`` sample per message, the codec logged
+An H.264 camera is a few Mbit/s (640x480 raw RGB at 30 Hz is 221), so the samples are logged
+as they came: one ``VideoStream`` sample per message, the codec logged
 once, statically, per entity (as Rerun's own MCAP importer does) and the viewer decodes them.
 
 Why the host still looks inside the samples:
