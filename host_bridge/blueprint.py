@@ -24,6 +24,7 @@ import rerun.blueprint as rrb
 
 from host_bridge.converters.camera import pinhole_path
 from host_bridge.converters.urdf import is_robot_description
+from host_bridge.decode import is_service_event_type
 from host_bridge.dispatch import WARNINGS_PATH
 from host_bridge.errors import ConfigError
 from host_bridge.registry import ConvertContext, LogEntry, LogItem
@@ -49,6 +50,7 @@ TEXT_TYPES = frozenset({
 SPATIAL_TYPES = frozenset({
     "tf2_msgs/msg/TFMessage", "sensor_msgs/msg/LaserScan", "sensor_msgs/msg/PointCloud2",
     MAP_TYPE, "map_msgs/msg/OccupancyGridUpdate", "nav_msgs/msg/GridCells",
+    "nav2_msgs/msg/Costmap", "nav2_msgs/msg/CostmapUpdate",
     "nav_msgs/msg/Path", "geometry_msgs/msg/PoseArray", "geometry_msgs/msg/PoseStamped",
     "geometry_msgs/msg/PoseWithCovarianceStamped", "geometry_msgs/msg/PointStamped",
     "geometry_msgs/msg/PolygonStamped", "visualization_msgs/msg/Marker",
@@ -93,7 +95,7 @@ def _plot_group(entry: TopicEntry) -> str | None:
     if entry.msgtype in PLOT_GROUPS:
         return PLOT_GROUPS[entry.msgtype]
     other = SPATIAL_TYPES | IMAGE_TYPES | IMAGE_OVERLAY_TYPES | GPS_TYPES | TEXT_TYPES
-    if entry.msgtype in other or is_robot_description(entry.topic):
+    if entry.msgtype in other or _is_text(entry) or is_robot_description(entry.topic):
         return None
     return SIGNALS
 
@@ -147,10 +149,14 @@ def _plot_views(robot: str, topics: Sequence[TopicEntry], stats: bool) -> list[r
     return views
 
 
+def _is_text(entry: TopicEntry) -> bool:
+    return entry.msgtype in TEXT_TYPES or is_service_event_type(entry.msgtype)
+
+
 def _log_view(topics: Sequence[TopicEntry]) -> rrb.View:
     queries = [
         _subtree(t.entity_path) for t in topics
-        if t.msgtype in TEXT_TYPES and not is_robot_description(t.topic)
+        if _is_text(t) and not is_robot_description(t.topic)
     ]
     return rrb.TextLogView(name="Log", origin="/", contents=[*queries, _subtree(WARNINGS_PATH)])
 

@@ -2,8 +2,14 @@
 
 Each distinct (type, definition text) gets its own typestore: a ROS 1 bag's CameraInfo (``D K R
 P``, ``Header.seq``) and a Humble CameraInfo may both be on the same host at once, and rosbags
-refuses to register two definitions of one name in a store. Types without a definition come
-from the bundled ROS 2 Humble store.
+refuses to register two definitions of one name in a store. Types without a definition (a
+Humble sqlite3 bag stores none) come from the bundled ROS 2 Humble store plus ``schemas/msg``.
+
+Service events (``/<service>/_service_event`` topics, type ``<pkg>/srv/<Name>_Event``, recorded
+from Iron on) carry the *service's* definition, rosbag2's ``SRV:`` block with request ``---``
+response, which rosbags' parser does not read. The event message rosidl generates from it is
+``service_msgs/ServiceEventInfo info``, ``<Name>_Request[<=1] request``, ``<Name>_Response[<=1]
+response``; :func:`service_event_types` builds exactly that.
 """
 
 from __future__ import annotations
@@ -28,21 +34,95 @@ def base_typestore() -> Typestore:
 
 
 IDL_SEPARATOR = "=" * 80 + "\n"
+SERVICE_EVENT_SUFFIX = "_Event"
+SERVICE_EVENT_INFO = "service_msgs/msg/ServiceEventInfo"
+
+
+def is_service_event_type(msgtype: str) -> bool:
+    """``<pkg>/srv/<Name>_Event``, the type of a ``/<service>/_service_event`` topic."""
+    parts = msgtype.split("/")
+    return len(parts) == 3 and parts[1] == "srv" and parts[2].endswith(SERVICE_EVENT_SUFFIX)
+
+
+def service_type(event_type: str) -> str:
+    """``example_interfaces/srv/AddTwoInts`` of ``example_interfaces/srv/AddTwoInts_Event``."""
+    return event_type[: -len(SERVICE_EVENT_SUFFIX)]
+
+
+def service_event_types(
+    event_type: str, request: tuple[Any, Any], response: tuple[Any, Any]
+) -> dict[str, Any]:
+    """Field tables of a service event and of its request and response messages."""
+    service = service_type(event_type)
+
+    def at_most_one(name: str) -> tuple[Nodetype, Any]:
+        return (Nodetype.SEQUENCE, ((Nodetype.NAME, name), 1))
+
+    return {
+        f"{service}_Request": request,
+        f"{service}_Response": response,
+        event_type: ([], [
+            ("info", (Nodetype.NAME, SERVICE_EVENT_INFO)),
+            ("request", at_most_one(f"{service}_Request")),
+            ("response", at_most_one(f"{service}_Response")),
+        ]),
+    }
+
+
+def _idl_types(body: str) -> dict[str, Any]:
+    # rosbags' IDL grammar has no preprocessor; the blocks already carry what #include pulls in.
+    lines = (line for line in body.split("\n") if not line.startswith("#include"))
+    return dict(get_types_from_idl("\n".join(lines)))
+
+
+def _block_types(kind: str, name: str, body: str, msgtype: str) -> dict[str, Any]:
+    """Types of one block of rosbag2's delimited definition text (``MSG:``/``IDL:``/``SRV:``)."""
+    if kind == "IDL":
+        return _idl_types(body)
+    if kind == "MSG":
+        # A dependency found only as .idl gets an empty MSG block before its IDL block.
+        return dict(get_types_from_msg(body, name)) if body.strip() else {}
+    if kind == "SRV" and is_service_event_type(msgtype):
+        lines = body.split("\n")
+        split = next((i for i, line in enumerate(lines) if line.strip() == "---"), None)
+        if split is None:
+            msg = f"SRV block of {name} has no '---' line between request and response"
+            raise UnknownTypeError(msg)
+        # Parsed under a msg/ name, so the srv's own package types (bare names) resolve to
+        # <pkg>/msg/<Type> as they do in ROS.
+        package, _, service = name.split("/")
+        halves = {"Request": lines[:split], "Response": lines[split + 1 :]}
+        parsed = {}
+        for part, text in halves.items():
+            msg_name = f"{package}/msg/{service}_{part}"
+            parsed[part] = get_types_from_msg("\n".join(text), msg_name)[msg_name]
+        return service_event_types(msgtype, parsed["Request"], parsed["Response"])
+    msg = f"a {kind}: block ({name}) is not a message definition rosbag2 writes for {msgtype}"
+    raise UnknownTypeError(msg)
 
 
 def _parse(definition: MessageDefinition, msgtype: str) -> dict[str, Any]:
-    if definition.encoding != "ros2idl":
+    if not definition.text.startswith(IDL_SEPARATOR):
+        if definition.encoding == "ros2idl":
+            return _idl_types(definition.text)
         return dict(get_types_from_msg(definition.text, msgtype))
-    if not definition.text.startswith(f"{IDL_SEPARATOR}IDL: "):
-        return dict(get_types_from_idl(definition.text))
-    # rosbag2's delimited form: one "IDL: pkg/msg/Name" block per file, as AnyReader reads it.
-    # rosbags' IDL grammar has no preprocessor; the blocks already carry what #include pulls in.
+    # rosbag2's delimited form: one "KIND: pkg/msg/Name" block per file (IDL roots, services).
     types: dict[str, Any] = {}
     for block in definition.text.split(IDL_SEPARATOR)[1:]:
-        _, body = block.split("\n", 1)
-        lines = (line for line in body.split("\n") if not line.startswith("#include"))
-        types.update(get_types_from_idl("\n".join(lines)))
+        header, _, body = block.partition("\n")
+        kind, _, name = header.partition(": ")
+        types.update(_block_types(kind, name.strip(), body, msgtype))
     return types
+
+
+def _as_service_event(msgtype: str, problem: str) -> str:
+    """Why a type cannot be decoded, saying what a service event topic is when it is one."""
+    if not is_service_event_type(msgtype):
+        return problem
+    return (
+        f"service events of {service_type(msgtype)} (the requests and responses rosbag2 "
+        f"records with --services) are skipped: {problem}"
+    )
 
 
 def _referenced_types(fielddefs: dict[str, Any]) -> set[str]:
@@ -63,51 +143,69 @@ def _referenced_types(fielddefs: dict[str, Any]) -> set[str]:
 
 
 class Decoder:
-    """Deserializes RawMessages; caches one typestore per distinct definition."""
+    """Deserializes RawMessages; caches one typestore per distinct definition (and the error of
+    one that cannot be used, so a bad topic costs one parse, not one per message)."""
 
     def __init__(self, base: Typestore | None = None) -> None:
         self._base = base or base_typestore()
-        self._stores: dict[tuple[str, MessageDefinition], Typestore] = {}
+        self._stores: dict[tuple[str, MessageDefinition | None], Typestore | UnknownTypeError] = {}
 
     def typestore_for(self, msgtype: str, definition: MessageDefinition | None) -> Typestore:
-        if definition is None:
-            if msgtype not in self._base.fielddefs:
-                msg = (
-                    f"no definition for type {msgtype!r}: it is not a ROS 2 Humble type and the "
-                    "source sent none (add its .msg to schemas/msg or let the relay's catalog "
-                    "carry it)"
-                )
-                raise UnknownTypeError(msg)
+        if definition is None and msgtype in self._base.fielddefs:
             return self._base
         key = (msgtype, definition)
         store = self._stores.get(key)
         if store is None:
-            store = self._build(msgtype, definition)
+            try:
+                store = self._build(msgtype, definition)
+            except UnknownTypeError as err:
+                store = err
             self._stores[key] = store
+        if isinstance(store, UnknownTypeError):
+            raise store
         return store
 
-    def _build(self, msgtype: str, definition: MessageDefinition) -> Typestore:
-        try:
-            types = _parse(definition, msgtype)
-        except Exception as err:
-            msg = f"definition of {msgtype!r} ({definition.encoding}) does not parse: {err}"
-            raise UnknownTypeError(msg) from err
-        if msgtype not in types:
-            msg = f"definition sent for {msgtype!r} does not define that type"
-            raise UnknownTypeError(msg)
+    def _build(self, msgtype: str, definition: MessageDefinition | None) -> Typestore:
+        if definition is None:
+            types = self._undefined(msgtype)
+        else:
+            try:
+                types = _parse(definition, msgtype)
+            except Exception as err:
+                msg = f"definition of {msgtype!r} ({definition.encoding}) does not parse: {err}"
+                raise UnknownTypeError(_as_service_event(msgtype, msg)) from err
+            if msgtype not in types:
+                msg = f"definition sent for {msgtype!r} does not define that type"
+                raise UnknownTypeError(_as_service_event(msgtype, msg))
         # Fill dependencies the text left out (e.g. builtin_interfaces) from the bundled store.
         missing = _referenced_types(types) - types.keys()
         while missing:
             unknown = missing - self._base.fielddefs.keys()
             if unknown:
                 msg = f"definition of {msgtype!r} uses {sorted(unknown)} which nothing defines"
-                raise UnknownTypeError(msg)
+                raise UnknownTypeError(_as_service_event(msgtype, msg))
             added = {name: self._base.fielddefs[name] for name in missing}
             types.update(added)
             missing = _referenced_types(added) - types.keys()
         store = get_typestore(Stores.EMPTY)
         store.register(types)
         return store
+
+    def _undefined(self, msgtype: str) -> dict[str, Any]:
+        """A type the source sent no definition for and the bundled store lacks: a service
+        event whose request and response the store knows, else an error naming the type."""
+        service = service_type(msgtype)
+        halves = [f"{service}_Request", f"{service}_Response"]
+        fielddefs = self._base.fielddefs
+        if is_service_event_type(msgtype) and all(h in fielddefs for h in halves):
+            return service_event_types(msgtype, fielddefs[halves[0]], fielddefs[halves[1]])
+        msg = (
+            f"type {msgtype} has no definition: the source sent none (a rosbag2 recorded "
+            "before Iron, like Humble's sqlite3 bags, stores none) and it is neither a ROS 2 "
+            "Humble type nor one bundled in schemas/msg (add its .msg there, or record with "
+            "Iron or later)"
+        )
+        raise UnknownTypeError(_as_service_event(msgtype, msg))
 
     def decode(self, raw: RawMessage) -> Any:
         store = self.typestore_for(raw.msgtype, raw.definition)

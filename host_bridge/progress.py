@@ -16,7 +16,7 @@ from typing import TextIO
 
 from host_bridge.errors import InputError
 from robot_relay.errors import SourceError
-from robot_relay.sources.bag import bag_paths
+from robot_relay.sources.bag import BagSource
 from robot_relay.wire import RawMessage
 
 TTY_PERIOD_S = 0.25
@@ -38,21 +38,18 @@ class BagExtent:
 
 
 def bag_extent(path: Path) -> BagExtent:
-    from rosbags.highlevel import AnyReader
-
+    """Opened the way the conversion opens it (the relay's bag source), so every bag that
+    converts has a progress line too."""
     try:
-        with AnyReader(bag_paths(path)) as reader:
+        with BagSource(path, robot="") as source:
             return BagExtent(
-                messages=reader.message_count,
-                topics=len(reader.topics),
-                start_ns=reader.start_time,
-                end_ns=reader.end_time,
+                messages=source.message_count,
+                topics=source.topic_count,
+                start_ns=source.start_ns,
+                end_ns=source.end_ns,
             )
     except SourceError as err:
         raise InputError(str(err)) from err
-    except Exception as err:
-        msg = f"bag {path} cannot be opened: {err}"
-        raise InputError(msg) from err
 
 
 def render_progress(

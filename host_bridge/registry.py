@@ -128,6 +128,7 @@ class Registry:
         self._fallback = fallback
         self._specs: dict[str, ConverterSpec] = {}
         self._topic_specs: list[tuple[str, Callable[[str], bool], ConverterSpec]] = []
+        self._families: list[tuple[Callable[[str], bool], ConverterSpec]] = []
 
     def add(self, msgtype: str, spec: ConverterSpec) -> None:
         if msgtype in self._specs:
@@ -145,11 +146,19 @@ class Registry:
         """A converter for some topics of a type only (/robot_description is a String)."""
         self._topic_specs.append((msgtype, topics, spec))
 
+    def add_family(self, accepts: Callable[[str], bool], spec: ConverterSpec) -> None:
+        """A converter for every type a naming rule accepts, after the exact types (service
+        events are ``<pkg>/srv/<Name>_Event``, one type per service)."""
+        self._families.append((accepts, spec))
+
     def get(self, msgtype: str, topic: str = "") -> ConverterSpec:
         for special_type, accepts, spec in self._topic_specs:
             if special_type == msgtype and accepts(topic):
                 return spec
-        return self._specs.get(msgtype, self._fallback)
+        if msgtype in self._specs:
+            return self._specs[msgtype]
+        family = next((spec for accepts, spec in self._families if accepts(msgtype)), None)
+        return family or self._fallback
 
     def types(self) -> list[str]:
         return sorted(self._specs)
@@ -174,11 +183,13 @@ def default_registry() -> Registry:
         pointcloud,
         proximity,
         scalars,
+        services,
         tf,
         urdf,
         video,
         vision,
     )
+    from host_bridge.decode import is_service_event_type
 
     registry = Registry(generic.SPEC)
     plots = dict(scalars.CONVERTERS)
@@ -192,6 +203,8 @@ def default_registry() -> Registry:
         registry.add_all(module.CONVERTERS)
     registry.add_for_topics("std_msgs/msg/String", urdf.is_robot_description, urdf.SPEC)
     registry.add_all(occupancy.CONVERTERS)
+    registry.add_all(occupancy.COSTMAP_CONVERTERS)
+    registry.add_family(is_service_event_type, services.SPEC)
     return registry
 
 

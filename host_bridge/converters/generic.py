@@ -2,62 +2,92 @@
 
 Works on any rosbags message object, custom types included, so an unknown type is plotted
 rather than dropped. Numeric arrays up to ``max_array`` (option, default 64) elements become
-one multi-series Scalars entity; longer ones are left out (an image or cloud belongs to a real
-converter). The header is the time axis, not data, so it is skipped.
+one multi-series Scalars entity; longer ones (a custom scan, a histogram, raw bytes) a
+``BarChart`` of the latest message, value against index. The header is the time axis, not data,
+so it is skipped; so are the message's constants (``LIMIT=5`` in the .msg), which are not data.
+
+Sequences of nested messages show their first :data:`MAX_SEQUENCE_MESSAGES` elements (each
+element's leaves are their own entities); the rest is reported once per topic, never dropped
+silently.
 """
 
 from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
-from dataclasses import fields, is_dataclass
+from dataclasses import Field, fields, is_dataclass
 from typing import Any
 
 import numpy as np
 import rerun as rr
 
 from host_bridge.converters._common import time_columns
-from host_bridge.registry import ColumnsItem, ConvertContext, ConverterSpec, LogEntry
+from host_bridge.errors import PartialConvertError
+from host_bridge.registry import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 
 _TIME_TYPES = ("builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration")
-_MAX_SEQUENCE_MESSAGES = 16
+MAX_SEQUENCE_MESSAGES = 16
+
+Leaf = float | str | np.ndarray[Any, Any]
 
 
-def flatten(msg: Any, prefix: str, max_array: int) -> Iterator[tuple[str, float | str | Any]]:
-    """(path, value) leaves of a message: floats, strings, or small numeric numpy arrays."""
-    for f in fields(msg):
-        if f.name.startswith("__") or (f.name == "header" and prefix == ""):
+def data_fields(msg: Any) -> list[Field[Any]]:
+    """A message's data fields. rosbags' message classes also list ``__msgtype__`` and the
+    constants as dataclass fields (annotated ``ClassVar`` in strings, which dataclasses cannot
+    tell apart from data)."""
+    return [
+        f for f in fields(msg)
+        if not f.name.startswith("__") and not str(f.type).startswith("ClassVar")
+    ]
+
+
+def flatten(msg: Any, prefix: str, truncated: set[str]) -> Iterator[tuple[str, Leaf]]:
+    """(path, value) leaves of a message: floats, strings, or numeric numpy arrays.
+    Paths of sequences cut at :data:`MAX_SEQUENCE_MESSAGES` are added to ``truncated``."""
+    for f in data_fields(msg):
+        if f.name == "header" and prefix == "":
             continue
-        yield from _leaves(getattr(msg, f.name), f"{prefix}{f.name}", max_array)
+        yield from _leaves(getattr(msg, f.name), f"{prefix}{f.name}", truncated)
 
 
-def _leaves(value: Any, path: str, max_array: int) -> Iterator[tuple[str, float | str | Any]]:
+def _leaves(value: Any, path: str, truncated: set[str]) -> Iterator[tuple[str, Leaf]]:
     if is_dataclass(value):
         if getattr(value, "__msgtype__", "") in _TIME_TYPES:
             yield path, getattr(value, "sec") + getattr(value, "nanosec") * 1e-9  # noqa: B009
         else:
-            yield from flatten(value, path + "/", max_array)
+            yield from flatten(value, path + "/", truncated)
     elif isinstance(value, (bool, int, float, np.number, np.bool_)):
         yield path, float(value)
     elif isinstance(value, str):
         yield path, value
     elif isinstance(value, np.ndarray):
-        if value.dtype.kind in "biuf" and 0 < value.size <= max_array:
-            yield path, value.astype(np.float64).ravel()
+        if value.dtype.kind in "biuf" and value.size > 0:
+            yield path, value.ravel()
     elif isinstance(value, (list, tuple)):
-        for i, item in enumerate(value[:_MAX_SEQUENCE_MESSAGES]):
-            yield from _leaves(item, f"{path}/{i}", max_array)
+        if len(value) > MAX_SEQUENCE_MESSAGES:
+            truncated.add(path)
+        for i, item in enumerate(value[:MAX_SEQUENCE_MESSAGES]):
+            yield from _leaves(item, f"{path}/{i}", truncated)
+
+
+def _bar_chart(values: np.ndarray[Any, Any]) -> rr.BarChart:
+    return rr.BarChart(values.astype(np.uint8) if values.dtype.kind == "b" else values)
 
 
 def convert_generic_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
     max_array = int(ctxs[0].options.get("max_array", 64))
-    rows: dict[str, tuple[list[int], list[Any]]] = defaultdict(lambda: ([], []))
+    rows: dict[str, tuple[list[int], list[Leaf]]] = defaultdict(lambda: ([], []))
+    items: list[LogEntry] = []
+    truncated: set[str] = set()
     for row, msg in enumerate(msgs):
-        for path, value in flatten(msg, "", max_array):
+        for path, value in flatten(msg, "", truncated):
+            if isinstance(value, np.ndarray) and value.size > max_array:
+                items.append(LogItem(ctxs[row].child_path(path), (_bar_chart(value),),
+                                     times=ctxs[row].times))
+                continue
             indices, values = rows[path]
             indices.append(row)
             values.append(value)
-    items: list[LogEntry] = []
     for path, (indices, values) in rows.items():
         entity = ctxs[0].child_path(path)
         times = time_columns([ctxs[i] for i in indices])
@@ -70,6 +100,13 @@ def convert_generic_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> 
         else:
             columns = rr.Scalars.columns(scalars=np.asarray(values, dtype=np.float64))
         items.append(ColumnsItem(entity, columns, times))
+    if truncated:
+        text = (
+            f"{ctxs[0].topic}: no converter for {getattr(msgs[0], '__msgtype__', 'this type')}; "
+            f"the generic one shows the first {MAX_SEQUENCE_MESSAGES} elements of "
+            f"{', '.join(sorted(truncated))}"
+        )
+        raise PartialConvertError(text, items)
     return items
 
 

@@ -1,5 +1,11 @@
 """nav_msgs/OccupancyGrid -> ``rr.GridMap``; map_msgs/OccupancyGridUpdate patches the last grid.
 
+nav2's own grid, nav2_msgs/Costmap (``costmap_raw``: one 0..255 cost per cell, its metadata like
+OccupancyGrid's info) and CostmapUpdate (Jazzy on) are drawn the same way: their costs go
+through the table nav2's Costmap2DPublisher uses to publish ``costmap`` as an OccupancyGrid
+(:data:`COST_TO_OCCUPANCY`), so they look as RViz shows that topic; ``color_scheme: raw`` shows
+the costs themselves.
+
 The grid travels to the viewer as one byte per cell (the int8 value, so -1 becomes 255) and the
 viewer applies its own RViz palettes (``Colormap.RvizMap`` / ``RvizCostmap``) on the GPU: the
 colours are RViz's (free white, occupied black, a grey ramp between, unknown grey-green; costmap
@@ -54,6 +60,12 @@ _COLORMAPS: dict[str, rr.components.Colormap | None] = {
     "raw": None,
 }
 
+# nav2_costmap_2d's cost_translation_table_: 0 free, 1..252 scaled to 1..98, 253 inscribed 99,
+# 254 lethal 100, 255 unknown -1.
+COST_TO_OCCUPANCY = np.array(
+    [0, *(1 + (97 * (cost - 1)) // 251 for cost in range(1, 253)), 99, 100, -1], dtype=np.int8
+)
+
 
 @dataclass(frozen=True, slots=True)
 class Grid:
@@ -82,27 +94,29 @@ def _unit_quaternion(orientation: Any, topic: str) -> npt.NDArray[np.float64]:
     return q / norm
 
 
-def grid_from_msg(msg: Any, ctx: ConvertContext) -> Grid:
-    """Validated view of an OccupancyGrid (no copy of the cells)."""
-    info = msg.info
+def _grid(
+    msg: Any, info: Any, size: tuple[int, int], data: npt.NDArray[np.int8], ctx: ConvertContext
+) -> Grid:
+    """Validated Grid of a message with a header, ``info`` (OccupancyGrid's ``info``, Costmap's
+    ``metadata``) of the ``size`` (width, height) and the cells ``data`` (not copied)."""
+    field = "info" if hasattr(msg, "info") else "metadata"
     resolution = float(info.resolution)
     if not (math.isfinite(resolution) and resolution > 0.0):
         text = (
-            f"{ctx.topic}: info.resolution is {resolution}; a grid needs a positive cell size in "
-            "metres per cell (fix the map publisher's resolution parameter)"
+            f"{ctx.topic}: {field}.resolution is {resolution}; a grid needs a positive cell size "
+            "in metres per cell (fix the map publisher's resolution parameter)"
         )
         raise ConvertError(text)
-    width, height = int(info.width), int(info.height)
-    data = np.asarray(msg.data, dtype=np.int8)
+    width, height = size
     if data.size != width * height:
         text = (
-            f"{ctx.topic}: data has {data.size} cells but info says {width}x{height} = "
+            f"{ctx.topic}: data has {data.size} cells but {field} says {width}x{height} = "
             f"{width * height}; the message is inconsistent and is skipped"
         )
         raise ConvertError(text)
     translation = np.array(xyz(info.origin.position), dtype=np.float64)
     if not np.isfinite(translation).all():
-        text = f"{ctx.topic}: info.origin.position is not finite ({translation.tolist()})"
+        text = f"{ctx.topic}: {field}.origin.position is not finite ({translation.tolist()})"
         raise ConvertError(text)
     cells = data.reshape(height, width)
     cells.flags.writeable = False
@@ -118,8 +132,34 @@ def grid_from_msg(msg: Any, ctx: ConvertContext) -> Grid:
     )
 
 
+def grid_from_msg(msg: Any, ctx: ConvertContext) -> Grid:
+    """Validated view of an OccupancyGrid (no copy of the cells)."""
+    size = (int(msg.info.width), int(msg.info.height))
+    return _grid(msg, msg.info, size, np.asarray(msg.data, dtype=np.int8), ctx)
+
+
+def _scheme(options: Mapping[str, Any], topic: str) -> str:
+    return str(options.get("color_scheme", "costmap" if "costmap" in topic else "map"))
+
+
 def color_scheme(grid: Grid) -> str:
-    return str(grid.options.get("color_scheme", "costmap" if "costmap" in grid.topic else "map"))
+    return _scheme(grid.options, grid.topic)
+
+
+def cost_cells(costs: Any, options: Mapping[str, Any], topic: str) -> npt.NDArray[np.int8]:
+    """A nav2 costmap's 0..255 costs as grid cells: translated for the palettes, as they are
+    for ``raw`` (the byte values are the costs)."""
+    data = np.asarray(costs, dtype=np.uint8)
+    if _scheme(options, topic) == "raw":
+        return data.view(np.int8)
+    return COST_TO_OCCUPANCY[data]
+
+
+def costmap_from_msg(msg: Any, ctx: ConvertContext) -> Grid:
+    """Validated Grid of a nav2_msgs/Costmap."""
+    meta = msg.metadata
+    cells = cost_cells(msg.data, ctx.options, ctx.topic)
+    return _grid(msg, meta, (int(meta.size_x), int(meta.size_y)), cells, ctx)
 
 
 def grid_map(grid: Grid) -> rr.GridMap:
@@ -166,13 +206,13 @@ def convert_grid(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return grid_items(grid)
 
 
-def grid_for_update(ctx: ConvertContext) -> Grid:
+def grid_for_update(ctx: ConvertContext, grid_type: str = "OccupancyGrid") -> Grid:
     """The stored grid an update on ``ctx.topic`` patches (``T_updates`` patches ``T``)."""
     target = ctx.options.get("grid_topic")
     if target is None:
         if not ctx.topic.endswith(UPDATES_SUFFIX):
             text = (
-                f"{ctx.topic}: cannot tell which grid this OccupancyGridUpdate patches; name the "
+                f"{ctx.topic}: cannot tell which grid this {grid_type} update patches; name the "
                 f"topic <grid topic>{UPDATES_SUFFIX} or set its option grid_topic"
             )
             raise ConvertError(text)
@@ -180,16 +220,19 @@ def grid_for_update(ctx: ConvertContext) -> Grid:
     grid: Grid | None = ctx.robot_state.get(GRIDS_KEY, {}).get(target)
     if grid is None:
         text = (
-            f"{ctx.topic}: no OccupancyGrid received yet on {target}; updates patch the last "
+            f"{ctx.topic}: no {grid_type} received yet on {target}; updates patch the last "
             "full grid, so they are dropped until one arrives"
         )
         raise ConvertError(text)
     return grid
 
 
-def patched(grid: Grid, msg: Any, topic: str) -> Grid:
-    """A new Grid with the update's rectangle written in (copy-on-write, see module doc)."""
-    x, y, width, height = int(msg.x), int(msg.y), int(msg.width), int(msg.height)
+def patched(
+    grid: Grid, rectangle: tuple[int, int, int, int], patch: npt.NDArray[np.int8], topic: str
+) -> Grid:
+    """A new Grid with the update's rectangle (x, y, width, height) of cells ``patch`` written
+    in (copy-on-write, see module doc)."""
+    x, y, width, height = rectangle
     rows, cols = grid.cells.shape
     if x < 0 or y < 0 or x + width > cols or y + height > rows:
         text = (
@@ -197,7 +240,6 @@ def patched(grid: Grid, msg: Any, topic: str) -> Grid:
             f"{cols}x{rows} grid of {grid.topic}; the grid changed size, wait for the next full grid"
         )
         raise ConvertError(text)
-    patch = np.asarray(msg.data, dtype=np.int8)
     if patch.size != width * height:
         text = f"{topic}: update has {patch.size} cells for a {width}x{height} rectangle"
         raise ConvertError(text)
@@ -208,7 +250,24 @@ def patched(grid: Grid, msg: Any, topic: str) -> Grid:
 
 
 def convert_update(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    grid = patched(grid_for_update(ctx), msg, ctx.topic)
+    rectangle = (int(msg.x), int(msg.y), int(msg.width), int(msg.height))
+    grid = patched(grid_for_update(ctx), rectangle, np.asarray(msg.data, dtype=np.int8), ctx.topic)
+    _store(ctx, grid)
+    return grid_items(grid)
+
+
+def convert_costmap(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+    grid = costmap_from_msg(msg, ctx)
+    _store(ctx, grid)
+    return grid_items(grid)
+
+
+def convert_costmap_update(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+    """nav2_msgs/CostmapUpdate: costs of a rectangle of the costmap (``T_updates`` patches ``T``)."""
+    grid = grid_for_update(ctx, "Costmap")
+    cells = cost_cells(msg.data, grid.options, grid.topic)
+    rectangle = (int(msg.x), int(msg.y), int(msg.size_x), int(msg.size_y))
+    grid = patched(grid, rectangle, cells, ctx.topic)
     _store(ctx, grid)
     return grid_items(grid)
 
@@ -216,4 +275,9 @@ def convert_update(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
 CONVERTERS: dict[str, ConverterSpec] = {
     "nav_msgs/msg/OccupancyGrid": ConverterSpec(convert_grid),
     "map_msgs/msg/OccupancyGridUpdate": ConverterSpec(convert_update),
+}
+# Costmaps are drawn, not turned into walls (walls.SLOW_CONVERTERS matches CONVERTERS).
+COSTMAP_CONVERTERS: dict[str, ConverterSpec] = {
+    "nav2_msgs/msg/Costmap": ConverterSpec(convert_costmap),
+    "nav2_msgs/msg/CostmapUpdate": ConverterSpec(convert_costmap_update),
 }

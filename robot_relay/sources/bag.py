@@ -6,14 +6,20 @@ and the host has one decoding path. Like ``rosbags-convert``, it drops ``Header.
 expects the ROS 2 Header there); every other field keeps the bag's layout and names (CameraInfo
 ``D K R P``), and the definition sent along is generated from exactly those types.
 
-Needs rosbags (``pip install swanky[relay,bag]``); the live ROS 2 source does not.
+A rosbag2 is read with rosbags' plain rosbag2 ``Reader``, not ``AnyReader``: AnyReader parses
+every definition in the bag when it opens, so one it cannot parse (a Jazzy service event's
+``SRV:`` text) would refuse the whole bag, and a bag without definitions (Humble's sqlite3)
+would need a typestore. Forwarding raw CDR needs neither; the host decodes, topic by topic.
+``swanky-host --bag`` (also its progress line) and ``swanky-relay --bag`` open bags only here.
+
+Needs rosbags (``pip install ".[relay,bag]"``); the live ROS 2 source does not.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
@@ -33,6 +39,7 @@ log = logging.getLogger("swanky.relay")
 
 # Bags recorded without QoS metadata (ROS 1, old rosbag2) still have these latched in ROS.
 CONVENTIONALLY_LATCHED = frozenset({"/tf_static", "/robot_description", "/map"})
+ROSBAGS_MISSING = 'reading bags needs rosbags: pip install ".[relay,bag]"'
 
 TopicFilter = Callable[[str], bool]
 
@@ -42,9 +49,19 @@ def _all_topics(topic: str) -> bool:
 
 
 def bag_paths(path: Path) -> list[Path]:
-    """The paths AnyReader wants: a rosbag2 directory or .mcap/.db3 file, or ROS 1 .bag files."""
+    """The paths to open: a rosbag2 directory or .mcap/.db3 file, or ROS 1 .bag files."""
     if not path.exists():
         msg = f"bag {path} does not exist"
+        raise SourceError(msg)
+    if path.is_file() and path.suffix == ".zstd":
+        # rosbag2's compression_mode "file" writes xxx.mcap.zstd / xxx.db3.zstd; only the
+        # metadata.yaml beside it says how to decompress it.
+        where = (
+            f"give its bag directory {path.parent} instead"
+            if (path.parent / "metadata.yaml").exists()
+            else f"give the bag directory with its metadata.yaml, or decompress it (zstd -d {path})"
+        )
+        msg = f"{path} is one zstd-compressed file of a rosbag2 recorded with compression: {where}"
         raise SourceError(msg)
     if path.is_dir() and not (path / "metadata.yaml").exists():
         bags = sorted(path.glob("*.bag"))
@@ -88,6 +105,50 @@ def _ros1_conversion_store(bag_store: Any) -> Any:
     return store
 
 
+def _open_reader(paths: Sequence[Path], stack: ExitStack) -> Any:
+    """An open rosbags reader: rosbag2's own for ROS 2 (see the module docstring), AnyReader for
+    ROS 1 bags (several files merged; their definitions are always there and parse)."""
+    try:
+        from rosbags.highlevel import AnyReader
+        from rosbags.rosbag2 import Reader
+    except ModuleNotFoundError as err:
+        msg = f"{ROSBAGS_MISSING} ({err})"
+        raise SourceError(msg) from err
+    try:
+        if paths[0].suffix == ".bag":
+            return stack.enter_context(AnyReader(list(paths)))
+        return stack.enter_context(Reader(paths[0]))
+    except Exception as err:
+        msg = f"bag {paths[0]} cannot be opened: {err}"
+        raise SourceError(msg) from err
+
+
+def _storage_connections(reader: Any, wanted: Sequence[Any]) -> list[Any]:
+    """The connections to ask a rosbag2 directory for, carrying each storage file's own QoS.
+
+    rosbags hands a metadata.yaml connection only the messages of a storage connection with the
+    same topic, type *and* QoS. rosbag2 writes the QoS of metadata.yaml and of the storage file
+    separately, and they disagree in real bags (Foxy/Galactic wrote a default deadline as 0 in
+    one and as INT_MAX in the other), which would read no message at all: match by topic and type.
+    """
+    storages = getattr(reader.storage, "storages", None)
+    if storages is None:  # a bare .mcap/.db3: its connections are the file's own
+        return list(wanted)
+    asked: list[Any] = []
+    for connection in wanted:
+        exts: list[Any] = []
+        for storage in storages:
+            for stored in storage.connections:
+                same = stored.topic == connection.topic and stored.msgtype == connection.msgtype
+                if same and stored.ext not in exts:
+                    exts.append(stored.ext)
+        if any(ext != connection.ext for ext in exts):
+            log.debug("%s: metadata.yaml's QoS differs from the storage file's; reading by "
+                      "topic and type", connection.topic)
+        asked.extend(connection._replace(ext=ext) for ext in exts or [connection.ext])
+    return asked
+
+
 class BagSource:
     """Yields a bag's messages as RawMessages in log-time order, optionally paced."""
 
@@ -113,20 +174,14 @@ class BagSource:
         self._warned: set[str] = set()
 
     def __enter__(self) -> BagSource:
-        from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
-
-        try:
-            self._reader = self._stack.enter_context(
-                AnyReader(self.paths, default_typestore=get_typestore(Stores.ROS2_HUMBLE))
-            )
-        except Exception as err:
-            msg = f"bag {self.paths[0]} cannot be opened: {err}"
-            raise SourceError(msg) from err
-        self.is_ros1 = not self._reader.is2
+        self._reader = _open_reader(self.paths, self._stack)
+        self.is_ros1 = self.paths[0].suffix == ".bag"
         self.connections = [c for c in self._reader.connections if self.topics(c.topic)]
         if self.is_ros1:
             self._ros1_store = _ros1_conversion_store(self._reader.typestore)
+            self._asked = self.connections
+        else:
+            self._asked = _storage_connections(self._reader, self.connections)
         self._infos = {
             c.id: TopicInfo(
                 topic=absolute_topic(c.topic),
@@ -140,6 +195,23 @@ class BagSource:
 
     def __exit__(self, *exc: object) -> None:
         self._stack.close()
+
+    @property
+    def message_count(self) -> int:
+        """Messages in the whole bag, from its index or metadata (nothing is read)."""
+        return int(self._reader.message_count)
+
+    @property
+    def start_ns(self) -> int:
+        return int(self._reader.start_time)
+
+    @property
+    def end_ns(self) -> int:
+        return int(self._reader.end_time)
+
+    @property
+    def topic_count(self) -> int:
+        return len(self._reader.topics)
 
     def catalog(self) -> Catalog:
         unique = {(i.topic, i.msgtype): i for i in self._infos.values()}
@@ -167,10 +239,17 @@ class BagSource:
         """Every message once (or forever with ``loop``), paced by ``rate`` (0: no pacing)."""
         if not self.connections:
             return
+        undefined = sorted({i.topic for i in self._infos.values() if i.definition is None})
+        if undefined:
+            log.info(
+                "bag %s stores no message definitions for %s (rosbag2 stores them from Iron "
+                "on): the host decodes them with its bundled ROS 2 Humble types",
+                self.paths[0], ", ".join(undefined),
+            )
         while True:
             started = time.monotonic()
             first_ns: int | None = None
-            for connection, log_ns, raw in self._reader.messages(connections=self.connections):
+            for connection, log_ns, raw in self._reader.messages(connections=self._asked):
                 if first_ns is None:
                     first_ns = log_ns
                 if self.rate > 0:
