@@ -4,8 +4,8 @@ Robots on Wi-Fi send their cameras as video: ``foxglove_msgs/msg/CompressedVideo
 schema, definition bundled in ``schemas/msg``) and ``sensor_msgs/msg/CompressedImage`` whose
 ``format`` names a video codec (Isaac ROS's H.264 encoder, ffmpeg-based image transports, ...).
 An H.264 camera is a few Mbit/s (640x480 raw RGB at 30 Hz is 221), so the samples are logged
-as they came: one ``VideoStream`` sample per message, the codec logged
-once, statically, per entity (as Rerun's own MCAP importer does) and the viewer decodes them.
+as they came: one ``VideoStream`` sample per message, the codec logged once, statically, per
+entity (as Rerun's own MCAP importer does) and the viewer decodes them.
 
 Why the host still looks inside the samples:
 
