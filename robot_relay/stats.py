@@ -2,8 +2,9 @@
 
 CPU comes from ``os.times()`` (user + system time of this process, every thread) against
 ``time.monotonic()``: no psutil on the robot. 100 % is one full core, so the value lies in
-``[0, 100 * cores]``. Counts are cumulative (messages, bytes, and per topic the drops a live source saw before the relay),
-so a lost report loses nothing; the host turns consecutive reports into rates.
+``[0, 100 * cores]``. Counts are cumulative (messages, bytes, and per topic the drops a live
+source saw before the relay), so a lost report loses nothing; the host turns consecutive
+reports into rates.
 """
 
 from __future__ import annotations

@@ -224,7 +224,7 @@ class Ros2Source:
 
     def __init__(
         self, graph: Any, robot: str, accept: Callable[[str], bool], share_dirs: Sequence[Path],
-        *, subscribe: Subscribe, unsubscribe: Callable[[Any], None],
+        *, subscribe: Subscribe, unsubscribe: Callable[[Any], object],
     ) -> None:
         self.graph = graph
         self.robot = robot

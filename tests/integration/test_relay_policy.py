@@ -89,7 +89,7 @@ def test_a_ros_topic_is_subscribed_only_while_a_host_listens(
         while not stop.wait(0.02):
             callback = node.callbacks.get("/scan")
             if callback is not None:
-                callback(b"\x00\x01\x00\x00" + b"scan" * 10)
+                callback(b"\x00\x01\x00\x00" + b"scan" * 10, None)
 
     received: list[str] = []
     threads = [

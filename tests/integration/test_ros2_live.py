@@ -166,7 +166,8 @@ def live(ros_environment: None, tmp_path_factory: pytest.TempPathFactory) -> Liv
 
 def _rows(live: LiveRun, run: int, entity: str) -> list[dict[str, Any]]:
     rows = entity_rows(live.rrd(run), entity)
-    assert entity in rows, f"{entity} missing from host{run}.rrd; host stderr:\n{live.hosts[run - 1].stderr[-3000:]}"
+    stderr = live.hosts[run - 1].stderr[-3000:]
+    assert entity in rows, f"{entity} missing from host{run}.rrd; host stderr:\n{stderr}"
     return rows[entity]
 
 
@@ -260,7 +261,8 @@ def test_stalled_relay_loses_no_reliable_message(live: LiveRun) -> None:
     """Five SIGSTOPs of 0.3 s: nine odometry messages each time wait in the relay's queue."""
     odom = [row for row in _rows(live, 1, f"/{ROBOT}/odom") if not row["static"]]
     received = [row["receive_time"] for row in odom]
-    assert min(received) < live.stalls_ns[0][0] and max(received) > live.stalls_ns[-1][1]
+    assert min(received) < live.stalls_ns[0][0]
+    assert max(received) > live.stalls_ns[-1][1]
     # Every stall left a hole in the relay's receive times, and nothing is missing around it
     # (contiguous indices: test_reliable_odometry_and_joints_arrive_complete_with_exact_values).
     gaps = np.diff(np.asarray(sorted(received)))
@@ -285,7 +287,8 @@ def test_rosout_lines_arrive_once_although_rosout_was_subscribed_again(live: Liv
     texts = [row["TextLog:text"][0] for row in _rows(live, 1, f"/{ROBOT}/rosout")]
     counts = collections.Counter(texts)
     assert counts["[robot] robot up"] == 1
-    assert all(counts[f"[late_helper_{k}] late helper {k} up"] == 1 for k in range(ros_robot.LATE_NODES)), counts
+    helpers = [f"[late_helper_{k}] late helper {k} up" for k in range(ros_robot.LATE_NODES)]
+    assert all(counts[line] == 1 for line in helpers), counts
     assert max(counts.values()) == 1, counts
 
 
@@ -307,7 +310,8 @@ def test_sigterm_stops_relay_and_hosts_cleanly(live: LiveRun) -> None:
         assert "Traceback" not in proc.stderr, f"{name}:\n{proc.stderr[-3000:]}"
     assert "SIGTERM: stopping" in live.relay.stderr
     assert f"robot {ROBOT}: stopped" in live.relay.stderr
-    assert "published odom" in live.robot and "published image" in live.robot
+    assert "published odom" in live.robot
+    assert "published image" in live.robot
 
 
 def test_relay_stats_count_no_reliable_drops(live: LiveRun) -> None:

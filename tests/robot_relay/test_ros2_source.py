@@ -1,5 +1,6 @@
-"""The rclpy source without rclpy (not installable here): discovery, QoS, demand and
-definitions against fake nodes that answer like rclpy's graph API."""
+"""The rclpy source against fake nodes that answer like rclpy's graph API: discovery, QoS,
+demand, re-deliveries, sequence gaps and definitions (tests/integration/test_ros2_live.py runs
+it against real rclpy nodes)."""
 
 from __future__ import annotations
 
@@ -10,12 +11,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
+import pytest
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from host_bridge.decode import Decoder
-from robot_relay.sources.qos import adapted_qos
-from robot_relay.sources.ros2 import Ros2Source, ament_share_dirs, message_definition
-from robot_relay.wire import RawMessage, TopicInfo
+from robot_relay.relay import Relay
+from robot_relay.sources.qos import LIVE_DEPTH_FLOOR, adapted_qos
+from robot_relay.sources.ros2 import (
+    MessageInfo,
+    Ros2Source,
+    ament_share_dirs,
+    message_class,
+    message_definition,
+)
+from robot_relay.wire import Catalog, QosProfile, RawMessage, TopicInfo
+from tests.integration.procs import open_loopback
 
 
 def write_msg(share: Path, name: str, text: str) -> None:
@@ -65,6 +75,16 @@ def test_qos_follows_ros2_bag_record() -> None:
     assert adapted_qos([("reliable", "volatile", 10), ("unknown", "volatile", 10)]).reliability == (
         "best_effort"
     )
+
+
+def test_live_queues_hold_at_least_ten_messages_where_fast_dds_reports_depth_0() -> None:
+    assert LIVE_DEPTH_FLOOR == 10
+    assert adapted_qos([("reliable", "volatile", 0)], LIVE_DEPTH_FLOOR).depth == 10
+    assert adapted_qos([("reliable", "volatile", 0)]).depth == 1  # a bag's offers: as recorded
+    assert adapted_qos([("reliable", "volatile", 0), ("reliable", "volatile", 50)],
+                       LIVE_DEPTH_FLOOR).depth == 50
+    twelve_latched = [("reliable", "transient_local", 0)] * 12
+    assert adapted_qos(twelve_latched, LIVE_DEPTH_FLOOR).depth == 12
 
 
 def test_idl_only_package_gives_a_ros2idl_definition_rosbags_parses(tmp_path: Path) -> None:
@@ -134,7 +154,7 @@ class FakeNode:
     graph: dict[str, tuple[list[str], list[Endpoint]]] = field(default_factory=dict)
     subscribed: list[str] = field(default_factory=list)
     unsubscribed: list[str] = field(default_factory=list)
-    callbacks: dict[str, Callable[[bytes], None]] = field(default_factory=dict)
+    callbacks: dict[str, Callable[[bytes, MessageInfo | None], None]] = field(default_factory=dict)
 
     def get_topic_names_and_types(self) -> list[tuple[str, list[str]]]:
         return [(topic, types) for topic, (types, _) in self.graph.items()]
@@ -142,7 +162,7 @@ class FakeNode:
     def get_publishers_info_by_topic(self, topic: str) -> list[Endpoint]:
         return self.graph[topic][1]
 
-    def subscribe(self, info: TopicInfo, callback: Callable[[bytes], None]) -> str:
+    def subscribe(self, info: TopicInfo, callback: Callable[[bytes, MessageInfo | None], None]) -> str:
         self.subscribed.append(info.topic)
         self.callbacks[info.topic] = callback
         return info.topic
@@ -191,8 +211,20 @@ def test_discovery_follows_new_vanished_and_changed_topics(tmp_path: Path) -> No
     infos = {t.topic: t for t in catalog.topics}
     assert sorted(infos) == ["/scan", "/tf_static"]
     assert infos["/tf_static"].latched
-    assert infos["/tf_static"].qos.depth == 2
+    assert infos["/tf_static"].qos.depth == 10
     assert (infos["/scan"].qos.reliability, infos["/scan"].qos.depth) == ("best_effort", 10)
+
+    # Publishers coming and going within what the request serves change nothing; a deeper
+    # queue is asked for once needed, and never given back while the topic lives.
+    node.graph["/tf_static"][1].pop()
+    assert source.discover() is None
+    node.graph["/tf_static"][1].extend(latched() for _ in range(11))
+    catalog = source.discover()
+    assert catalog is not None
+    assert [t.qos.depth for t in catalog.topics if t.topic == "/tf_static"] == [12]
+    del node.graph["/tf_static"][1][2:]
+    assert source.discover() is None
+    assert source.publisher_counts == {"/scan": 2, "/tf_static": 2}
 
 
 def test_demand_subscribes_and_unsubscribes_and_forwards_raw_bytes() -> None:
@@ -209,7 +241,7 @@ def test_demand_subscribes_and_unsubscribes_and_forwards_raw_bytes() -> None:
     assert source.wake.is_set()
     source.apply_demand(published.append)
     assert node.subscribed == ["/scan", "/tf_static"]
-    node.callbacks["/scan"](b"\x00\x01\x00\x00cdr")
+    node.callbacks["/scan"](b"\x00\x01\x00\x00cdr", None)
     assert [(m.robot, m.topic, m.msgtype, m.data) for m in published] == [
         ("tb3", "/scan", "sensor_msgs/msg/LaserScan", b"\x00\x01\x00\x00cdr")
     ]
@@ -225,13 +257,105 @@ def test_demand_subscribes_and_unsubscribes_and_forwards_raw_bytes() -> None:
     source.apply_demand(published.append)
     assert node.unsubscribed == ["/scan"]
 
-    # The publisher's QoS changes while a host listens: re-subscribed with the new QoS.
+    # The publisher's QoS changes while a host listens: re-subscribed with the new QoS (the
+    # relay keeps its publisher, so no demand comes: the source sees the change itself).
     node.graph["/tf_static"][1].append(sensor())
     assert source.discover() is not None
-    source.on_demand("/tf_static", True)
     source.apply_demand(published.append)
     assert node.unsubscribed == ["/scan", "/tf_static"]
     assert node.subscribed == ["/scan", "/tf_static", "/tf_static"]
     assert not source.subscriptions["/tf_static"][0].latched
     source.close()
     assert sorted(node.unsubscribed) == ["/scan", "/tf_static", "/tf_static"]
+
+
+def info(sequence: int, source_ns: int = 1) -> MessageInfo:
+    """rclpy's message info dict as Jazzy hands it to a two-argument callback."""
+    return {"source_timestamp": source_ns, "received_timestamp": source_ns + 5,
+            "publication_sequence_number": sequence, "reception_sequence_number": None}
+
+
+def test_a_new_subscription_does_not_forward_the_latched_history_again() -> None:
+    node = FakeNode({"/robot_description": (["std_msgs/msg/String"], [latched()])})
+    source = make_source(node)
+    source.discover()
+    published: list[RawMessage] = []
+    source.on_demand("/robot_description", True)
+    source.apply_demand(published.append)
+    node.callbacks["/robot_description"](b"urdf", info(1, source_ns=100))
+
+    # Twelve publishers: a deeper queue, so subscribed again; the history comes again.
+    node.graph["/robot_description"][1].extend(latched() for _ in range(11))
+    source.discover()
+    source.apply_demand(published.append)
+    assert node.subscribed == ["/robot_description", "/robot_description"]
+    node.callbacks["/robot_description"](b"urdf", info(1, source_ns=100))  # the same message
+    node.callbacks["/robot_description"](b"urdf", info(2, source_ns=200))  # republished
+    assert [m.data for m in published] == [b"urdf", b"urdf"]
+    # Without message info (Humble), identical bytes are the same message.
+    node.callbacks["/robot_description"](b"other", None)
+    node.callbacks["/robot_description"](b"other", None)
+    assert [m.data for m in published] == [b"urdf", b"urdf", b"other"]
+
+
+def test_sequence_gaps_of_a_single_publisher_count_as_drops() -> None:
+    node = FakeNode({"/odom": (["nav_msgs/msg/Odometry"], [sensor()]),
+                     "/status": (["std_msgs/msg/String"], [sensor(), sensor()])})
+    source = make_source(node)
+    source.discover()
+    published: list[RawMessage] = []
+    for topic in ("/odom", "/status"):
+        source.on_demand(topic, True)
+    source.apply_demand(published.append)
+    for sequence in (4, 5, 8, 9, 12):
+        node.callbacks["/odom"](b"odom", info(sequence))
+    node.callbacks["/odom"](b"odom", info(1))  # the publisher restarted: no drop, a new start
+    node.callbacks["/odom"](b"odom", info(2))
+    # Two publishers: their numbers interleave and the info does not say whose they are.
+    for sequence in (1, 1, 2, 5):
+        node.callbacks["/status"](b"status", info(sequence))
+    assert source.drop_counts() == {"/odom": 4}
+    assert len(published) == 11  # gaps are counted, never a reason to drop
+
+    # A new subscription (the host came back) starts counting afresh.
+    source.on_demand("/odom", False)
+    source.apply_demand(published.append)
+    source.on_demand("/odom", True)
+    source.apply_demand(published.append)
+    node.callbacks["/odom"](b"odom", info(40))
+    node.callbacks["/odom"](b"odom", info(41))
+    assert source.drop_counts() == {"/odom": 4}
+
+
+def test_message_class_is_imported_from_the_package_as_ros_installs_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    package = tmp_path / "fake_msgs" / "msg"
+    package.mkdir(parents=True)
+    (tmp_path / "fake_msgs" / "__init__.py").write_text("")
+    (package / "__init__.py").write_text("class Reading:\n    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert message_class("fake_msgs/msg/Reading").__name__ == "Reading"
+    with pytest.raises(AttributeError):
+        message_class("fake_msgs/msg/Missing")
+    with pytest.raises(ImportError):
+        message_class("absent_msgs/msg/Reading")
+
+
+def test_relay_keeps_a_latched_publisher_and_its_cache_when_only_the_depth_changes() -> None:
+    session = open_loopback()  # no peers: only the declarations matter here
+    description = TopicInfo("/robot_description", "std_msgs/msg/String", None,
+                            QosProfile("reliable", "transient_local", 10))
+    relay = Relay(session, Catalog("tb3", "ros2", (description,)))
+    try:
+        first = relay._publishers["/robot_description"]
+        deeper = dataclasses.replace(description, qos=QosProfile("reliable", "transient_local", 12))
+        relay.update_catalog(Catalog("tb3", "ros2", (deeper,)))
+        assert relay._publishers["/robot_description"] is first  # a new one would resend its cache
+        assert first.info == deeper
+        retyped = dataclasses.replace(deeper, msgtype="std_msgs/msg/Int32")
+        relay.update_catalog(Catalog("tb3", "ros2", (retyped,)))
+        assert relay._publishers["/robot_description"] is not first
+    finally:
+        relay.close()
+        session.close()
