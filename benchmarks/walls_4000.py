@@ -21,6 +21,7 @@ from rosbags.typesys import Stores, get_typestore
 from host_bridge.converters import walls
 from host_bridge.converters.occupancy import grid_from_msg
 from host_bridge.registry import ConvertContext, LogEntry
+from host_bridge.segments import grid_to_image
 
 SIZE = 4000
 RESOLUTION = 0.05
@@ -84,7 +85,7 @@ def main() -> None:
         ),
         data=cells.ravel(),
     )
-    image = walls.grid_to_image(cells)
+    image = grid_to_image(cells)
 
     def baseline() -> npt.NDArray[Any] | None:
         edges = cv2.Canny(image, 150.0, 250.0, L2gradient=True)
