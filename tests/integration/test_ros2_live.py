@@ -321,3 +321,27 @@ def test_relay_stats_count_no_reliable_drops(live: LiveRun) -> None:
         drops = entity_rows(live.rrd(1), entity).get(entity, [])
         # /status: two publishers, whose sequence numbers cannot be told apart: never counted.
         assert sum(row["Scalars:scalars"][0] for row in drops) == 0, topic
+
+
+def test_sigint_stops_the_relay_cleanly_and_a_second_signal_at_once(ros_environment: None) -> None:
+    relay_cmd = command("robot_relay.cli", "--robot", ROBOT, "-l", f"tcp/127.0.0.1:{free_port()}",
+                        "--no-multicast-scouting")
+    with running(relay_cmd) as relay:
+        lines = Lines(relay)
+        lines.wait_for("/rosout: subscribed", timeout=60)  # its own node's log
+        relay.send_signal(signal.SIGINT)
+        assert relay.wait(timeout=30) == 0, lines.text
+    time.sleep(0.2)
+    assert "SIGINT: stopping" in lines.text
+    assert "Traceback" not in lines.text
+    with running(relay_cmd) as relay:
+        lines = Lines(relay)
+        lines.wait_for("/rosout: subscribed", timeout=60)
+        # Both arrive together when it resumes: the first starts the stop, the second ends it.
+        relay.send_signal(signal.SIGSTOP)
+        relay.send_signal(signal.SIGINT)
+        relay.send_signal(signal.SIGTERM)
+        relay.send_signal(signal.SIGCONT)
+        assert relay.wait(timeout=30) == 128 + signal.SIGTERM, lines.text
+    time.sleep(0.2)
+    assert "SIGTERM again, exiting at once" in lines.text
