@@ -48,7 +48,3 @@ class SinkError(HostError):
 
 class RecorderError(HostError):
     """The --record-mcap file cannot be written."""
-
-
-class GraphError(HostError):
-    """An rmw_zenoh key, liveliness token or attachment is not in a form rmw_zenoh produces."""

@@ -1,14 +1,6 @@
 """rmw_zenoh robots read directly, with no relay: their data keys and liveliness graph ->
-RawMessages, like the swanky wire input (zenoh.py).
-
-rmw_zenoh (Humble 0.1.x, Jazzy and later) publishes every ROS message as raw CDR (encapsulation
-header included) on ``<domain>/<topic>/<dds type>/<type hash>``, with the type hash
-``TypeHashNotSupported`` on Humble and ``RIHS01_<sha256>`` from Jazzy on. Its graph is a set of
-liveliness tokens
-``@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<kind>/<enclave>/<namespace>/<node>`` followed,
-for publishers (kind ``MP``), by ``/<topic>/<dds type>/<type hash>/<qos>``; names are mangled
-(``/`` -> ``%``). The attachment holds the sequence number, the source timestamp and the
-publisher gid.
+RawMessages, like the swanky wire input (zenoh.py). The key, token and attachment formats are
+parsed in ``robot_relay/wire.py`` (its rmw_zenoh section).
 
 A data key does not say which node sent it, so the robot comes from the graph: the first
 namespace segment of the topic's publishers (``/tb3/scan`` from a node in ``/tb3`` is robot
@@ -16,13 +8,13 @@ namespace segment of the topic's publishers (``/tb3/scan`` from a node in ``/tb3
 ``--robot``. (A name per Zenoh session would split one robot in pieces: rmw_zenoh gives every
 ROS process its own session, and the scan's frames would then never meet the TF tree.)
 Definitions come from the host's bundled typestore; a Jazzy type hash picks the Jazzy
-definition where it differs from Humble (``sensor_msgs/msg/Range``).
+definition where it differs from Humble (``sensor_msgs/msg/Range``; see
+``schemas.BundledDefinitions``).
 """
 
 from __future__ import annotations
 
 import logging
-import struct
 import threading
 import time
 from collections import deque
@@ -32,197 +24,37 @@ from dataclasses import dataclass
 import zenoh
 from zenoh import ext
 
-from host_bridge.errors import GraphError, UnknownTypeError
+from host_bridge.errors import UnknownTypeError
 from host_bridge.inputs.queues import InputProblem, QueueItem, RobotEvent, RobotQueues
 from host_bridge.inputs.zenoh import check_robot_pattern, robot_matches
-from robot_relay.wire import ROBOT_NAME_PATTERN, MessageDefinition, QosProfile, RawMessage
+from host_bridge.schemas import BundledDefinitions
+from robot_relay.errors import GraphError
+from robot_relay.wire import (
+    RMW_NODE,
+    RMW_PUBLISHER,
+    ROBOT_NAME_PATTERN,
+    MessageDefinition,
+    RawMessage,
+    RmwAttachment,
+    RmwDataKey,
+    RmwGraphEntity,
+    parse_rmw_attachment,
+    parse_rmw_data_key,
+    parse_rmw_token,
+    rmw_data_selector,
+    rmw_liveliness_selector,
+)
 
 log = logging.getLogger("swanky.host")
 
-ADMIN_SPACE = "@ros2_lv"
-TYPE_HASH_NOT_SUPPORTED = "TypeHashNotSupported"
-NODE = "NN"
-PUBLISHER = "MP"
 SOURCE = "rmw_zenoh"
 # Samples that arrive before their publisher's liveliness token wait this long (and at most
 # this many per key) for it; after that they go to the --robot robot.
 WAIT_FOR_GRAPH_S = 2.0
 MAX_WAITING_PER_KEY = 200
 
-_I64 = struct.Struct("<q")
-_GID_SIZE = 16
 
-
-# -- pure parsing ------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class DataKey:
-    domain: int
-    topic: str
-    msgtype: str
-    type_hash: str | None  # None: Humble's TypeHashNotSupported
-
-
-@dataclass(frozen=True, slots=True)
-class GraphEntity:
-    """One liveliness token: a node (``NN``) or an endpoint (``MP``, ``MS``, ``SS``, ``SC``)."""
-
-    domain: int
-    session: str
-    node_id: str
-    entity_id: str
-    kind: str
-    namespace: str
-    node: str
-    topic: str | None = None
-    msgtype: str | None = None
-    type_hash: str | None = None
-    qos: QosProfile | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class RmwAttachment:
-    sequence: int
-    source_ns: int
-    gid: bytes
-
-
-def demangle(name: str) -> str:
-    """rmw_zenoh writes ``/`` as ``%`` inside one key chunk (``%tb3%scan`` -> ``/tb3/scan``)."""
-    return name.replace("%", "/")
-
-
-def ros_type(dds_type: str) -> str:
-    """``sensor_msgs::msg::dds_::LaserScan_`` -> ``sensor_msgs/msg/LaserScan``."""
-    parts = dds_type.split("::")
-    if len(parts) != 4 or parts[2] != "dds_" or not parts[3].endswith("_") or len(parts[3]) < 2:
-        msg = f"type {dds_type!r} is not an rmw_zenoh type name (<pkg>::msg::dds_::<Name>_)"
-        raise GraphError(msg)
-    return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
-
-
-def _type_hash(text: str) -> str | None:
-    return None if text == TYPE_HASH_NOT_SUPPORTED else text
-
-
-def parse_data_key(key: str) -> DataKey:
-    """``0/tb3/scan/sensor_msgs::msg::dds_::LaserScan_/RIHS01_...`` -> its parts."""
-    parts = key.split("/")
-    if len(parts) < 4 or not parts[0].isdigit():
-        msg = f"key {key!r} is not an rmw_zenoh data key (<domain>/<topic>/<type>/<hash>)"
-        raise GraphError(msg)
-    try:
-        msgtype = ros_type(parts[-2])
-    except GraphError as err:
-        msg = f"key {key!r}: {err}"
-        raise GraphError(msg) from err
-    return DataKey(int(parts[0]), "/" + "/".join(parts[1:-2]), msgtype, _type_hash(parts[-1]))
-
-
-def parse_qos(text: str) -> QosProfile:
-    """The reliability, durability and depth of an rmw_zenoh QoS chunk; empty fields are the
-    rmw defaults (reliable, volatile, depth 10)."""
-    fields = text.split(":")
-    if len(fields) < 3:
-        msg = f"QoS {text!r} is not an rmw_zenoh QoS string (<rel>:<dur>:<hist>,<depth>:...)"
-        raise GraphError(msg)
-    _, _, depth = fields[2].partition(",")
-    try:
-        return QosProfile(
-            reliability="best_effort" if fields[0] == "2" else "reliable",
-            durability="transient_local" if fields[1] == "1" else "volatile",
-            depth=int(depth) if depth else 10,
-        )
-    except ValueError as err:
-        msg = f"QoS {text!r}: history depth {depth!r} is not a number"
-        raise GraphError(msg) from err
-
-
-def parse_token(key: str) -> GraphEntity:
-    """A liveliness token key -> the node or endpoint it announces."""
-    parts = key.split("/")
-    if len(parts) < 9 or parts[0] != ADMIN_SPACE or not parts[1].isdigit():
-        msg = (
-            f"liveliness token {key!r} is not an rmw_zenoh one ({ADMIN_SPACE}/<domain>/<zid>/"
-            "<node id>/<entity id>/<kind>/<enclave>/<namespace>/<node>[/<topic>/<type>/<hash>/<qos>])"
-        )
-        raise GraphError(msg)
-    entity = GraphEntity(
-        domain=int(parts[1]), session=parts[2], node_id=parts[3], entity_id=parts[4],
-        kind=parts[5], namespace=demangle(parts[7]), node=demangle(parts[8]),
-    )
-    if parts[5] == NODE:
-        return entity
-    if len(parts) < 13:
-        msg = f"liveliness token {key!r} of a {parts[5]} lacks <topic>/<type>/<hash>/<qos>"
-        raise GraphError(msg)
-    try:
-        msgtype = ros_type(parts[10])
-        qos = parse_qos(parts[12])
-    except GraphError as err:
-        msg = f"liveliness token {key!r}: {err}"
-        raise GraphError(msg) from err
-    return GraphEntity(
-        domain=entity.domain, session=entity.session, node_id=entity.node_id,
-        entity_id=entity.entity_id, kind=entity.kind, namespace=entity.namespace,
-        node=entity.node, topic=demangle(parts[9]), msgtype=msgtype,
-        type_hash=_type_hash(parts[11]), qos=qos,
-    )
-
-
-def _varint(data: bytes, pos: int) -> tuple[int, int]:
-    """zenoh-ext's LEB128 length prefix."""
-    value = shift = 0
-    while pos < len(data):
-        byte = data[pos]
-        pos += 1
-        value |= (byte & 0x7F) << shift
-        if not byte & 0x80:
-            return value, pos
-        shift += 7
-    raise IndexError("truncated length")
-
-
-def parse_attachment(data: bytes, key: str) -> RmwAttachment:
-    """The publisher attachment, in either form rmw_zenoh has used: zenoh-ext serialized
-    ``"sequence_number", i64, "source_timestamp", i64, "source_gid", gid`` (rmw_zenoh Humble
-    and Jazzy releases) or the same without the names (ros-z, zenoh-ros2-sdk). The gid is 16
-    bytes, with or without its length prefix."""
-    pos = 0
-
-    def label(name: bytes) -> None:
-        nonlocal pos
-        length, start = _varint(data, pos)
-        if data[start:start + length] != name:
-            raise ValueError(f"expected {name.decode()!r}")
-        pos = start + length
-
-    def int64() -> int:
-        nonlocal pos
-        (value,) = _I64.unpack_from(data, pos)
-        pos += _I64.size
-        return int(value)
-
-    keyed = data.startswith(b"\x0fsequence_number")
-    try:
-        if keyed:
-            label(b"sequence_number")
-        sequence = int64()
-        if keyed:
-            label(b"source_timestamp")
-        source_ns = int64()
-        if keyed:
-            label(b"source_gid")
-        if len(data) - pos != _GID_SIZE:
-            length, pos = _varint(data, pos)
-            if length != len(data) - pos:
-                raise ValueError(f"gid of {length} bytes in {len(data) - pos}")
-        gid = data[pos:]
-    except (ValueError, IndexError, struct.error) as err:
-        msg = f"attachment on {key!r} ({len(data)} bytes) is not an rmw_zenoh attachment: {err}"
-        raise GraphError(msg) from err
-    return RmwAttachment(sequence, source_ns, gid)
+# -- robot of a topic, from its publishers' namespaces --------------------------------------
 
 
 def namespace_robot(namespace: str) -> str | None:
@@ -247,53 +79,6 @@ def resolve_robot(topic: str, namespaces: Collection[str | None], root_robot: st
     return root_robot, topic
 
 
-# -- definitions -------------------------------------------------------------------------------
-
-
-class BundledDefinitions:
-    """Which bundled definition a publisher's type hash names: Humble (plus schemas/msg),
-    else Jazzy. ``None`` means "the decoder's own bundled Humble store"."""
-
-    def __init__(self) -> None:
-        self._answers: dict[tuple[str, str], tuple[MessageDefinition | None, str | None]] = {}
-        self._lock = threading.Lock()
-
-    def lookup(self, msgtype: str, type_hash: str | None) -> tuple[MessageDefinition | None, str | None]:
-        """(definition to decode with, warning to show once or None)."""
-        if type_hash is None:
-            return None, None
-        with self._lock:
-            answer = self._answers.get((msgtype, type_hash))
-            if answer is None:
-                answer = self._answers[(msgtype, type_hash)] = self._match(msgtype, type_hash)
-        return answer
-
-    @staticmethod
-    def _match(msgtype: str, type_hash: str) -> tuple[MessageDefinition | None, str | None]:
-        from rosbags.typesys import Stores, get_typestore
-
-        from host_bridge.decode import base_typestore
-
-        humble = base_typestore()
-        for index, store in enumerate((humble, get_typestore(Stores.ROS2_JAZZY))):
-            if msgtype not in store.fielddefs:
-                continue
-            try:
-                matches = store.hash_rihs01(msgtype) == type_hash
-            except Exception:  # a definition rosbags cannot hash: not this one
-                matches = False
-            if matches:
-                if index == 0:
-                    return None, None
-                return MessageDefinition("ros2msg", store.generate_msgdef(msgtype, ros_version=2)[0]), None
-        if msgtype in humble.fielddefs:
-            return None, (
-                f"type hash {type_hash} of {msgtype} matches no bundled definition (Humble, "
-                "Jazzy): decoding with the Humble one, which fails if the layouts differ"
-            )
-        return None, None  # unknown type: the decoder names it, once per topic
-
-
 # -- the input ---------------------------------------------------------------------------------
 
 
@@ -308,7 +93,7 @@ class _Route:
 
 @dataclass(frozen=True, slots=True)
 class _Waiting:
-    key: DataKey
+    key: RmwDataKey
     payload: bytes
     attachment: RmwAttachment | None
     receive_ns: int
@@ -331,7 +116,7 @@ class RmwZenohInput:
         self._robots = check_robot_pattern(robots)
         self._definitions = BundledDefinitions()
         self._lock = threading.Lock()
-        self._entities: dict[str, GraphEntity] = {}
+        self._entities: dict[str, RmwGraphEntity] = {}
         self._nodes_per_robot: dict[str, int] = {}
         self._routes: dict[str, _Route] = {}
         self._waiting: dict[str, deque[_Waiting]] = {}
@@ -339,28 +124,28 @@ class RmwZenohInput:
         self._warned: set[tuple[str, str]] = set()
         self._closed = False
         self._liveliness = session.liveliness().declare_subscriber(
-            f"{ADMIN_SPACE}/{domain}/**", self._on_token, history=True
+            rmw_liveliness_selector(domain), self._on_token, history=True
         )
         # Transient-local publishers (rmw_zenoh's AdvancedPublisher cache) answer the history
         # query, so a host that starts late still gets /tf_static and maps.
         self._subscriber = ext.declare_advanced_subscriber(
-            session, f"{domain}/**", self._on_sample,
+            session, rmw_data_selector(domain), self._on_sample,
             history=ext.HistoryConfig(detect_late_publishers=True),
         )
 
     # -- graph ---------------------------------------------------------------------------------
 
-    def _robot_of_node(self, entity: GraphEntity) -> str:
+    def _robot_of_node(self, entity: RmwGraphEntity) -> str:
         return namespace_robot(entity.namespace) or self.root_robot
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         try:
-            entity = parse_token(key)
+            entity = parse_rmw_token(key)
         except GraphError as err:
             self._problem("?", key, err)
             return
-        if entity.kind not in (NODE, PUBLISHER):
+        if entity.kind not in (RMW_NODE, RMW_PUBLISHER):
             return
         event: RobotEvent | None = None
         flush: list[str] = []
@@ -370,7 +155,7 @@ class RmwZenohInput:
                 if key in self._entities:
                     return
                 self._entities[key] = entity
-                if entity.kind == NODE:
+                if entity.kind == RMW_NODE:
                     count = self._nodes_per_robot.get(robot, 0)
                     self._nodes_per_robot[robot] = count + 1
                     if count == 0:
@@ -378,7 +163,7 @@ class RmwZenohInput:
             else:
                 if self._entities.pop(key, None) is None:
                     return
-                if entity.kind == NODE:
+                if entity.kind == RMW_NODE:
                     count = self._nodes_per_robot.get(robot, 1) - 1
                     self._nodes_per_robot[robot] = count
                     if count == 0:
@@ -398,8 +183,8 @@ class RmwZenohInput:
         key = str(sample.key_expr)
         receive_ns = time.time_ns()
         try:
-            data_key = parse_data_key(key)
-            attachment = None if sample.attachment is None else parse_attachment(
+            data_key = parse_rmw_data_key(key)
+            attachment = None if sample.attachment is None else parse_rmw_attachment(
                 sample.attachment.to_bytes(), key
             )
         except GraphError as err:
@@ -421,14 +206,14 @@ class RmwZenohInput:
                 return
         self._emit(route, waiting)
 
-    def _route(self, key: str, data_key: DataKey, final: bool) -> _Route | None:
+    def _route(self, key: str, data_key: RmwDataKey, final: bool) -> _Route | None:
         """Where samples of ``key`` go (lock held); None while the graph does not know yet."""
         route = self._routes.get(key)
         if route is not None:
             return route
         publishers = [
             e for e in self._entities.values()
-            if e.kind == PUBLISHER and e.topic == data_key.topic and e.msgtype == data_key.msgtype
+            if e.kind == RMW_PUBLISHER and e.topic == data_key.topic and e.msgtype == data_key.msgtype
         ]
         namespaces: set[str | None] = {namespace_robot(e.namespace) for e in publishers}
         if not publishers:
