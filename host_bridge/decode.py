@@ -125,6 +125,20 @@ def _as_service_event(msgtype: str, problem: str) -> str:
     )
 
 
+def _no_definition(msgtype: str) -> str:
+    """Why a type the source sent no definition for, and the bundled store lacks, is lost."""
+    if is_service_event_type(msgtype):
+        return _as_service_event(msgtype, (
+            f"no definition of {msgtype} came with them (rosbag2 stores none when it finds no "
+            ".srv file for the service while recording)"
+        ))
+    return (
+        f"type {msgtype} has no definition: the source sent none (a rosbag2 recorded before "
+        "Iron, like Humble's sqlite3 bags, stores none) and it is neither a ROS 2 Humble type "
+        "nor one bundled in schemas/msg (add its .msg there, or record with Iron or later)"
+    )
+
+
 def _referenced_types(fielddefs: dict[str, Any]) -> set[str]:
     """Names of every message type the parsed definitions refer to."""
     names: set[str] = set()
@@ -148,7 +162,9 @@ class Decoder:
 
     def __init__(self, base: Typestore | None = None) -> None:
         self._base = base or base_typestore()
-        self._stores: dict[tuple[str, MessageDefinition | None], Typestore | UnknownTypeError] = {}
+        # A str is why that definition cannot be used (a fresh error is raised from it each time:
+        # re-raising one exception object would grow its traceback message after message).
+        self._stores: dict[tuple[str, MessageDefinition | None], Typestore | str] = {}
 
     def typestore_for(self, msgtype: str, definition: MessageDefinition | None) -> Typestore:
         if definition is None and msgtype in self._base.fielddefs:
@@ -159,24 +175,23 @@ class Decoder:
             try:
                 store = self._build(msgtype, definition)
             except UnknownTypeError as err:
-                store = err
+                store = str(err)
             self._stores[key] = store
-        if isinstance(store, UnknownTypeError):
-            raise store
+        if isinstance(store, str):
+            raise UnknownTypeError(store)
         return store
 
     def _build(self, msgtype: str, definition: MessageDefinition | None) -> Typestore:
         if definition is None:
-            types = self._undefined(msgtype)
-        else:
-            try:
-                types = _parse(definition, msgtype)
-            except Exception as err:
-                msg = f"definition of {msgtype!r} ({definition.encoding}) does not parse: {err}"
-                raise UnknownTypeError(_as_service_event(msgtype, msg)) from err
-            if msgtype not in types:
-                msg = f"definition sent for {msgtype!r} does not define that type"
-                raise UnknownTypeError(_as_service_event(msgtype, msg))
+            raise UnknownTypeError(_no_definition(msgtype))
+        try:
+            types = _parse(definition, msgtype)
+        except Exception as err:
+            msg = f"definition of {msgtype!r} ({definition.encoding}) does not parse: {err}"
+            raise UnknownTypeError(_as_service_event(msgtype, msg)) from err
+        if msgtype not in types:
+            msg = f"definition sent for {msgtype!r} does not define that type"
+            raise UnknownTypeError(_as_service_event(msgtype, msg))
         # Fill dependencies the text left out (e.g. builtin_interfaces) from the bundled store.
         missing = _referenced_types(types) - types.keys()
         while missing:
@@ -190,22 +205,6 @@ class Decoder:
         store = get_typestore(Stores.EMPTY)
         store.register(types)
         return store
-
-    def _undefined(self, msgtype: str) -> dict[str, Any]:
-        """A type the source sent no definition for and the bundled store lacks: a service
-        event whose request and response the store knows, else an error naming the type."""
-        service = service_type(msgtype)
-        halves = [f"{service}_Request", f"{service}_Response"]
-        fielddefs = self._base.fielddefs
-        if is_service_event_type(msgtype) and all(h in fielddefs for h in halves):
-            return service_event_types(msgtype, fielddefs[halves[0]], fielddefs[halves[1]])
-        msg = (
-            f"type {msgtype} has no definition: the source sent none (a rosbag2 recorded "
-            "before Iron, like Humble's sqlite3 bags, stores none) and it is neither a ROS 2 "
-            "Humble type nor one bundled in schemas/msg (add its .msg there, or record with "
-            "Iron or later)"
-        )
-        raise UnknownTypeError(_as_service_event(msgtype, msg))
 
     def decode(self, raw: RawMessage) -> Any:
         store = self.typestore_for(raw.msgtype, raw.definition)

@@ -206,7 +206,8 @@ def test_service_with_empty_request_and_idl_dependencies() -> None:
 def test_service_event_without_any_definition_says_it_is_one() -> None:
     with pytest.raises(UnknownTypeError) as caught:
         Decoder().decode(raw_event(b"\x00\x01\x00\x00", None, "my_srvs/srv/Odd_Event"))
-    assert str(caught.value).startswith(
+    assert str(caught.value) == (
         "service events of my_srvs/srv/Odd (the requests and responses rosbag2 records with "
-        "--services) are skipped: type my_srvs/srv/Odd_Event has no definition"
+        "--services) are skipped: no definition of my_srvs/srv/Odd_Event came with them "
+        "(rosbag2 stores none when it finds no .srv file for the service while recording)"
     )
