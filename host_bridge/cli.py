@@ -16,11 +16,11 @@ from host_bridge.blueprint import BlueprintFollower, check_blueprint_file
 from host_bridge.config import HostConfig
 from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import HostError, PartialConvertError
-from host_bridge.inputs.files import RobotFiles
 from host_bridge.inputs.queues import InputProblem, QueueItem, RobotEvent, presence_items
 from host_bridge.recorder import McapRecorder, may_hold_several_robots
 from host_bridge.registry import default_registry
 from host_bridge.resources import ResourceResolver, RobotFetch, parse_package_path
+from host_bridge.robot_files import RobotFiles
 from host_bridge.sink import APPLICATION_ID, RerunSink, SinkOptions
 from robot_relay.errors import RelayError
 from robot_relay.session import add_zenoh_arguments

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 from urllib.parse import unquote
 
 from robot_relay.errors import ConfigError, RelayError
-from robot_relay.wire import PREFIX, RawMessage, check_robot_name
+from robot_relay.wire import RawMessage, files_prefix, files_selector
 
 if TYPE_CHECKING:
     import zenoh
@@ -53,14 +53,6 @@ class FileAccessError(RelayError):
     def __init__(self, reason: str, message: str) -> None:
         super().__init__(message)
         self.reason = reason
-
-
-def files_key(robot: str, package: str, relpath: str) -> str:
-    return f"{files_prefix(robot)}{package}/{relpath}"
-
-
-def files_prefix(robot: str) -> str:
-    return f"{PREFIX}/{check_robot_name(robot)}/files/"
 
 
 def urdf_package_names(urdf: str) -> set[str]:
@@ -213,7 +205,7 @@ def serve(session: zenoh.Session, robot: str, server: FileServer) -> zenoh.Query
             return
         query.reply(query.key_expr, data, encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM)
 
-    return session.declare_queryable(f"{prefix}**", on_query)
+    return session.declare_queryable(files_selector(robot), on_query)
 
 
 def is_robot_description(raw: RawMessage) -> bool:

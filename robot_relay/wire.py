@@ -64,6 +64,20 @@ def alive_key(robot: str) -> str:
     return f"{PREFIX}/{robot}/alive"
 
 
+def files_prefix(robot: str) -> str:
+    """The start of every key of ``robot``'s file server; the rest is ``<package>/<path>``."""
+    return f"{PREFIX}/{check_robot_name(robot)}/files/"
+
+
+def files_key(robot: str, package: str, relpath: str) -> str:
+    return f"{files_prefix(robot)}{package}/{relpath}"
+
+
+def files_selector(robot: str) -> str:
+    """Key expression of every file request to ``robot``'s file server."""
+    return f"{files_prefix(robot)}**"
+
+
 def parse_data_key(key: str) -> tuple[str, str]:
     """Split a data key into (robot, absolute topic)."""
     parts = key.split("/", 3)

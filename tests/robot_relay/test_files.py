@@ -15,14 +15,13 @@ from robot_relay.errors import ConfigError, RelayError
 from robot_relay.files import (
     FileAccessError,
     FileServer,
-    files_key,
     package_roots,
     parse_package_path,
     serve,
     serve_files,
     urdf_package_names,
 )
-from robot_relay.wire import RawMessage
+from robot_relay.wire import RawMessage, files_key
 
 MESH = bytes(range(256)) * 40
 
@@ -140,11 +139,6 @@ def test_package_names_from_a_urdf() -> None:
       </geometry></visual></link>
     </robot>"""
     assert urdf_package_names(urdf) == {"tb3_description", "lidar_description"}
-
-
-def test_files_key() -> None:
-    key = files_key("tb1", "pkg", "meshes/a.stl")
-    assert key == "swanky/tb1/files/pkg/meshes/a.stl"
 
 
 def test_module_needs_only_the_standard_library() -> None:

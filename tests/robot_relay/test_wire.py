@@ -18,6 +18,7 @@ from robot_relay.wire import (
     check_robot_name,
     data_key,
     decompress,
+    files_key,
     parse_cdr_encoding,
     parse_data_key,
 )
@@ -34,6 +35,11 @@ def test_foreign_keys_and_bad_robot_names_are_refused() -> None:
         parse_data_key("other/tb3/data/scan")
     with pytest.raises(WireError, match="not allowed"):
         check_robot_name("tb3/evil")
+
+
+def test_files_key() -> None:
+    key = files_key("tb1", "pkg", "meshes/a.stl")
+    assert key == "swanky/tb1/files/pkg/meshes/a.stl"
 
 
 def test_attachment_is_32_little_endian_bytes_in_the_documented_order() -> None:

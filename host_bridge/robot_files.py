@@ -16,7 +16,7 @@ import zenoh
 
 from host_bridge.errors import ConvertError
 from host_bridge.resources import PACKAGE_SCHEME, split_package_uri
-from robot_relay.files import files_key
+from robot_relay.wire import files_key
 
 FETCH_TIMEOUT_S = 5.0
 QUIET_AFTER_TIMEOUT_S = 30.0
