@@ -380,8 +380,10 @@ def run_ros2_relay(
     args: argparse.Namespace, stop: threading.Event, accept: Callable[[str], bool]
 ) -> int:
     """The live relay: a node ``swanky_relay`` whose executor runs on its own thread, the
-    source's discovery on this one, until ``stop``; then ROS, the relay and Zenoh are left in
-    that order (rclpy's own signal handlers are not installed: the command's are)."""
+    source's discovery on this one, until ``stop``; then the subscriptions and the node go, the
+    relay's Zenoh declarations, ROS and the Zenoh session, in that order. rclpy's own signal
+    handlers are not installed (they would shut ROS down under the running executor and end in
+    tracebacks): the command's set ``stop``."""
     try:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
@@ -400,57 +402,59 @@ def run_ros2_relay(
     with_message_info = hasattr(Subscription, "CallbackType")
     session = open_session(args)
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node("swanky_relay")
-
-    def subscribe(info: TopicInfo, forward: Forward) -> Any:
-        profile = QoSProfile(
-            depth=info.qos.depth,
-            reliability=ReliabilityPolicy.BEST_EFFORT if info.qos.reliability == "best_effort"
-            else ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL if info.latched
-            else DurabilityPolicy.VOLATILE,
-        )
-        try:
-            message_type = message_class(info.msgtype)
-        except (ImportError, AttributeError, ValueError) as err:  # its package is not installed
-            log.error("%s: cannot subscribe, %s is not importable here: %s", info.topic,
-                      info.msgtype, err)
-            return None
-        callback: Callable[..., None] = forward if with_message_info else (
-            lambda data: forward(data, None)
-        )
-        return node.create_subscription(message_type, info.topic, callback, profile, raw=True)
-
-    source = Ros2Source(node, args.robot, accept, ament_share_dirs(), subscribe=subscribe,
-                        unsubscribe=node.destroy_subscription)
-    relay = Relay(session, Catalog(args.robot, "ros2", ()), args.policies, demand=source,
-                  source_drops=source.drop_counts)
-    files = serve_files(session, args.robot, args.package_path)
-
-    def forward(raw: RawMessage) -> None:
-        files.learn(raw)
-        relay.publish(raw)
-
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-
-    def spin() -> None:
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.1)
-
-    spinner = threading.Thread(target=spin, name="rclpy-executor")
-    spinner.start()
     try:
-        source.run(relay.update_catalog, forward, stop)
-    finally:
-        stop.set()
-        spinner.join()
-        source.close()
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.shutdown()
-        files.close()
-        relay.close()
-        session.close()
+        node = rclpy.create_node("swanky_relay")
+
+        def subscribe(info: TopicInfo, forward: Forward) -> Any:
+            profile = QoSProfile(
+                depth=info.qos.depth,
+                reliability=ReliabilityPolicy.BEST_EFFORT if info.qos.reliability == "best_effort"
+                else ReliabilityPolicy.RELIABLE,
+                durability=DurabilityPolicy.TRANSIENT_LOCAL if info.latched
+                else DurabilityPolicy.VOLATILE,
+            )
+            try:
+                message_type = message_class(info.msgtype)
+            except (ImportError, AttributeError, ValueError) as err:  # its package is not here
+                log.error("%s: cannot subscribe, %s is not importable here: %s", info.topic,
+                          info.msgtype, err)
+                return None
+            callback: Callable[..., None] = forward if with_message_info else (
+                lambda data: forward(data, None)
+            )
+            return node.create_subscription(message_type, info.topic, callback, profile, raw=True)
+
+        source = Ros2Source(node, args.robot, accept, ament_share_dirs(), subscribe=subscribe,
+                            unsubscribe=node.destroy_subscription)
+        relay = Relay(session, Catalog(args.robot, "ros2", ()), args.policies, demand=source,
+                      source_drops=source.drop_counts)
+        files = serve_files(session, args.robot, args.package_path)
+
+        def forward(raw: RawMessage) -> None:
+            files.learn(raw)
+            relay.publish(raw)
+
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+
+        def spin() -> None:
+            while not stop.is_set():
+                executor.spin_once(timeout_sec=0.1)
+
+        spinner = threading.Thread(target=spin, name="rclpy-executor")
+        spinner.start()
+        try:
+            source.run(relay.update_catalog, forward, stop)
+        finally:
+            stop.set()
+            spinner.join()
+            source.close()
+            executor.shutdown()
+            node.destroy_node()
+            files.close()
+            relay.close()
         log.info("robot %s: stopped, %d messages sent", args.robot, relay.published)
+    finally:
+        rclpy.shutdown()
+        session.close()
     return 0
