@@ -16,10 +16,11 @@ from dataclasses import dataclass, field
 
 import zenoh
 
+from host_bridge.inputs.zenoh import fetch_catalog
 from robot_relay.errors import WireError
 from robot_relay.wire import (
-    PREFIX,
     Catalog,
+    alive_selector,
     catalog_key,
     data_selector,
     parse_cdr_encoding,
@@ -97,8 +98,7 @@ def collect(
             with lock:
                 listing.alive.add(parse_robot_key(str(sample.key_expr)))
 
-    alive_key = f"{PREFIX}/{robots}/alive"
-    liveliness = session.liveliness().declare_subscriber(alive_key, on_alive, history=True)
+    liveliness = session.liveliness().declare_subscriber(alive_selector(robots), on_alive, history=True)
     subscriber = session.declare_subscriber(data_selector(robots), on_sample)
     try:
         (stop or threading.Event()).wait(duration_s)
@@ -108,16 +108,15 @@ def collect(
     with lock:
         seen = listing.alive | {robot for robot, _ in listing.traffic}
     for robot in sorted(seen):
-        key = catalog_key(robot)
         try:
-            for reply in session.get(key, timeout=CATALOG_TIMEOUT_S):
-                if reply.ok is not None:
-                    listing.catalogs[robot] = Catalog.from_json(reply.ok.payload.to_bytes(), key)
-                    break
-            else:
-                listing.problems.append(f"robot {robot} did not answer its catalog ({key})")
+            catalog = fetch_catalog(session, robot, CATALOG_TIMEOUT_S)
         except WireError as err:
             listing.problems.append(str(err))
+            continue
+        if catalog is None:
+            listing.problems.append(f"robot {robot} did not answer its catalog ({catalog_key(robot)})")
+        else:
+            listing.catalogs[robot] = catalog
     return listing
 
 

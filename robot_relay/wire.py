@@ -64,6 +64,11 @@ def alive_key(robot: str) -> str:
     return f"{PREFIX}/{robot}/alive"
 
 
+def alive_selector(robots: str = "*") -> str:
+    """Key expression matching the liveliness tokens of the robots matched by ``robots``."""
+    return f"{PREFIX}/{robots}/alive"
+
+
 def files_prefix(robot: str) -> str:
     """The start of every key of ``robot``'s file server; the rest is ``<package>/<path>``."""
     return f"{PREFIX}/{check_robot_name(robot)}/files/"

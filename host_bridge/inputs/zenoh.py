@@ -21,11 +21,11 @@ from host_bridge.errors import ConfigError
 from host_bridge.inputs.queues import InputProblem, QueueItem, RobotEvent, RobotQueues
 from robot_relay.errors import WireError
 from robot_relay.wire import (
-    PREFIX,
     Attachment,
     Catalog,
     RawMessage,
     TopicInfo,
+    alive_selector,
     catalog_key,
     data_selector,
     decompress,
@@ -40,7 +40,9 @@ CATALOG_TIMEOUT_S = 5.0
 CATALOG_RETRY_S = 2.0
 MAX_PENDING_PER_ROBOT = 2000
 
-__all__ = ["InputProblem", "QueueItem", "RobotEvent", "ZenohInput", "check_robot_pattern"]
+__all__ = [
+    "InputProblem", "QueueItem", "RobotEvent", "ZenohInput", "check_robot_pattern", "fetch_catalog",
+]
 
 
 def check_robot_pattern(pattern: str) -> str:
@@ -62,6 +64,16 @@ def check_robot_pattern(pattern: str) -> str:
 
 def robot_matches(robot: str, pattern: str) -> bool:
     return bool(zenoh.KeyExpr(robot).intersects(zenoh.KeyExpr(pattern)))
+
+
+def fetch_catalog(session: zenoh.Session, robot: str, timeout: float) -> Catalog | None:
+    """``robot``'s catalog from its relay; None when no relay answered within ``timeout``
+    seconds. A reply that is no catalog raises WireError naming the key."""
+    key = catalog_key(robot)
+    for reply in session.get(key, timeout=timeout):
+        if reply.ok is not None:
+            return Catalog.from_json(reply.ok.payload.to_bytes(), key)
+    return None
 
 
 class _Robot:
@@ -93,7 +105,7 @@ class ZenohInput:
             history=ext.HistoryConfig(detect_late_publishers=True),
         )
         self._liveliness = session.liveliness().declare_subscriber(
-            f"{PREFIX}/{robots}/alive", self._on_alive, history=True
+            alive_selector(robots), self._on_alive, history=True
         )
 
     # -- zenoh callbacks (zenoh's threads) -------------------------------------------------
@@ -183,10 +195,7 @@ class ZenohInput:
         catalog: Catalog | None = None
         error: Exception | None = None
         try:
-            for reply in self.session.get(key, timeout=CATALOG_TIMEOUT_S):
-                if reply.ok is not None:
-                    catalog = Catalog.from_json(reply.ok.payload.to_bytes(), key)
-                    break
+            catalog = fetch_catalog(self.session, robot, CATALOG_TIMEOUT_S)
         except WireError as err:
             error = err
         except Exception as err:  # session closed while asking
