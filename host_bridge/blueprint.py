@@ -2,10 +2,12 @@
 
 :func:`build_blueprint` is pure: robots and their topics (ROS type, entity path) in, a
 ``rerun.blueprint.Blueprint`` out. Per robot: one 3D view of everything under ``/<robot>`` (model,
-scan, cloud, map, walls, trails, camera frustums: TF frames are named, so the view needs no
-origin frame of its own), a 2D view per image topic, a map for GPS fixes, time series grouped by
-kind, and a text log. Several robots get one tab each, after a tab with every robot in one 3D
-view.
+scan, cloud, map, walls, trails, camera frustums), a 2D view per image topic, a map for GPS
+fixes, time series grouped by kind, and a text log. Several robots get one tab each, after a tab
+with every robot in one 3D view. The 3D views name no target frame: the data does
+(host_bridge/frames.py logs the robot's ``map``, ``odom`` or model root as the frame of
+``/<robot>`` and keeps every frame of the robot connected to it), so a saved blueprint still fits
+a robot whose frames differ.
 
 :class:`BlueprintFollower` owns the "when": the dispatcher tells it of each new topic, and it
 rebuilds and re-sends the blueprint when the set of (robot, topic, type) changed, at most once per
@@ -15,11 +17,10 @@ interval, so a robot that joins later or a topic that starts late gets its view.
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import rerun as rr
 import rerun.blueprint as rrb
 
 from host_bridge.converters.camera import pinhole_path
@@ -27,13 +28,11 @@ from host_bridge.converters.urdf import is_robot_description
 from host_bridge.decode import is_service_event_type
 from host_bridge.dispatch import WARNINGS_PATH
 from host_bridge.errors import ConfigError
-from host_bridge.registry import ConvertContext, LogEntry, LogItem
+from host_bridge.registry import ConvertContext
 from host_bridge.stats import STATS_ROOT
 
 TIMER_PREFIX = "/instrumentation/timer/"
 MAP_TYPE = "nav_msgs/msg/OccupancyGrid"
-ANCHOR_FRAME = "map"
-ANCHOR_CHILD = "map_anchor"
 
 IMAGE_TYPES = frozenset({
     "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "foxglove_msgs/msg/CompressedVideo",
@@ -205,48 +204,25 @@ def build_blueprint(topics: Iterable[TopicEntry], *, stats: bool = False) -> rrb
     return rrb.Blueprint(rrb.Tabs(overview, *layouts, active_tab=0))
 
 
-def robots_to_anchor(topics: Iterable[TopicEntry]) -> set[str]:
-    """With several robots, those that publish a map: their ``map`` frame (REP 105) is put at
-    their entity root by :func:`anchor_item`, so one 3D view at ``/`` holds every robot.
-
-    Frames of different robots are never connected otherwise (``R/map``, ``R2/map``), and a view
-    shows one transform tree. Only robots with an OccupancyGrid topic qualify: anchoring a robot
-    that has no ``map`` frame would cut its own 3D view off from its odometry tree.
-    """
-    entries = list(topics)
-    if len({t.robot for t in entries}) < 2:
-        return set()
-    return {t.robot for t in entries if t.msgtype == MAP_TYPE}
-
-
-def anchor_item(robot: str) -> LogItem:
-    transform = rr.Transform3D(parent_frame=f"tf#/{robot}", child_frame=f"{robot}/{ANCHOR_FRAME}")
-    return LogItem(f"/{robot}/{ANCHOR_CHILD}", (transform,), static=True)
-
-
 class BlueprintFollower:
     """Re-sends the layout when the topics change, at most once per ``interval`` seconds.
 
     The first topic of a burst starts a timer; everything that arrives before it fires goes into
     one blueprint. :meth:`close` sends what is still pending (a saved .rrd gets the final layout).
-    With ``log`` (the sink's), robots sharing the 3D view get their :func:`anchor_item`.
     """
 
     def __init__(
         self,
         send: Callable[[rrb.Blueprint], None],
         *,
-        log: Callable[[Sequence[LogEntry], Mapping[str, int]], None] | None = None,
         interval: float = 1.0,
         stats: bool = False,
     ) -> None:
         self._send = send
-        self._log = log
         self._interval = interval
         self._stats = stats
         self._topics: set[TopicEntry] = set()
         self._sent: frozenset[TopicEntry] = frozenset()
-        self._anchored: set[str] = set()
         self._lock = threading.Lock()
         self._timer: threading.Timer | None = None
         self._closed = False
@@ -271,10 +247,6 @@ class BlueprintFollower:
         topics = frozenset(self._topics)
         if topics == self._sent:
             return
-        new_anchors = robots_to_anchor(topics) - self._anchored
-        if self._log is not None and new_anchors:
-            self._log([anchor_item(robot) for robot in sorted(new_anchors)], {})
-            self._anchored |= new_anchors
         self._send(build_blueprint(topics, stats=self._stats))
         self._sent = topics
 

@@ -164,7 +164,8 @@ def resolver(args: argparse.Namespace, robot_fetch: RobotFetch | None = None) ->
 
 
 def log_urdf_file(args: argparse.Namespace, dispatcher: Dispatcher) -> None:
-    """The --urdf model of robot --robot, logged once (static) before any data."""
+    """The --urdf model of robot --robot, logged once (static) before any data; the robot's
+    /robot_description is then not drawn."""
     from host_bridge.converters.urdf import model_items_from_file
     from host_bridge.registry import ConvertContext
 
@@ -173,9 +174,9 @@ def log_urdf_file(args: argparse.Namespace, dispatcher: Dispatcher) -> None:
         times={}, robot_state=dispatcher.robot_state(args.robot),
     )
     try:
-        dispatcher.sink.log(model_items_from_file(args.urdf, ctx), {})
+        dispatcher.log(args.robot, model_items_from_file(args.urdf, ctx), {})
     except PartialConvertError as err:
-        dispatcher.sink.log(err.items, {})
+        dispatcher.log(args.robot, err.items, {})
         dispatcher.warn(args.robot, str(args.urdf), err)
 
 
@@ -188,7 +189,7 @@ def start_layout(args: argparse.Namespace, sink: RerunSink) -> BlueprintFollower
     if args.no_blueprint:
         return None
     stats = args.stats if args.stats is not None else args.bag is None
-    return BlueprintFollower(sink.send_blueprint, log=sink.log, stats=stats)
+    return BlueprintFollower(sink.send_blueprint, stats=stats)
 
 
 def convert_bag(args: argparse.Namespace, dispatcher: Dispatcher, stop: threading.Event) -> None:

@@ -3,6 +3,9 @@
 A bad message never stops the host: decoding and conversion errors are caught per message,
 warned about once per (robot, topic, error kind), counted, and shown in Rerun under
 ``/_swanky/warnings``. ``strict`` (tests, ``--strict``) re-raises instead.
+
+Everything converted for a robot is logged through :meth:`Dispatcher.log`, which also keeps the
+robot's frames one tree and names its 3D view's target frame (see frames.py).
 """
 
 from __future__ import annotations
@@ -19,11 +22,13 @@ import rerun as rr
 from host_bridge.config import HostConfig
 from host_bridge.decode import Decoder
 from host_bridge.errors import ConfigError, HostError, PartialConvertError
+from host_bridge.frames import RobotFrames
 from host_bridge.registry import (
     TIMELINE_LOG,
     TIMELINE_RECEIVE,
     TIMELINE_ROS,
     ConvertContext,
+    LogEntry,
     LogItem,
     Registry,
     default_registry,
@@ -118,6 +123,8 @@ class Dispatcher:
         self.counters: dict[tuple[str, str], TopicCounters] = {}
         self._topics: dict[tuple[str, str], _Topic] = {}
         self._robot_state: dict[str, dict[str, Any]] = {}
+        self._frames: dict[str, RobotFrames] = {}
+        self._frames_lock = threading.Lock()
         # Host-wide defaults every robot's state starts with (the mesh resolver).
         self._robot_state_defaults = dict(robot_state or {})
         self._warned: set[tuple[str, str, str]] = set()
@@ -128,6 +135,20 @@ class Dispatcher:
         if state is None:
             state = self._robot_state[robot] = dict(self._robot_state_defaults)
         return state
+
+    def frames(self, robot: str) -> RobotFrames:
+        with self._frames_lock:
+            frames = self._frames.get(robot)
+            if frames is None:
+                frames = self._frames[robot] = RobotFrames(robot)
+            return frames
+
+    def log(self, robot: str, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
+        """Log ``robot``'s entries, then what its frames need now (placements, target)."""
+        self.sink.log(entries, times)
+        updates = self.frames(robot).observe(entries, self.robot_state(robot))
+        if updates:
+            self.sink.log(updates, times)
 
     def _topic(self, raw: RawMessage) -> _Topic:
         key = (raw.robot, raw.topic)
@@ -161,7 +182,11 @@ class Dispatcher:
         if (robot, topic, kind) in self._warned:
             return
         self._warned.add((robot, topic, kind))
-        text = f"[{robot}] {topic}: {err} (further {kind}s on this topic are counted, not shown)"
+        problem = str(err)
+        # Converters name the topic themselves (their errors also end --strict runs).
+        if not problem.startswith(f"{topic}: "):
+            problem = f"{topic}: {problem}"
+        text = f"[{robot}] {problem} (further {kind}s on this topic are counted, not shown)"
         log.warning("%s", text)
         self.sink.log(
             [LogItem(WARNINGS_PATH, (rr.TextLog(text, level=rr.TextLogLevel.WARN),))],
@@ -231,7 +256,7 @@ class Dispatcher:
         if spec.convert_run is not None and len(decoded) > 1:
             try:
                 entries = spec.convert_run([d[0] for d in decoded], [d[1] for d in decoded])
-                self.sink.log(entries, decoded[0][1].times)
+                self.log(decoded[0][2].robot, entries, decoded[0][1].times)
                 counters.converted += len(decoded)
                 accepted = decoded[-1]
             except Exception:
@@ -245,7 +270,7 @@ class Dispatcher:
                 except PartialConvertError as err:
                     if self.strict:
                         raise
-                    self.sink.log(err.items, ctx.times)
+                    self.log(raw.robot, err.items, ctx.times)
                     self.warn(raw.robot, raw.topic, err, ctx.times)
                     counters.converted += 1
                     continue
@@ -255,7 +280,7 @@ class Dispatcher:
                         raise
                     self.warn(raw.robot, raw.topic, err, ctx.times)
                     continue
-                self.sink.log(entries, ctx.times)
+                self.log(raw.robot, entries, ctx.times)
                 counters.converted += 1
                 accepted = (msg, ctx, raw)
         counters.convert_seconds += time.perf_counter() - started
@@ -263,8 +288,18 @@ class Dispatcher:
             self._slow.submit(msgtype, *accepted)
 
     def close(self, timeout: float = 30.0) -> None:
-        """Let the slow worker finish what it holds (a saved .rrd then has the walls)."""
+        """Let the slow worker finish what it holds (a saved .rrd then has the walls), and name
+        the frames no transform ever placed."""
         self._slow.close(timeout)
+        with self._frames_lock:
+            robots = sorted(self._frames.items())
+        for robot, frames in robots:
+            unplaced = frames.unplaced()
+            if unplaced:
+                log.info(
+                    "[%s] no transform places frames %s; they are drawn at the robot's root /%s",
+                    robot, ", ".join(unplaced), robot,
+                )
 
     def summary(self) -> str:
         """A table of every topic seen: type, received, converted, dropped, warnings, wire
@@ -329,9 +364,9 @@ class _SlowWorker:
                 _, (spec, msg, ctx, raw) = self._latest.popitem()
                 self._busy = True
             try:
-                self._dispatcher.sink.log(spec.convert(msg, ctx), ctx.times)
+                self._dispatcher.log(raw.robot, spec.convert(msg, ctx), ctx.times)
             except PartialConvertError as err:
-                self._dispatcher.sink.log(err.items, ctx.times)
+                self._dispatcher.log(raw.robot, err.items, ctx.times)
                 self._dispatcher.warn(raw.robot, raw.topic, err, ctx.times)
             except Exception as err:
                 self._dispatcher.warn(raw.robot, raw.topic, err, ctx.times)

@@ -30,6 +30,20 @@ class PartialConvertError(ConvertError):
         self.items = items
 
 
+class MissingResourceError(ConvertError):
+    """A file a robot model names (``package://``, ``file://``, a path) is nowhere to be found.
+
+    The parts are kept apart so a model with many missing meshes can say where it looked and
+    which ``--package-path`` would help once, not once per mesh."""
+
+    def __init__(self, uri: str, searched: str, package: str | None) -> None:
+        self.uri = uri
+        self.searched = searched
+        self.package = package
+        hint = "" if package is None else f"; pass --package-path {package}=DIR"
+        super().__init__(f"{uri} not found ({searched}){hint}")
+
+
 class RegistryError(HostError):
     """The converter registry was assembled wrongly (a type registered twice)."""
 

@@ -19,7 +19,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path, PurePosixPath
 from urllib.parse import unquote
 
-from host_bridge.errors import ConfigError, ConvertError
+from host_bridge.errors import ConfigError, ConvertError, MissingResourceError
 from robot_relay import files
 from robot_relay.errors import RelayError
 
@@ -146,7 +146,7 @@ class ResourceResolver:
                 data, refusal = None, str(err)
             if data is not None:
                 return data
-        raise ConvertError(self._not_found_message(uri, package_uri, refusal))
+        raise self._not_found(uri, package_uri, refusal)
 
     def _local_path(self, uri: str, base: Path | None) -> Path:
         if uri.startswith(FILE_SCHEME):
@@ -162,7 +162,9 @@ class ResourceResolver:
             return uri
         return package_uri_of_share_path(PurePosixPath(self._local_path(uri, base).as_posix()))
 
-    def _not_found_message(self, uri: str, package_uri: str | None, refusal: str | None) -> str:
+    def _not_found(
+        self, uri: str, package_uri: str | None, refusal: str | None
+    ) -> MissingResourceError:
         tried = [f"--package-path {name}={path}" for name, path in self._package_paths.items()]
         tried += [f"search path {path}" for path in self._search_paths]
         where = ", ".join(tried) or "no --package-path and no ROS_PACKAGE_PATH/AMENT_PREFIX_PATH"
@@ -170,8 +172,5 @@ class ResourceResolver:
             robot = "no robot file server to ask"
         else:
             robot = refusal or "the robot did not serve it"
-        hint = ""
-        if package_uri is not None:
-            package = split_package_uri(package_uri)[0]
-            hint = f"; pass --package-path {package}=DIR"
-        return f"{uri} not found ({where}; {robot}){hint}"
+        package = None if package_uri is None else split_package_uri(package_uri)[0]
+        return MissingResourceError(uri, f"{where}; {robot}", package)

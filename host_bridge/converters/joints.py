@@ -8,9 +8,15 @@ Each movable joint (revolute, continuous, prismatic) becomes one ``Transform3D(p
 /tf. Mimic joints follow their driver (``multiplier * driver + offset``) whenever the driver is in
 the message, as robot_state_publisher does, even if the mimic joint is published too.
 
-/tf wins: Rerun refuses one frame relation logged on two entities, so a joint whose child link
-already arrived as a TF child frame (``ctx.robot_state["tf_children"]``, filled by the TF
-converter, holding ROS ids or prefixed frame names) is left to /tf.
+Until a joint state arrives the model stands at :func:`zero_positions`, logged by the URDF
+converter as static rows on the /tf_static entity of each child link. Rerun resolves a frame
+relation from one static entity and one temporal entity together (the static row holds until
+the first temporal one, as /tf_static and /tf do), so the temporal rows logged here move the
+link from their first stamp on, on every timeline.
+
+/tf wins: Rerun refuses one frame relation logged on two temporal entities, so a joint whose
+child link already arrived as a TF child frame (``ctx.robot_state["tf_children"]``, filled by the
+TF converter, holding ROS ids or prefixed frame names) is left to /tf.
 
 JointTrajectory drives the model with its first point: a trajectory starts at the robot's
 current configuration, so that point is where the robot is when the command is issued; later
@@ -71,6 +77,8 @@ class RobotModel:
     name: str
     joints: Mapping[str, JointModel]
     mimic_order: tuple[str, ...]
+    # The link no joint moves: the frame the model hangs from (None for a URDF without links).
+    root: str | None = None
 
 
 def pose_of_matrix(matrix: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -98,9 +106,9 @@ def pose_of_matrix(matrix: FloatArray) -> tuple[FloatArray, FloatArray]:
     return np.asarray(matrix[:3, 3], dtype=np.float64), quaternion / np.linalg.norm(quaternion)
 
 
-def robot_model(name: str, joints: Iterable[JointModel]) -> RobotModel:
+def robot_model(name: str, joints: Iterable[JointModel], root: str | None = None) -> RobotModel:
     table = {joint.name: joint for joint in joints}
-    return RobotModel(name=name, joints=table, mimic_order=_mimic_order(table))
+    return RobotModel(name=name, joints=table, mimic_order=_mimic_order(table), root=root)
 
 
 def _mimic_order(joints: Mapping[str, JointModel]) -> tuple[str, ...]:
@@ -177,6 +185,22 @@ def joint_transform(ctx: ConvertContext, joint: JointModel, value: float) -> rr.
     )
 
 
+def _follow_drivers(model: RobotModel, values: dict[str, float]) -> None:
+    """Set each mimic joint whose driver is in ``values`` to ``multiplier * driver + offset``."""
+    for name in model.mimic_order:
+        mimic = model.joints[name].mimic
+        if mimic is not None and mimic.joint in values:
+            values[name] = mimic.multiplier * values[mimic.joint] + mimic.offset
+
+
+def zero_positions(model: RobotModel) -> dict[str, float]:
+    """Every joint at 0 and mimic joints where a driver at 0 puts them (their offset): the pose
+    RViz and Rerun's URDF loader show until the first joint state."""
+    values = dict.fromkeys(model.joints, 0.0)
+    _follow_drivers(model, values)
+    return values
+
+
 def _require_model(ctx: ConvertContext) -> RobotModel:
     model = ctx.robot_state.get(ROBOT_MODEL_KEY)
     if not isinstance(model, RobotModel):
@@ -207,10 +231,7 @@ def _joint_values(
         if name in model.joints and np.isfinite(value)
     }
     unknown = [name for name in names if name not in model.joints]
-    for name in model.mimic_order:
-        mimic = model.joints[name].mimic
-        if mimic is not None and mimic.joint in values:
-            values[name] = mimic.multiplier * values[mimic.joint] + mimic.offset
+    _follow_drivers(model, values)
     published = {
         name: value
         for name, value in values.items()

@@ -14,27 +14,43 @@ so it moves with the named link frame whoever drives it (/tf, /tf_static, joint 
 ``InstancePoses3D`` holding the visual's ``<origin>`` relative to that frame. The pose stays an
 instance pose rather than a Transform3D so the frame graph holds only the robot's real frames.
 Mesh scale is applied to the vertices, so positions are metres as in trimesh's own load times
-the scale. Fixed joints are static ``Transform3D(parent_frame, child_frame)`` on the entity
-/tf_static uses for that child frame (``/<robot>/tf_static/<child>``, see
-:func:`host_bridge.converters.tf.static_transform_path`), so a fixed joint robot_state_publisher
-also broadcasts sits on one entity, as Rerun requires; movable joints are left to joints.py or /tf (a static
-transform would hide their later motion). Everything carries the robot prefix, so two robots
-with one URDF do not collide.
+the scale.
+
+Every joint is a static ``Transform3D(parent_frame, child_frame)`` on the entity /tf_static uses
+for its child frame (``/<robot>/tf_static/<child>``, see
+:func:`host_bridge.converters.tf.static_transform_path`), so a joint robot_state_publisher also
+broadcasts sits on one entity, as Rerun requires. Movable joints stand at
+:func:`~host_bridge.converters.joints.zero_positions` (mimic joints at their offset), as in RViz
+and Rerun's own URDF loader: without them a model whose /joint_states never came falls apart
+into trees the view cannot connect. Joint states (joints.py) and /tf move them later from a
+temporal entity, which Rerun lets win over the static row from its first stamp on. Everything
+carries the robot prefix, so two robots with one URDF do not collide.
+
+``--urdf PATH`` replaces the robot's /robot_description: once a file model is logged, the topic's
+models are not drawn (said once, at info level), so one robot never shows two models.
+
+Meshes: several materials in one file become per-vertex colours; trimesh would pack them into a
+texture through glTF's linear colour rule, which makes a Collada or OBJ diffuse colour (written
+as it should look, as RViz shows it) lighter. glTF's own base colour is linear and is turned into
+sRGB, the space of Rerun's colours.
 
 Visuals that cannot be loaded (missing mesh, broken file) are collected: the rest of the model
-is logged and one PartialConvertError names every missing URI and its link.
+is logged and one PartialConvertError says which files are missing, where they were looked for
+and what to pass, each once.
 """
 
 from __future__ import annotations
 
 import io
+import logging
 import xml.etree.ElementTree as ET
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+import PIL.Image
 import rerun as rr
 import trimesh
 import yourdfpy
@@ -49,28 +65,47 @@ from host_bridge.converters.joints import (
     pose_of_matrix,
     robot_model,
     tf_carries,
+    zero_positions,
 )
 from host_bridge.converters.tf import static_transform_path
-from host_bridge.errors import ConvertError, PartialConvertError
+from host_bridge.errors import ConvertError, MissingResourceError, PartialConvertError
 from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.resources import ResourceResolver
 
+log = logging.getLogger("swanky.host")
+
 RESOLVER_KEY = "resolver"
+# The --urdf file drawn for a robot; its /robot_description is then not drawn.
+MODEL_FILE_KEY = "urdf_file"
+_SAID_REPLACED_KEY = "said_replaced_by_urdf_file"
 
 VisualArchetype = rr.Mesh3D | rr.Boxes3D | rr.Cylinders3D | rr.Ellipsoids3D
 
+# glTF stores its base colour linear; trimesh's other loaders keep the colour as written.
+_LINEAR_COLOUR_TYPES = frozenset({"gltf", "glb"})
+
 
 def convert(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+    model_file = ctx.robot_state.get(MODEL_FILE_KEY)
+    if model_file is not None:
+        if not ctx.state.get(_SAID_REPLACED_KEY):
+            ctx.state[_SAID_REPLACED_KEY] = True
+            log.info(
+                "[%s] %s: not drawn, the robot model is --urdf %s", ctx.robot, ctx.topic, model_file
+            )
+        return []
     return model_items(msg.data, ctx, source=ctx.topic)
 
 
 def model_items_from_file(path: Path, ctx: ConvertContext) -> list[LogEntry]:
-    """The ``--urdf PATH`` form; relative mesh paths are taken from the URDF's directory."""
+    """The ``--urdf PATH`` form; relative mesh paths are taken from the URDF's directory. From
+    now on the robot's /robot_description is not drawn."""
     try:
         xml = Path(path).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as err:
         msg = f"cannot read URDF {path}: {err}; check the --urdf path"
         raise ConvertError(msg) from err
+    ctx.robot_state[MODEL_FILE_KEY] = path
     return model_items(xml, ctx, source=str(path), base=Path(path).parent)
 
 
@@ -92,12 +127,17 @@ def model_items(xml: str, ctx: ConvertContext, source: str, base: Path | None = 
     colors = {m.name: m.color.rgba for m in urdf.robot.materials if m.name and m.color}
 
     items: list[LogEntry] = []
-    errors: list[str] = []
-    for link, index, visual in _visuals(urdf.robot):
+    missing: list[tuple[str, MissingResourceError]] = []
+    broken: list[str] = []
+    visuals = list(_visuals(urdf.robot))
+    for link, index, visual in visuals:
         try:
             geometry = _geometry(visual, colors, resolver, base)
+        except MissingResourceError as err:
+            missing.append((_visual_name(link, index), err))
+            continue
         except ConvertError as err:
-            errors.append(f"link {link!r} visual {index}: {err}")
+            broken.append(f"{_visual_name(link, index)}: {err}")
             continue
         translation, quaternion = pose_of_matrix(_origin(visual.origin))
         path = f"/{ctx.robot}/robot_model/{rr.escape_entity_path_part(link)}/visual_{index}"
@@ -109,20 +149,49 @@ def model_items(xml: str, ctx: ConvertContext, source: str, base: Path | None = 
         items.append(LogItem(path, archetypes, static=True))
     items += [
         LogItem(
-            static_transform_path(ctx.robot, ctx.robot_state, joint.child),
-            (joint_transform(ctx, joint, 0.0),),
+            static_transform_path(ctx.robot, ctx.robot_state, model.joints[name].child),
+            (joint_transform(ctx, model.joints[name], position),),
             static=True,
         )
-        for joint in model.joints.values()
-        if joint.type == "fixed" and not tf_carries(ctx, joint.child)
+        for name, position in zero_positions(model).items()
+        if not tf_carries(ctx, model.joints[name].child)
     ]
-    if errors:
+    if missing or broken:
+        problems = [*_missing_files(missing), *broken]
         msg = (
-            f"{source}: {len(errors)} visual(s) of robot model {model.name!r} are missing, the "
-            f"rest is shown: {'; '.join(errors)}"
+            f"{source}: robot model {model.name!r}: {len(missing) + len(broken)} of "
+            f"{len(visuals)} visuals not drawn: {'; '.join(problems)}"
         )
         raise PartialConvertError(msg, items)
     return items
+
+
+def _visual_name(link: str, index: int) -> str:
+    return f"link {link!r}" if index == 0 else f"link {link!r} visual {index}"
+
+
+def _missing_files(missing: Sequence[tuple[str, MissingResourceError]]) -> list[str]:
+    """One clause per place looked in: the files by directory with the links that name them,
+    where they were looked for, and each ``--package-path`` that would help, once."""
+    by_search: dict[str, dict[str, list[tuple[str, str]]]] = {}
+    for visual, err in missing:
+        directory, _, name = err.uri.rpartition("/")
+        by_search.setdefault(err.searched, {}).setdefault(directory, []).append((name, visual))
+    clauses = []
+    for searched, directories in by_search.items():
+        listed = []
+        for directory, files in directories.items():
+            if len(files) == 1:
+                name, visual = files[0]
+                listed.append(f"{directory}/{name} for {visual}")
+            else:
+                names = ", ".join(f"{name} for {visual}" for name, visual in files)
+                listed.append(f"{directory}/: {names}")
+        clauses.append(f"mesh files not found: {'; '.join(listed)}; looked in {searched}")
+    packages = sorted({err.package for _, err in missing if err.package is not None})
+    if packages:
+        clauses.append("pass " + " ".join(f"--package-path {p}=DIR" for p in packages))
+    return clauses
 
 
 def _parse(xml: str, source: str) -> yourdfpy.URDF:
@@ -149,6 +218,8 @@ def _origin(matrix: npt.NDArray[np.float64] | None) -> npt.NDArray[np.float64]:
 
 
 def _kinematics(robot: yourdfpy.Robot, source: str) -> RobotModel:
+    children = {joint.child for joint in robot.joints}
+    roots = [link.name for link in robot.links if link.name not in children]
     joints = []
     for joint in robot.joints:
         axis = np.asarray(joint.axis if joint.axis is not None else (1.0, 0.0, 0.0), np.float64)
@@ -174,7 +245,7 @@ def _kinematics(robot: yourdfpy.Robot, source: str) -> RobotModel:
                 else MimicModel(mimic.joint, float(mimic.multiplier), float(mimic.offset)),
             )
         )
-    return robot_model(robot.name, joints)
+    return robot_model(robot.name, joints, root=roots[0] if roots else None)
 
 
 def _visuals(robot: yourdfpy.Robot) -> Iterator[tuple[str, int, yourdfpy.Visual]]:
@@ -263,7 +334,7 @@ def _mesh(
         loaded = trimesh.load(
             io.BytesIO(data),
             file_type=file_type,
-            force="mesh",
+            force="scene",
             resolver=_SiblingFiles(resolver, uri, base),
         )
     except Exception as err:
@@ -272,20 +343,80 @@ def _mesh(
         kind = file_type or "a mesh"
         msg = f"{uri}: trimesh cannot load it as {kind} ({type(err).__name__}: {err})"
         raise ConvertError(msg) from err
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+    linear = file_type in _LINEAR_COLOUR_TYPES
+    scene = loaded if isinstance(loaded, trimesh.Scene) else trimesh.Scene(loaded)
+    parts = [
+        part for part in scene.dump() if isinstance(part, trimesh.Trimesh) and len(part.faces) > 0
+    ]
+    if not parts:
         msg = f"{uri}: the file holds no triangles"
         raise ConvertError(msg)
-    return _mesh3d(loaded, _scale(mesh.scale), color)
+    if len(parts) == 1:
+        return _mesh3d(parts[0], _scale(mesh.scale), color, linear)
+    merged = trimesh.util.concatenate(_uniform_visuals(parts, linear))
+    assert isinstance(merged, trimesh.Trimesh)  # concatenating meshes gives a mesh
+    return _mesh3d(merged, _scale(mesh.scale), color, linear)
 
 
 def _scale(scale: float | npt.ArrayLike | None) -> npt.NDArray[np.float64]:
     return np.broadcast_to(np.asarray(1.0 if scale is None else scale, np.float64), (3,))
 
 
+def _texture_image(material: Any) -> Any:
+    return getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
+
+
+def _base_colour(material: Any, linear: bool) -> npt.NDArray[np.uint8]:
+    """The material's colour in sRGB, the space of Rerun's colours."""
+    rgba = np.asarray(material.main_color, np.uint8)
+    if not linear:
+        return rgba
+    srgb = trimesh.visual.color.linear_to_srgb(rgba[:3] / 255.0)
+    return np.append(np.round(np.asarray(srgb) * 255.0), rgba[3]).astype(np.uint8)
+
+
+def _image_of(part: trimesh.Trimesh) -> Any:
+    visual: Any = part.visual
+    return _texture_image(visual.material) if visual.kind == "texture" else None
+
+
+def _uniform_visuals(parts: Sequence[trimesh.Trimesh], linear: bool) -> list[trimesh.Trimesh]:
+    """``parts`` with visuals trimesh concatenates without changing a colour.
+
+    Concatenating parts of several materials packs them into one texture, and trimesh bakes an
+    untextured material's colour there as glTF's linear base colour (made sRGB): a Collada
+    diffuse of 64/255 came out as 137/255. So an untextured material becomes vertex colours of
+    its base colour or, when another part has a texture, a small image of it (trimesh misplaces
+    the one-pixel ones it makes itself); a textured one keeps just its image, the one texture a
+    Mesh3D has (trimesh's packing fails on a mix of material kinds)."""
+    textured = any(_image_of(part) is not None for part in parts)
+    for part in parts:
+        visual: Any = part.visual
+        if visual.kind != "texture":
+            continue
+        image, uv = _image_of(part), visual.uv
+        if image is None:
+            colour = _base_colour(visual.material, linear)
+            if not textured:
+                part.visual = trimesh.visual.ColorVisuals(
+                    part, vertex_colors=np.tile(colour, (len(part.vertices), 1))
+                )
+                continue
+            image = PIL.Image.new("RGBA", (4, 4), tuple(int(c) for c in colour))
+            uv = np.full((len(part.vertices), 2), 0.5)
+        material = trimesh.visual.material.SimpleMaterial(image=image)  # type: ignore[no-untyped-call]
+        part.visual = trimesh.visual.TextureVisuals(uv=uv, material=material)  # type: ignore[no-untyped-call]
+    return list(parts)
+
+
 def _mesh3d(
-    mesh: trimesh.Trimesh, scale: npt.NDArray[np.float64], color: npt.NDArray[np.uint8] | None
+    mesh: trimesh.Trimesh,
+    scale: npt.NDArray[np.float64],
+    color: npt.NDArray[np.uint8] | None,
+    linear: bool,
 ) -> rr.Mesh3D:
-    """Mesh3D of ``mesh`` scaled; the mesh's own colours win over the URDF material, as in RViz."""
+    """Mesh3D of ``mesh`` scaled; the mesh's own colours win over the URDF material, as in RViz
+    (Rerun multiplies the albedo factor into vertex colours and textures, so it is left out)."""
     positions = np.asarray(mesh.vertices, np.float64) * scale
     normals = np.asarray(mesh.vertex_normals, np.float64) / scale
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
@@ -300,9 +431,10 @@ def _mesh3d(
     visual: Any = mesh.visual
     if visual.kind in ("vertex", "face"):
         vertex_colors = np.asarray(visual.vertex_colors, np.uint8)
+        albedo = None
     elif visual.kind == "texture":
         material = visual.material
-        image = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
+        image = _texture_image(material)
         if image is not None and visual.uv is not None and len(visual.uv) == len(positions):
             # trimesh's uv origin is the bottom-left corner, Rerun's the top-left one.
             uv = np.asarray(visual.uv, np.float32)
@@ -310,7 +442,7 @@ def _mesh3d(
             texture = np.asarray(image.convert("RGBA"))
             albedo = None
         elif getattr(material, "main_color", None) is not None:
-            albedo = np.asarray(material.main_color, np.uint8)
+            albedo = _base_colour(material, linear)
     return rr.Mesh3D(
         vertex_positions=positions.astype(np.float32),
         vertex_normals=normals.astype(np.float32),

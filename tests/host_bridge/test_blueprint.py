@@ -15,7 +15,6 @@ from host_bridge.blueprint import BlueprintFollower, TopicEntry, build_blueprint
 from host_bridge.cli import main as host_main
 from host_bridge.demo.bag import write_demo_bag
 from host_bridge.dispatch import Dispatcher
-from host_bridge.registry import LogItem
 from host_bridge.sink import APPLICATION_ID, RerunSink, SinkOptions
 from robot_relay.wire import RawMessage
 from tests.host_bridge.test_dispatch import float_cdr, string_cdr
@@ -183,29 +182,6 @@ def test_follower_sends_once_per_burst_and_again_only_when_topics_change() -> No
     assert isinstance(sent.blueprints[-1].root_container, rrb.Tabs)
     follower.topic_seen("tb3", "/odom", "nav_msgs/msg/Odometry", "/tb3/odom")
     assert len(sent.blueprints) == 2  # closed: nothing more
-
-
-def test_robots_with_a_map_are_anchored_once_when_they_share_the_3d_view() -> None:
-    logged: list[LogItem] = []
-    follower = BlueprintFollower(Sent(), log=lambda items, times: logged.extend(items),  # type: ignore[arg-type]
-                                 interval=60.0)
-    follower.topic_seen("tb3", "/map", "nav_msgs/msg/OccupancyGrid", "/tb3/map")
-    follower.close()
-    assert logged == []  # one robot: its own tree is the view's, nothing to connect
-
-    follower = BlueprintFollower(Sent(), log=lambda items, times: logged.extend(items),  # type: ignore[arg-type]
-                                 interval=60.0)
-    follower.topic_seen("tb3", "/map", "nav_msgs/msg/OccupancyGrid", "/tb3/map")
-    follower.topic_seen("pupper", "/odom", "nav_msgs/msg/Odometry", "/pupper/odom")
-    follower._fire()
-    follower.topic_seen("pupper", "/scan", "sensor_msgs/msg/LaserScan", "/pupper/scan")
-    follower.close()
-    # pupper publishes no map, so it may have no map frame: anchoring it would hide its odom tree.
-    assert [item.path for item in logged] == ["/tb3/map_anchor"]
-    transform = logged[0].archetypes[0]
-    assert logged[0].static
-    assert transform.parent_frame.as_arrow_array().to_pylist() == ["tf#/tb3"]  # type: ignore[attr-defined]
-    assert transform.child_frame.as_arrow_array().to_pylist() == ["tb3/map"]  # type: ignore[attr-defined]
 
 
 def test_dispatcher_tells_the_follower_of_each_topic_once(tmp_path: Path) -> None:

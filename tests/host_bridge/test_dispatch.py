@@ -158,3 +158,24 @@ def test_warnings_keep_their_time_and_a_rejected_map_is_warned_once(
     warnings = sorted(entity_rows(tmp_path / "out.rrd")["/_swanky/warnings"], key=lambda w: w["log_time"])
     assert [(w["static"], w["log_time"]) for w in warnings] == [(False, 7), (False, 9)]
     assert ["/map" in w["TextLog:text"][0] for w in warnings] == [True, False]
+
+
+def test_a_warning_names_its_topic_once(
+    dispatcher: Dispatcher, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Converters put the topic into their errors (a --strict run ends with just that text);
+    the warning does not repeat it (it read ``/occupancygrid: /occupancygrid: ...``)."""
+    grid = grid_cdr(np.zeros((2, 2), dtype=np.int8), 0.0)
+    with caplog.at_level(logging.WARNING):
+        dispatcher.dispatch([
+            raw("/occupancygrid", "nav_msgs/msg/OccupancyGrid", grid, 1),
+            raw("/speed", "std_msgs/msg/Float64", float_cdr(1.0)[:5], 2),
+        ])
+    occupancy, speed = (r.getMessage() for r in caplog.records)
+    assert occupancy.startswith("[tb3] /occupancygrid: ")
+    assert occupancy.count("/occupancygrid") == 1
+    assert occupancy.endswith(" (further ConvertErrors on this topic are counted, not shown)")
+    assert "\n" not in occupancy
+    # A decoder error does not name the topic itself: the warning adds it, once.
+    assert speed.startswith("[tb3] /speed: ")
+    assert speed.count("/speed") == 1

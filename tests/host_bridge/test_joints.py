@@ -167,6 +167,30 @@ def test_prismatic_and_mimic_match_yourdfpy() -> None:
     np.testing.assert_allclose(lift[:3, 3], [0.1, 0, 0.2] + origin[:3, :3] @ [0, 0, 0.05], atol=1e-6)
 
 
+def test_model_stands_at_zero_with_mimic_chains_at_their_offsets() -> None:
+    """No /joint_states yet: every joint at 0 as RViz shows it, static on the child's /tf_static
+    entity (the joint states' temporal rows win from their first stamp on)."""
+    state: dict[str, Any] = {"resolver": ResourceResolver()}
+    ctx = ConvertContext("arm1", "/robot_description", "/arm1/robot_description", {}, robot_state=state)
+    items = by_path(urdf.convert(SimpleNamespace(data=ARM), ctx))
+    assert sorted(items) == [f"/arm1/tf_static/{link}" for link in ("arm", "finger", "slider", "tip")]
+    assert all(item.static for item in items.values())
+    reference = yourdfpy.URDF.load(io.StringIO(ARM), load_meshes=False)
+    reference.update_cfg({"lift": 0.0, "shoulder": 0.0})
+    for parent, child in (("base", "slider"), ("slider", "arm"), ("arm", "finger")):
+        item = items[f"/arm1/tf_static/{child}"]
+        assert frames(item) == (f"arm1/{parent}", f"arm1/{child}")
+        np.testing.assert_allclose(transform_matrix(item), reference.get_transform(child, parent), atol=1e-6)
+    # grip = -2 * 0 + 0.1 about x; tip follows grip (a chain): 0.5 * 0.1 about z.
+    np.testing.assert_allclose(transform_matrix(items["/arm1/tf_static/finger"]),
+                               rotation_about(0.1, [1, 0, 0], [0.3, 0, 0]), atol=1e-6)
+    np.testing.assert_allclose(transform_matrix(items["/arm1/tf_static/tip"]),
+                               rotation_about(0.05, [0, 0, 1], [0.05, 0, 0]), atol=1e-6)
+    model = state["urdf"]
+    assert joints.zero_positions(model) == {"lift": 0.0, "shoulder": 0.0, "grip": 0.1, "tip_joint": 0.05}
+    assert model.root == "base"
+
+
 def test_published_mimic_value_is_overridden_by_its_driver() -> None:
     ctx = make_ctx("arm1", ARM)
     items = by_path(joints.convert_joint_state(joint_state(["shoulder", "grip"], [0.4, 2.0]), ctx))

@@ -75,7 +75,7 @@ def test_the_model_gets_each_robots_meshes_and_names_refusals(session: zenoh.Ses
     finally:
         service.close()
     message = str(caught.value)
-    assert "1 visual(s)" in message
+    assert "robot model 'meshes': 1 of 2 visuals not drawn" in message
     assert "robot tb1 refused package://pkg/meshes/gone.stl (not_found:" in message
     mesh = archetype(by_path(caught.value.items)["/tb1/robot_model/l0/visual_0"], rr.Mesh3D)
     assert np.ptp(values(mesh.vertex_positions), axis=0).tolist() == [1.0, 2.0, 4.0]

@@ -19,6 +19,22 @@ from host_bridge.converters.joints import RobotModel
 from host_bridge.errors import ConfigError, ConvertError, PartialConvertError
 from host_bridge.registry import ConvertContext, LogEntry, LogItem
 from host_bridge.resources import ResourceResolver, parse_package_path
+from tests.host_bridge.user_robot import (
+    ARM_DARK,
+    ARM_RED,
+    FINGER_LEFT_XYZ,
+    FINGER_RIGHT_XYZ,
+    MIMIC_OFFSET,
+    ROBOT_SHARE,
+    SHOULDER_XYZ,
+    Flat,
+    Textured,
+    collada,
+    user_urdf,
+    write_texture,
+    write_user_robot,
+)
+from tests.host_bridge.user_robot import PACKAGE as USER_PACKAGE
 
 PACKAGE = "turtlebot3_description"
 MESHES = {
@@ -132,14 +148,24 @@ def test_visual_origin_and_material_colour(tb3: Path) -> None:
     np.testing.assert_allclose(rotation(quaternion), expected[:3, :3], atol=1e-6)
 
 
-def test_fixed_joints_static_movable_left_out(tb3: Path) -> None:
+def test_every_joint_is_static_with_the_wheels_at_zero(tb3: Path) -> None:
     ctx = make_ctx("tb1", ResourceResolver(search_paths=[tb3]))
     items = by_path(convert(urdf_text(tb3, "burger"), ctx))
     # On the entity /tf_static uses for the child frame: one entity per relation (see tf.py).
     joints = sorted(path for path in items if "/tf_static/" in path)
     assert joints == [
-        f"/tb1/tf_static/{child}" for child in ("base_link", "base_scan", "caster_back_link", "imu_link")
+        f"/tb1/tf_static/{child}"
+        for child in ("base_link", "base_scan", "caster_back_link", "imu_link", "wheel_left_link",
+                      "wheel_right_link")
     ]
+    # Continuous wheel joints stand at 0 until /joint_states moves them: the joint origin.
+    wheel = archetype(items["/tb1/tf_static/wheel_left_link"], rr.Transform3D)
+    assert items["/tb1/tf_static/wheel_left_link"].static
+    assert values(wheel.parent_frame).tolist() == ["tb1/base_link"]
+    assert values(wheel.child_frame).tolist() == ["tb1/wheel_left_link"]
+    np.testing.assert_allclose(values(wheel.translation), [[0.0, 0.08, 0.023]], atol=1e-7)
+    expected: npt.NDArray[np.float64] = tra.euler_matrix(-1.57, 0, 0)  # type: ignore[no-untyped-call]
+    np.testing.assert_allclose(rotation(values(wheel.quaternion)[0]), expected[:3, :3], atol=1e-6)
     scan = items["/tb1/tf_static/base_scan"]
     assert scan.static
     transform = archetype(scan, rr.Transform3D)
@@ -155,7 +181,10 @@ def test_fixed_joint_already_on_tf_is_left_to_tf(tb3: Path) -> None:
     ctx = make_ctx("tb1", ResourceResolver(search_paths=[tb3]))
     ctx.robot_state["tf_children"] = {"base_scan", "tb1/imu_link"}
     joints = sorted(path for path in by_path(convert(urdf_text(tb3, "burger"), ctx)) if "/tf_static/" in path)
-    assert joints == ["/tb1/tf_static/base_link", "/tb1/tf_static/caster_back_link"]
+    assert joints == [
+        "/tb1/tf_static/base_link", "/tb1/tf_static/caster_back_link",
+        "/tb1/tf_static/wheel_left_link", "/tb1/tf_static/wheel_right_link",
+    ]
 
 
 def test_missing_mesh_one_error_rest_logged(tb3: Path) -> None:
@@ -350,8 +379,8 @@ def test_not_found_message_says_what_to_do(tmp_path: Path) -> None:
         resolver.read("http://example.com/x.stl")
 
 
-def test_package_path_option_parsing() -> None:
-    assert parse_package_path("pkg=/x/y") == ("pkg", Path("/x/y"))
+def test_package_path_option_parsing(tmp_path: Path) -> None:
+    assert parse_package_path(f"pkg={tmp_path}") == ("pkg", tmp_path)
     for bad in ("pkg", "=dir", "pkg=", "a/b=dir"):
         with pytest.raises(ConfigError):
             parse_package_path(bad)
@@ -397,3 +426,137 @@ def test_obj_materials_and_textures_come_through_the_resolver(tmp_path: Path) ->
     # trimesh's uv origin is bottom-left, Rerun's top-left: v is flipped.
     np.testing.assert_allclose(values(textured.vertex_texcoords), [[0, 1], [1, 1], [0, 0]])
     assert values(textured.albedo_texture_buffer)[0][:4].tolist() == [255, 0, 0, 255]
+
+
+# --- a user's own robot: absolute file:// meshes, Collada materials, mimic joints -----------------
+
+
+def user_model(tmp_path: Path) -> tuple[dict[str, LogItem], ConvertContext]:
+    ctx = make_ctx("r", ResourceResolver())
+    return by_path(urdf.model_items_from_file(write_user_robot(tmp_path), ctx)), ctx
+
+
+def test_user_model_stands_at_zero_with_the_mimic_finger_at_its_offset(tmp_path: Path) -> None:
+    items, ctx = user_model(tmp_path)
+    visuals = sorted(path for path in items if "/robot_model/" in path)
+    assert visuals == [f"/r/robot_model/{link}/visual_0" for link in
+                       ("base_link", "finger_left", "finger_right", "upper_arm", "wheel")]
+    joints = {path.rsplit("/", 1)[1]: archetype(item, rr.Transform3D)
+              for path, item in items.items() if "/tf_static/" in path}
+    # Every link but the root has a relation, so the model is one tree from base_footprint.
+    assert sorted(joints) == ["base_link", "finger_left", "finger_right", "upper_arm", "wheel"]
+    assert {values(t.parent_frame)[0] for t in joints.values()} == {
+        "r/base_footprint", "r/base_link", "r/upper_arm"}
+    assert ctx.robot_state["urdf"].root == "base_footprint"
+    np.testing.assert_allclose(values(joints["finger_left"].translation), [FINGER_LEFT_XYZ], atol=1e-7)
+    # finger_right mimics finger_left at 0: -1 * 0 + 0.01 along its y axis.
+    right = np.add(FINGER_RIGHT_XYZ, [0.0, MIMIC_OFFSET, 0.0])
+    np.testing.assert_allclose(values(joints["finger_right"].translation), [right], atol=1e-7)
+    # The revolute shoulder at 0 is its origin: 0.5 rad about z.
+    np.testing.assert_allclose(values(joints["upper_arm"].translation), [SHOULDER_XYZ], atol=1e-7)
+    np.testing.assert_allclose(values(joints["upper_arm"].quaternion),
+                               [[0, 0, np.sin(0.25), np.cos(0.25)]], atol=1e-7)
+
+
+def colours_by_triangle(mesh: Any) -> list[list[int]]:
+    """The RGBA of each triangle's vertices, from vertex colours or the albedo texture."""
+    triangles = values(mesh.triangle_indices)
+    if mesh.albedo_texture_buffer is None:
+        rgba = [[(c >> s) & 0xFF for s in (24, 16, 8, 0)] for c in values(mesh.vertex_colors)]
+    else:
+        layout = mesh.albedo_texture_format.as_arrow_array().to_pylist()[0]
+        height, width = layout["height"], layout["width"]
+        image = values(mesh.albedo_texture_buffer)[0].astype(np.uint8).reshape(height, width, 4)
+        # Rerun samples with wrap-around, v from the top.
+        rgba = [image[int(v % 1 * height), int(u % 1 * width)].tolist()
+                for u, v in values(mesh.vertex_texcoords)]
+    corner_colours = [[rgba[i] for i in triangle] for triangle in triangles]
+    assert all(colours[0] == colours[1] == colours[2] for colours in corner_colours)
+    return [colours[0] for colours in corner_colours]
+
+
+def dae_mesh(tmp_path: Path, materials: list[Flat | Textured]) -> Any:
+    (tmp_path / "part.dae").write_text(collada(materials))
+    xml = mesh_urdf((f"file://{tmp_path}/part.dae", "1 1 1"))
+    return mesh_of(by_path(convert(xml, make_ctx("r", ResourceResolver()))), "l0")
+
+
+def test_multi_material_collada_keeps_each_diffuse_colour(tmp_path: Path) -> None:
+    mesh = dae_mesh(tmp_path, [Flat(ARM_DARK), Flat(ARM_RED)])
+    # The diffuse colours as written (64/255 once came out as 137/255), one per triangle.
+    assert colours_by_triangle(mesh) == [[*ARM_DARK, 255], [*ARM_RED, 255]]
+    assert mesh.albedo_factor is None  # would tint the vertex colours
+    # The same colour as the one-material path logs it.
+    single = dae_mesh(tmp_path, [Flat(ARM_DARK)])
+    assert values(single.albedo_factor).tolist() == [packed([*ARM_DARK, 255])]
+
+
+def test_textured_and_flat_collada_materials_keep_their_colours(tmp_path: Path) -> None:
+    write_texture(tmp_path / "green.png", (10, 200, 30))
+    mesh = dae_mesh(tmp_path, [Flat(ARM_DARK), Textured("green.png"), Flat(ARM_RED)])
+    assert colours_by_triangle(mesh) == [[*ARM_DARK, 255], [10, 200, 30, 255], [*ARM_RED, 255]]
+    # Triangle i of the file is at z = i: the parts stay in file order.
+    np.testing.assert_allclose(values(mesh.vertex_positions)[:, 2], np.repeat([0, 1, 2], 3))
+
+
+def test_gltf_base_colour_is_linear_and_made_srgb(tmp_path: Path) -> None:
+    """glTF's baseColorFactor is linear (unlike Collada's diffuse): 0.2140 is sRGB 128/255."""
+    linear = round(0.21404 * 255)
+    parts = []
+    for z, rgb in ((0.0, [linear, linear, linear]), (2.0, [255, 0, 0])):
+        box = trimesh.creation.box(extents=[1, 1, 1])
+        box.apply_translation([0, 0, z])
+        box.visual = trimesh.visual.TextureVisuals(material=trimesh.visual.material.PBRMaterial(
+            baseColorFactor=[*rgb, 255]))
+        parts.append(box)
+    trimesh.Scene(parts).export(tmp_path / "two.glb")
+    parts[0].export(tmp_path / "one.glb")
+    xml = mesh_urdf((f"file://{tmp_path}/one.glb", "1 1 1"), (f"file://{tmp_path}/two.glb", "1 1 1"))
+    items = by_path(convert(xml, make_ctx("r", ResourceResolver())))
+    assert values(mesh_of(items, "l0").albedo_factor).tolist() == [packed([128, 128, 128, 255])]
+    two = colours_by_triangle(mesh_of(items, "l1"))
+    assert sorted({tuple(c) for c in two}) == [(128, 128, 128, 255), (255, 0, 0, 255)]
+
+
+def test_missing_meshes_name_each_file_where_and_what_to_pass_once(tmp_path: Path) -> None:
+    robot_meshes = f"file://{ROBOT_SHARE}/meshes"
+    write_box(tmp_path / "here" / "box.stl")
+    (tmp_path / "broken.stl").write_bytes(b"solid nothing\nendsolid\n")
+    xml = mesh_urdf(
+        (f"{robot_meshes}/base.dae", "1 1 1"),
+        (f"{robot_meshes}/arm.dae", "1 1 1"),
+        ("package://other_pkg/meshes/c.stl", "1 1 1"),
+        (f"file://{tmp_path}/here/box.stl", "1 1 1"),
+        (f"file://{tmp_path}/broken.stl", "1 1 1"),
+    )
+    search = [tmp_path / "ws_a", tmp_path / "ws_b"]
+    with pytest.raises(PartialConvertError) as caught:
+        convert(xml, make_ctx("r", ResourceResolver(search_paths=search)))
+    message = str(caught.value)
+    assert message == (
+        "/robot_description: robot model 'meshes': 4 of 5 visuals not drawn: mesh files not "
+        f"found: {robot_meshes}/: base.dae for link 'l0', arm.dae for link 'l1'; "
+        "package://other_pkg/meshes/c.stl for link 'l2'; "
+        f"looked in search path {search[0]}, search path {search[1]}; no robot file server to ask; "
+        f"pass --package-path {USER_PACKAGE}=DIR --package-path other_pkg=DIR; "
+        f"link 'l4': file://{tmp_path}/broken.stl: the file holds no triangles"
+    )
+    assert [path for path in by_path(caught.value.items) if "/visual_" in path] == [
+        "/r/robot_model/l3/visual_0"]
+
+
+def test_urdf_file_replaces_the_robot_description(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = write_user_robot(tmp_path)
+    ctx = make_ctx("r", ResourceResolver())
+    from_file = urdf.model_items_from_file(path, ctx)
+    model = ctx.robot_state["urdf"]
+    caplog.set_level("INFO", logger="swanky.host")
+    other = user_urdf(tmp_path / "meshes", name="bag_bot", prefix="bag_")
+    assert convert(other, ctx) == []
+    assert convert(other, ctx) == []
+    assert ctx.robot_state["urdf"] is model  # /joint_states keeps moving the file's model
+    assert [r.getMessage() for r in caplog.records] == [
+        f"[r] /robot_description: not drawn, the robot model is --urdf {path}"]
+    assert len(from_file) == 10

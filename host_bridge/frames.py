@@ -1,0 +1,181 @@
+"""Keeping every frame of a robot reachable from its 3D view, and choosing the frame it looks from.
+
+Rerun draws an entity in a 3D view only if the entity's frame has a transform path to the view's
+target frame; otherwise the view shows ``No transform path from ... to the view's target frame``
+for it. Robots leave such gaps all the time: a bag with no /tf at all, a sensor frame no
+transform names, a model whose root nothing places, data that arrives before the /tf that links
+it. :class:`RobotFrames` watches what a robot's converters log and keeps its frames one tree:
+
+* Every named frame of robot ``R`` (``R/<frame>``) that no relation names as a child is placed
+  at the robot's entity root (``tf#/R``) by a static identity ``Transform3D`` on the entity
+  /tf_static would use for it (:func:`~host_bridge.converters.tf.static_transform_path`). A real
+  relation that comes later replaces it: from /tf_static or the URDF on that very entity, from
+  /tf or joint states from their first stamp on (Rerun lets a temporal entity win over a static
+  one for the same frame). Entities without a named frame (``tf#/R/...``) hang from ``tf#/R``
+  already, so they join the same tree.
+* The view's target frame is ``R/map`` once seen, else ``R/odom``, else the root link of the
+  robot model, logged as the static ``CoordinateFrame`` of ``/R``: a 3D view whose origin is
+  ``/R`` and whose blueprint names no target looks from the origin entity's frame. With none of
+  those frames the viewer's own choice stands (the common root of everything, ``tf#/``).
+
+Several robots stay apart (``R/map`` and ``R2/map`` are different frames) and share the "All
+robots" view at ``/`` through their roots at ``tf#/R`` and ``tf#/R2``.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+import pyarrow as pa
+import rerun as rr
+
+from host_bridge.converters.joints import ROBOT_MODEL_KEY, RobotModel
+from host_bridge.converters.tf import static_transform_path
+from host_bridge.registry import ColumnsItem, LogEntry, LogItem
+
+log = logging.getLogger("swanky.host")
+
+# Preferred target frames (REP 105), most global first.
+TARGET_FRAMES = ("map", "odom")
+
+_PARENT = "Transform3D:parent_frame"
+_CHILD = "Transform3D:child_frame"
+_FRAME = "CoordinateFrame:frame"
+
+
+def robot_root_frame(robot: str) -> str:
+    """The implicit frame of the robot's entity root, where its unplaced frames are put."""
+    return f"tf#/{robot}"
+
+
+def _strings(array: pa.Array) -> list[Any]:
+    """The values of a component column (one list per row) or batch, flattened."""
+    if pa.types.is_list(array.type) or pa.types.is_large_list(array.type):
+        array = array.flatten()
+    values: list[Any] = array.to_pylist()
+    return values
+
+
+def _column_values(columns: Iterable[Any]) -> dict[str, list[Any]]:
+    found = {}
+    for column in columns:
+        name = column.component_descriptor().component
+        if name in (_PARENT, _CHILD, _FRAME):
+            found[name] = _strings(column.as_arrow_array())
+    return found
+
+
+def _archetype_values(archetype: Any) -> dict[str, list[Any]]:
+    found = {}
+    if isinstance(archetype, rr.Transform3D):
+        for name, batch in ((_PARENT, archetype.parent_frame), (_CHILD, archetype.child_frame)):
+            if batch is not None:
+                found[name] = _strings(batch.as_arrow_array())
+    elif isinstance(archetype, rr.CoordinateFrame) and archetype.frame is not None:
+        found[_FRAME] = _strings(archetype.frame.as_arrow_array())
+    return found
+
+
+def frames_logged(entries: Sequence[LogEntry]) -> tuple[set[tuple[str, str]], set[str]]:
+    """The (child, parent) relations and the entity frames that ``entries`` log. A transform
+    with a parent frame but no child frame places the entity's own implicit frame (the IMU's
+    orientation hangs from the IMU frame so)."""
+    relations: set[tuple[str, str]] = set()
+    frames: set[str] = set()
+    for entry in entries:
+        parts: Iterable[dict[str, list[Any]]]
+        if isinstance(entry, ColumnsItem):
+            parts = [_column_values(entry.columns)]
+        else:
+            parts = [_archetype_values(a) for a in entry.archetypes]
+        for values in parts:
+            frames.update(f for f in values.get(_FRAME, ()) if f)
+            parents = values.get(_PARENT, [])
+            children = values.get(_CHILD) or [f"tf#{entry.path}"] * len(parents)
+            relations.update(
+                (child, parent)
+                for child, parent in zip(children, parents, strict=False)
+                if child and parent
+            )
+    return relations, frames
+
+
+class RobotFrames:
+    """The frame graph of one robot as logged so far, and what keeps it one tree.
+
+    Thread-safe: a robot's conversions and the slow converters may log for it at once.
+    """
+
+    def __init__(self, robot: str) -> None:
+        self.robot = robot
+        self._prefix = f"{robot}/"
+        self._parents: dict[str, str] = {}
+        self._named: set[str] = set()
+        self._placed: set[str] = set()
+        self._model: RobotModel | None = None
+        self.target: str | None = None
+        self._lock = threading.Lock()
+
+    def observe(self, entries: Sequence[LogEntry], robot_state: Mapping[str, Any]) -> list[LogItem]:
+        """Take note of the frames ``entries`` log; the items to log next: placements of frames
+        that have no parent, and the view's target frame when it changed."""
+        relations, frames = frames_logged(entries)
+        model = robot_state.get(ROBOT_MODEL_KEY)
+        model = model if isinstance(model, RobotModel) else None
+        with self._lock:
+            known = len(self._named), len(self._parents)
+            for child, parent in relations:
+                self._parents[child] = parent
+            self._named.update(
+                f for f in (*frames, *(f for relation in relations for f in relation))
+                if f.startswith(self._prefix)
+            )
+            if (len(self._named), len(self._parents)) == known and model is self._model:
+                return []
+            self._model = model
+            return self._placements(robot_state) + self._target_item()
+
+    def _placements(self, robot_state: Mapping[str, Any]) -> list[LogItem]:
+        unplaced = sorted(f for f in self._named - self._placed if f not in self._parents)
+        if not unplaced:
+            return []
+        root = robot_root_frame(self.robot)
+        # Usual while a robot starts (a scan before the /tf that places it): see unplaced().
+        log.debug("[%s] frames %s placed at the robot's root for now", self.robot, unplaced)
+        items = []
+        for frame in unplaced:
+            self._parents[frame] = root
+            self._placed.add(frame)
+            path = static_transform_path(self.robot, robot_state, frame.removeprefix(self._prefix))
+            transform = rr.Transform3D(parent_frame=root, child_frame=frame)
+            items.append(LogItem(path, (transform,), static=True))
+        return items
+
+    def unplaced(self) -> list[str]:
+        """Frames (ROS names) no transform ever placed, but the target: they are drawn at the
+        robot's root, which is worth telling once the input ends."""
+        root = robot_root_frame(self.robot)
+        with self._lock:
+            return sorted(
+                f.removeprefix(self._prefix)
+                for f in self._placed
+                if self._parents.get(f) == root and f != self.target
+            )
+
+    def _preferred_target(self) -> str | None:
+        for name in TARGET_FRAMES:
+            if self._prefix + name in self._named:
+                return self._prefix + name
+        if self._model is not None and self._model.root:
+            return self._prefix + self._model.root.strip("/")
+        return None
+
+    def _target_item(self) -> list[LogItem]:
+        target = self._preferred_target()
+        if target is None or target == self.target:
+            return []
+        self.target = target
+        return [LogItem(f"/{self.robot}", (rr.CoordinateFrame(target),), static=True)]
