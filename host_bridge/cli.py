@@ -10,18 +10,19 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from host_bridge.blueprint import BlueprintFollower, check_blueprint_file
 from host_bridge.config import HostConfig
 from host_bridge.dispatch import Dispatcher
-from host_bridge.errors import HostError, PartialConvertError
+from host_bridge.errors import HostError, PartialConvertError, SinkError
 from host_bridge.inputs.queues import InputProblem, QueueItem, RobotEvent, presence_items
 from host_bridge.recorder import McapRecorder, may_hold_several_robots
 from host_bridge.registry import default_registry
 from host_bridge.resources import ResourceResolver, RobotFetch, parse_package_path
 from host_bridge.robot_files import RobotFiles
-from host_bridge.sink import APPLICATION_ID, RerunSink, SinkOptions
+from host_bridge.sink import APPLICATION_ID, LOOPBACK, RerunSink, SinkOptions
 from robot_relay.errors import RelayError
 from robot_relay.session import add_zenoh_arguments
 from robot_relay.wire import check_robot_name
@@ -98,6 +99,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     out.add_argument(
         "--grpc-port", type=int, metavar="PORT", help="--serve-web: gRPC port the viewer reads (9876)"
     )
+    out.add_argument(
+        "--web-bind", default=LOOPBACK, metavar="ADDR",
+        help=f"--serve-web: address the recording is served on (default {LOOPBACK}: this PC only; "
+        "0.0.0.0 or :: opens it to the network). Rerun serves the viewer page itself (code, no "
+        "data) on every interface",
+    )
     layout = out.add_mutually_exclusive_group()
     layout.add_argument(
         "--no-blueprint", action="store_true",
@@ -150,6 +157,7 @@ def sink_options(args: argparse.Namespace) -> SinkOptions:
         serve_web=args.serve_web,
         web_port=args.web_port,
         grpc_port=args.grpc_port,
+        web_bind=args.web_bind,
         recording_id=args.recording_id,
     )
     if not options.any:
@@ -276,89 +284,132 @@ def run_live(
         raise queues.error
 
 
+class StopSignals:
+    """SIGINT and SIGTERM: the first stops the host cleanly (a saved .rrd is completed), a second
+    exits at once, as swanky-relay does. Everything the main thread waits on is bounded in short
+    steps (sink.py, run_live), so the handler always gets to run within about a second."""
+
+    def __init__(self, stop: threading.Event) -> None:
+        self.stop = stop
+        self.received = False
+
+    def install(self) -> None:
+        signal.signal(signal.SIGINT, self._on_signal)
+        signal.signal(signal.SIGTERM, self._on_signal)
+
+    def _on_signal(self, signum: int, frame: object) -> None:
+        name = signal.Signals(signum).name
+        if self.received:  # the user does not want to wait for the files and viewers
+            print(f"swanky-host: {name} again, exiting at once", file=sys.stderr, flush=True)
+            os._exit(128 + signum)
+        self.received = True
+        log.info("%s: stopping (again to force)", name)
+        self.stop.set()
+
+
+@dataclass
+class Outputs:
+    """What the host writes to, closed in reverse order of opening whatever happened."""
+
+    sink: RerunSink | None = None
+    layout: BlueprintFollower | None = None
+    recorder: McapRecorder | None = None
+
+    def close(self) -> bool:
+        """Close everything; False (and said why on stderr) when a viewer missed data."""
+        if self.recorder is not None:
+            self.recorder.close()
+        if self.layout is not None:
+            self.layout.close()
+        if self.sink is None:
+            return True
+        try:
+            self.sink.close()
+        except SinkError as err:
+            print(f"swanky-host: error: {err}", file=sys.stderr)
+            return False
+        return True
+
+
+def run_host(args: argparse.Namespace, signals: StopSignals, outputs: Outputs) -> int:
+    stop = signals.stop
+    check_robot_name(args.robot)
+    if args.list:
+        from host_bridge.listing import run_list
+
+        return run_list(args, stop)
+    registry = default_registry()
+    config = (
+        HostConfig.load(args.config, registry.types()) if args.config is not None
+        else HostConfig.builtin(registry.types())
+    )
+    if args.print_config:
+        print(config.dump(), end="")
+        return 0
+    if args.bag is not None and not args.bag.exists():
+        print(f"swanky-host: error: bag {args.bag} does not exist", file=sys.stderr)
+        return 2
+    if args.demo:
+        from host_bridge.demo.run import configure_demo
+
+        configure_demo(args)  # checks --robots N before a viewer opens
+    if args.blueprint is not None:
+        check_blueprint_file(args.blueprint, APPLICATION_ID)
+    # Live robots serve the meshes this PC lacks (robot_relay/files.py).
+    robot_files = None if args.bag is not None else RobotFiles()
+    meshes = resolver(args, None if robot_files is None else robot_files.fetch)  # checks dirs
+    # After a stop signal a slow viewer is not waited for.
+    sink = outputs.sink = RerunSink(sink_options(args), give_up=lambda: signals.received)
+    if sink.web_url:
+        print(f"Rerun web viewer: {sink.web_url}", flush=True)
+        print(f"swanky-host: {sink.web_note}", file=sys.stderr)
+    layout = outputs.layout = start_layout(args, sink)
+    dispatcher = Dispatcher(
+        sink, registry=registry, config=config, strict=args.strict,
+        robot_state={"resolver": meshes},
+        on_new_topic=None if layout is None else layout.topic_seen,
+    )
+    if args.record_mcap is not None:
+        outputs.recorder = McapRecorder(args.record_mcap, prefix_robot=may_hold_several_robots(
+            bag=args.bag is not None, demo=args.demo and len(args.demo_robots) == 1,
+            robots=args.robots))
+        dispatcher.taps.append(outputs.recorder)
+    if args.urdf is not None:
+        log_urdf_file(args, dispatcher)
+    if args.bag is not None:
+        convert_bag(args, dispatcher, stop)
+        if args.serve_web and not stop.is_set():
+            # The web viewer lives in this process: keep serving the converted bag.
+            print("bag converted; serving the web viewer until Ctrl-C", file=sys.stderr)
+            stop.wait(args.duration)
+    elif args.demo:
+        from host_bridge.demo.run import run_demo
+
+        run_demo(args, lambda: run_live(args, dispatcher, stop, robot_files), stop)
+    else:
+        run_live(args, dispatcher, stop, robot_files)
+    dispatcher.close()
+    print(dispatcher.summary(), file=sys.stderr)
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(name)s: %(levelname)s: %(message)s",
     )
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: object) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
-    sink: RerunSink | None = None
-    recorder: McapRecorder | None = None
-    layout: BlueprintFollower | None = None
+    signals = StopSignals(threading.Event())
+    signals.install()
+    outputs = Outputs()
     try:
-        check_robot_name(args.robot)
-        if args.list:
-            from host_bridge.listing import run_list
-
-            return run_list(args, stop)
-        registry = default_registry()
-        config = (
-            HostConfig.load(args.config, registry.types()) if args.config is not None
-            else HostConfig.builtin(registry.types())
-        )
-        if args.print_config:
-            print(config.dump(), end="")
-            return 0
-        if args.bag is not None and not args.bag.exists():
-            print(f"swanky-host: error: bag {args.bag} does not exist", file=sys.stderr)
-            return 2
-        if args.demo:
-            from host_bridge.demo.run import configure_demo
-
-            configure_demo(args)  # checks --robots N before a viewer opens
-        if args.blueprint is not None:
-            check_blueprint_file(args.blueprint, APPLICATION_ID)
-        sink = RerunSink(sink_options(args))
-        if sink.web_url:
-            print(f"Rerun web viewer: {sink.web_url}", flush=True)
-        layout = start_layout(args, sink)
-        # Live robots serve the meshes this PC lacks (robot_relay/files.py).
-        robot_files = None if args.bag is not None else RobotFiles()
-        robot_fetch = None if robot_files is None else robot_files.fetch
-        dispatcher = Dispatcher(
-            sink, registry=registry, config=config, strict=args.strict,
-            robot_state={"resolver": resolver(args, robot_fetch)},
-            on_new_topic=None if layout is None else layout.topic_seen,
-        )
-        if args.record_mcap is not None:
-            recorder = McapRecorder(args.record_mcap, prefix_robot=may_hold_several_robots(
-                bag=args.bag is not None, demo=args.demo and len(args.demo_robots) == 1,
-                robots=args.robots))
-            dispatcher.taps.append(recorder)
-        if args.urdf is not None:
-            log_urdf_file(args, dispatcher)
-        if args.bag is not None:
-            convert_bag(args, dispatcher, stop)
-            if args.serve_web and not stop.is_set():
-                # The web viewer lives in this process: keep serving the converted bag.
-                print("bag converted; serving the web viewer until Ctrl-C", file=sys.stderr)
-                stop.wait(args.duration)
-        elif args.demo:
-            from host_bridge.demo.run import run_demo
-
-            run_demo(args, lambda: run_live(args, dispatcher, stop, robot_files), stop)
-        else:
-            run_live(args, dispatcher, stop, robot_files)
-        dispatcher.close()
-        print(dispatcher.summary(), file=sys.stderr)
+        code = run_host(args, signals, outputs)
     except (HostError, RelayError) as err:
         print(f"swanky-host: error: {err}", file=sys.stderr)
-        return 2
+        code = 2
     finally:
-        if recorder is not None:
-            recorder.close()
-        if layout is not None:
-            layout.close()
-        if sink is not None:
-            sink.close()
-    return 0
+        complete = outputs.close()
+    return code if complete else max(code, 1)
 
 
 if __name__ == "__main__":

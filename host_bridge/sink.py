@@ -1,14 +1,25 @@
 """The Rerun side: one recording stream, its sinks (viewer, gRPC address, .rrd file, web), and
-the only place that calls ``log`` / ``send_columns``."""
+the only place that calls ``log`` / ``send_columns``.
+
+Nothing here may wait for a viewer without bound: a viewer that is missing, dies or stops
+reading is found out (a TCP probe, flushes waited on in short steps) and named, so the host
+neither hangs nor ignores Ctrl-C, and a ``--save`` file is still completed."""
 
 from __future__ import annotations
 
+import errno
+import ipaddress
+import logging
+import os
 import shutil
 import socket
+import sys
+import sysconfig
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import numpy as np
 import rerun as rr
@@ -17,7 +28,22 @@ import rerun.blueprint as rrb
 from host_bridge.errors import SinkError
 from host_bridge.registry import ColumnsItem, LogEntry, LogItem
 
+log = logging.getLogger("swanky.host")
+
 APPLICATION_ID = "swanky"
+
+LOOPBACK = "127.0.0.1"
+ALL_INTERFACES = ("0.0.0.0", "::")
+VIEWER_PORT = 9876
+"""Where ``--spawn`` starts the viewer (Rerun's default), and a ``--serve-web`` gRPC default."""
+WEB_PORT = 9090
+"""``rr.serve_web_viewer``'s default HTTP port."""
+REDAP_DEFAULT_PORT = 51234
+"""The port Rerun's own URL parser (re_uri) assumes for a viewer URL that names none."""
+VIEWER_SCHEMES = ("rerun", "rerun+http", "rerun+https")
+PROBE_TIMEOUT_S = 2.0
+FLUSH_STEP_S = 1.0
+"""Flushes wait in steps this long, so Python sees signals and a dead viewer in between."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -30,6 +56,8 @@ class SinkOptions:
     serve_web: bool = False
     web_port: int | None = None
     grpc_port: int | None = None
+    web_bind: str = LOOPBACK
+    """Address the ``--serve-web`` gRPC server (the recording itself) listens on."""
     recording_id: str | None = None
 
     @property
@@ -37,25 +65,109 @@ class SinkOptions:
         return self.spawn or self.connect is not None or self.save is not None or self.serve_web
 
 
-VIEWER_PORT = 9876
-"""Where ``rr.spawn`` starts the viewer and ``rr.GrpcSink()`` sends by default."""
+@dataclass(frozen=True, slots=True)
+class ViewerAddress:
+    """A viewer this host sends to as a gRPC client: ``name`` is what the user gave (or knows)."""
+
+    name: str
+    host: str
+    port: int
+    spawned: bool = False
+    """The viewer --spawn opened: closing its window is how a user ends looking, not an error."""
 
 
-def _listening(port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.settimeout(2.0)
-        return sock.connect_ex(("127.0.0.1", port)) == 0
+def _probe(host: str, port: int) -> str | None:
+    """None if something accepts TCP connections at host:port, else why not."""
+    try:
+        with socket.create_connection((host, port), timeout=PROBE_TIMEOUT_S):
+            return None
+    except socket.gaierror as err:
+        return f"cannot resolve {host!r}: {err.strerror}"
+    except TimeoutError:
+        return f"no answer from {host}:{port} within {PROBE_TIMEOUT_S:.0f} s"
+    except OSError as err:
+        return f"{host}:{port}: {err.strerror or err}"
+
+
+def viewer_address(url: str) -> ViewerAddress:
+    """The host and port of a ``--rerun-addr`` URL, or a SinkError saying what a good one is."""
+    example = f"e.g. rerun+http://{LOOPBACK}:{VIEWER_PORT}/proxy"
+    parts = urlsplit(url)
+    if parts.scheme not in VIEWER_SCHEMES or not parts.hostname or parts.path != "/proxy":
+        msg = f"--rerun-addr {url}: not a Rerun viewer URL ({example})"
+        raise SinkError(msg)
+    try:
+        port = parts.port or REDAP_DEFAULT_PORT
+    except ValueError as err:
+        msg = f"--rerun-addr {url}: bad port ({err}; {example})"
+        raise SinkError(msg) from err
+    return ViewerAddress(url, parts.hostname, port)
+
+
+def viewer_executable() -> str | None:
+    """The ``rerun`` viewer of the rerun-sdk this Python imports: beside the interpreter's
+    scripts first (a venv's ``bin/``, also when the venv is not activated; ``pip install
+    --user``'s ``~/.local/bin``), so viewer and SDK versions match; else the first on PATH."""
+    directories = [
+        sysconfig.get_path("scripts"),
+        str(Path(sys.executable).parent),
+        sysconfig.get_path("scripts", sysconfig.get_preferred_scheme("user")),
+    ]
+    for directory in directories:
+        found = shutil.which("rerun", path=directory)
+        if found is not None:
+            return found
+    return shutil.which("rerun")
+
+
+def _why_no_window() -> str:
+    """Why a spawned viewer died at once, as far as the environment tells."""
+    if sys.platform in ("darwin", "win32"):
+        return "it could not open a window; see its error above"
+    shown = [f"{name}={os.environ[name]}" for name in ("WAYLAND_DISPLAY", "DISPLAY") if os.environ.get(name)]
+    if not shown:
+        return "no display: DISPLAY and WAYLAND_DISPLAY are unset"
+    return f"{' and '.join(shown)} is set but the viewer could not open a window there; see its error above"
+
+
+def _check_port_free(host: str, port: int, flag: str) -> None:
+    """A SinkError naming ``flag`` if ``port`` cannot be listened on at ``host`` (Rerun's own
+    servers would only log the failure and drop everything sent to them)."""
+    try:
+        family = socket.AF_INET6 if ipaddress.ip_address(host).version == 6 else socket.AF_INET
+    except ValueError as err:
+        msg = f"--web-bind {host!r}: not an IP address (e.g. 127.0.0.1, 0.0.0.0, ::)"
+        raise SinkError(msg) from err
+    with socket.socket(family, socket.SOCK_STREAM) as sock:
+        # As Rerun's servers do, so a port left in TIME_WAIT by a previous run counts as free.
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port))
+        except OSError as err:
+            if err.errno == errno.EADDRINUSE:
+                msg = f"--serve-web: port {port} is in use by another program; choose another with {flag} N"
+            else:
+                msg = f"--serve-web: cannot listen on {host}:{port} ({err.strerror}); check --web-bind"
+            raise SinkError(msg) from err
+
+
+def _never() -> bool:
+    return False
 
 
 class RerunSink:
     """Logs converter output with the message's timelines."""
 
-    def __init__(self, options: SinkOptions) -> None:
+    def __init__(self, options: SinkOptions, give_up: Callable[[], bool] = _never) -> None:
+        """``give_up()`` true: stop waiting for a slow viewer (the user asked the host to stop)."""
+        self._give_up = give_up
         self.recording = rr.RecordingStream(APPLICATION_ID, recording_id=options.recording_id)
         # Swanky sets log_time itself (the bag's record time); the SDK's wall clock would clash.
         rr.set_log_time_enabled(False, recording=self.recording)
         rr.set_log_tick_enabled(False, recording=self.recording)
         self.web_url: str | None = None
+        self.web_note: str | None = None
+        self._viewers: list[ViewerAddress] = []
         self._open(options)
         # Rerun's time context is per thread (the dispatcher and the slow-converter worker).
         self._local = threading.local()
@@ -67,37 +179,100 @@ class RerunSink:
                 msg = f"--save {options.save}: directory {options.save.parent} does not exist"
                 raise SinkError(msg)
             sinks.append(rr.FileSink(str(options.save)))
-        if options.spawn:
-            if shutil.which("rerun") is None:
-                msg = "cannot spawn the Rerun viewer: no 'rerun' executable on PATH"
-                raise SinkError(msg)
-            try:
-                rr.spawn(connect=False, recording=self.recording)
-            except Exception as err:
-                msg = (
-                    f"cannot spawn the Rerun viewer ({err}); on a headless machine use "
-                    "--save FILE.rrd or --serve-web"
-                )
-                raise SinkError(msg) from err
-            if not _listening(VIEWER_PORT):
-                # rr.spawn only warns when the viewer dies at once (no display): without this
-                # check every later flush would wait forever for it.
-                msg = (
-                    f"cannot spawn the Rerun viewer: it exited without listening on port "
-                    f"{VIEWER_PORT} (no display?); on a headless machine use --save FILE.rrd or "
-                    "--serve-web"
-                )
-                raise SinkError(msg)
-            sinks.append(rr.GrpcSink())
         if options.connect is not None:
-            sinks.append(rr.GrpcSink(options.connect))
+            sinks.append(self._connect(options.connect))
+        if options.spawn:
+            sinks.append(self._spawn())
         if options.serve_web:
-            sinks.append(rr.GrpcServerSink(port=options.grpc_port or 9876))
+            sinks.append(self._serve_grpc(options))
         self.recording.set_sinks(*sinks)
         if options.serve_web:
-            grpc_url = f"rerun+http://127.0.0.1:{options.grpc_port or 9876}/proxy"
-            rr.serve_web_viewer(web_port=options.web_port, open_browser=False, connect_to=grpc_url)
-            self.web_url = f"http://127.0.0.1:{options.web_port or 9090}/?url={grpc_url}"
+            self._serve_web(options)
+
+    def _connect(self, url: str) -> rr.GrpcSink:
+        address = viewer_address(url)
+        problem = _probe(address.host, address.port)
+        if problem is not None:
+            msg = (
+                f"--rerun-addr {url}: no Rerun viewer there ({problem}); start one (`rerun` "
+                f"listens on port {VIEWER_PORT}) or use --spawn, --save FILE.rrd or --serve-web"
+            )
+            raise SinkError(msg)
+        try:
+            sink = rr.GrpcSink(url)
+        except RuntimeError as err:  # a URL Rerun reads differently from urlsplit
+            msg = f"--rerun-addr {url}: {err}"
+            raise SinkError(msg) from err
+        self._viewers.append(address)
+        return sink
+
+    def _spawn(self) -> rr.GrpcSink:
+        executable = viewer_executable()
+        if executable is None:
+            msg = (
+                f"cannot spawn the Rerun viewer: no 'rerun' executable beside {sys.executable} "
+                "or on PATH; install rerun-sdk (pip install \".[host]\") or use --save FILE.rrd, "
+                "--serve-web or --rerun-addr URL"
+            )
+            raise SinkError(msg)
+        try:
+            rr.spawn(
+                port=VIEWER_PORT, connect=False, recording=self.recording, executable_path=executable
+            )
+        except Exception as err:
+            msg = (
+                f"cannot spawn the Rerun viewer {executable} ({err}); on a machine without a "
+                "screen use --save FILE.rrd or --serve-web"
+            )
+            raise SinkError(msg) from err
+        if _probe(LOOPBACK, VIEWER_PORT) is not None:
+            # rr.spawn only warns when the viewer dies at once: without this check every later
+            # flush would wait for it.
+            msg = (
+                f"cannot spawn the Rerun viewer {executable}: it exited without listening on "
+                f"port {VIEWER_PORT} ({_why_no_window()}); on a machine without a screen use "
+                "--save FILE.rrd or --serve-web"
+            )
+            raise SinkError(msg)
+        self._viewers.append(
+            ViewerAddress(f"the spawned viewer (port {VIEWER_PORT})", LOOPBACK, VIEWER_PORT, spawned=True)
+        )
+        return rr.GrpcSink(f"rerun+http://{LOOPBACK}:{VIEWER_PORT}/proxy")
+
+    def _serve_grpc(self, options: SinkOptions) -> rr.GrpcServerSink:
+        port = options.grpc_port or VIEWER_PORT
+        _check_port_free(options.web_bind, port, "--grpc-port")
+        # Rerun's page server always listens on every interface.
+        _check_port_free(ALL_INTERFACES[0], options.web_port or WEB_PORT, "--web-port")
+        return rr.GrpcServerSink(bind_ip=options.web_bind, port=port)
+
+    def _serve_web(self, options: SinkOptions) -> None:
+        grpc_port = options.grpc_port or VIEWER_PORT
+        web_port = options.web_port or WEB_PORT
+        host = LOOPBACK if options.web_bind in ALL_INTERFACES else options.web_bind
+        grpc_url = f"rerun+http://{host}:{grpc_port}/proxy"
+        try:
+            rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=grpc_url)
+        except RuntimeError as err:  # the port was taken since it was checked
+            msg = (
+                f"--serve-web: cannot serve the web viewer on port {web_port} ({err}); choose "
+                "another with --web-port N"
+            )
+            raise SinkError(msg) from err
+        self.web_url = f"http://{host}:{web_port}/?url={grpc_url}"
+        # Rerun serves the viewer page (code only, no data) on every interface, whatever we ask.
+        if options.web_bind in ALL_INTERFACES:
+            self.web_note = (
+                f"the recording (port {grpc_port}) and the viewer page (port {web_port}) are open "
+                "to every network interface (--web-bind); from another machine use this PC's "
+                f"address instead of {host}"
+            )
+        else:
+            self.web_note = (
+                f"the recording is served on {options.web_bind}:{grpc_port} only (--web-bind "
+                f"0.0.0.0 opens it to the network); Rerun serves the viewer page (code, no data) "
+                f"on port {web_port} of every interface"
+            )
 
     def _set_times(self, times: Mapping[str, int]) -> None:
         if times == getattr(self._local, "times", None):
@@ -131,9 +306,39 @@ class RerunSink:
         rr.log_file_from_path(path, recording=self.recording)
 
     def flush(self) -> None:
-        self.recording.flush()
+        """Wait until every sink has everything logged so far. A viewer that is slow to read is
+        waited for (until ``give_up()``); one that went away is not: SinkError names it."""
+        while True:
+            try:
+                self.recording.flush(timeout_sec=FLUSH_STEP_S)
+                return
+            except RuntimeError as err:
+                lost = self._lost_viewers(err)
+                if lost and all(viewer.spawned for viewer, _ in lost):
+                    log.info("the Rerun viewer was closed; not waiting for it")
+                    return
+                if lost:
+                    named = "; ".join(f"{viewer.name} ({problem})" for viewer, problem in lost)
+                    msg = f"lost the Rerun viewer at {named}: what it had not received yet is not shown"
+                    raise SinkError(msg) from err
+                if self._give_up():
+                    msg = f"stopped before every sink had everything ({err})"
+                    raise SinkError(msg) from err
+
+    def _lost_viewers(self, err: RuntimeError) -> list[tuple[ViewerAddress, str]]:
+        """The viewers, with why, that a failed flush step means are gone, not just slow."""
+        probed = [(viewer, _probe(viewer.host, viewer.port)) for viewer in self._viewers]
+        lost = [(viewer, problem) for viewer, problem in probed if problem is not None]
+        # Rerun's words when its client gave up ("unable to connect", "connection severed"),
+        # e.g. something else took the port after the viewer died.
+        if not lost and "connect" in str(err):
+            lost = [(viewer, str(err)) for viewer in self._viewers]
+        return lost
 
     def close(self) -> None:
-        """Flush everything and close the sinks, so a saved .rrd is complete."""
-        self.recording.flush()
-        self.recording.disconnect()
+        """Flush and close the sinks, so a saved .rrd is complete even when a viewer is gone
+        (SinkError then names it, after the file is closed)."""
+        try:
+            self.flush()
+        finally:
+            self.recording.disconnect()

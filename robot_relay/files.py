@@ -61,7 +61,8 @@ def urdf_package_names(urdf: str) -> set[str]:
 
 
 def parse_package_path(option: str) -> tuple[str, Path]:
-    """Split a ``--package-path NAME=DIR`` option (the host's spelling) into name and directory."""
+    """Split a ``--package-path NAME=DIR`` option (the host's spelling) into name and directory,
+    which must exist: a typo would otherwise only show later as meshes not found."""
     name, sep, directory = option.partition("=")
     if not sep or not name or not directory or "/" in name or name in (".", ".."):
         msg = (
@@ -69,7 +70,12 @@ def parse_package_path(option: str) -> tuple[str, Path]:
             "the directory holding that package's files (the one with package.xml)"
         )
         raise ConfigError(msg)
-    return name, Path(directory).expanduser()
+    path = Path(directory).expanduser()
+    if not path.is_dir():
+        nothing = "" if path.exists() else " (nothing is there)"
+        msg = f"--package-path {option}: {path} is not a directory{nothing}"
+        raise ConfigError(msg)
+    return name, path
 
 
 def ament_prefix_paths(environ: Mapping[str, str] | None = None) -> list[Path]:
@@ -262,8 +268,4 @@ def serve_files(
 ) -> FileService:
     """Start answering ``swanky/<robot>/files/**`` for the ``--package-path NAME=DIR`` options."""
     explicit = dict(parse_package_path(option) for option in package_paths)
-    for name, directory in explicit.items():
-        if not directory.is_dir():
-            msg = f"--package-path {name}={directory}: not a directory"
-            raise ConfigError(msg)
     return FileService(session, robot, FileServer(explicit, max_bytes), ament_prefix_paths(environ))

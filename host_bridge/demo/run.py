@@ -13,12 +13,13 @@ import argparse
 import logging
 import multiprocessing
 import os
+import signal
 import socket
 import tempfile
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
 from pathlib import Path
 
 from host_bridge.demo.bag import write_demo_bag
@@ -81,17 +82,42 @@ def _write_bag(job: tuple[Path, float, float]) -> Path:
     return write_demo_bag(path, seconds, route_offset=route_offset)
 
 
-def write_bags(directory: Path, robots: list[str], seconds: float) -> list[Path]:
+def _leave_signals_to_the_host() -> None:
+    """In a bag-writing process: Ctrl-C (and systemd's SIGTERM) reach the whole process group,
+    and the host stops the demo itself: no KeyboardInterrupt traceback from every worker, no
+    broken pool. A worker finishes its bag (a second or two) and exits with the pool."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
+def write_bags(
+    directory: Path, robots: list[str], seconds: float, stop: threading.Event
+) -> list[Path] | None:
     """One bag per robot, spread evenly along the loop; several are written in parallel
-    processes (the simulation is CPU-bound Python) so a fleet starts about as fast as one."""
+    processes (the simulation is CPU-bound Python) so a fleet starts about as fast as one.
+    None if ``stop`` was set meanwhile: bags not started are dropped, not waited for."""
     spacing = lap_length() / len(robots)
     jobs = [(directory / robot, seconds, i * spacing) for i, robot in enumerate(robots)]
     workers = min(len(jobs), os.cpu_count() or 1)
     if workers == 1:
-        return [_write_bag(job) for job in jobs]
+        bags = []
+        for job in jobs:
+            if stop.is_set():
+                return None
+            bags.append(_write_bag(job))
+        return bags
     context = multiprocessing.get_context("spawn")  # never fork a process running zenoh threads
-    with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
-        return list(pool.map(_write_bag, jobs))
+    with ProcessPoolExecutor(
+        max_workers=workers, mp_context=context, initializer=_leave_signals_to_the_host
+    ) as pool:
+        futures = [pool.submit(_write_bag, job) for job in jobs]
+        while not stop.is_set():
+            done, pending = wait(futures, timeout=0.1, return_when=FIRST_EXCEPTION)
+            if not pending or any(future.exception() is not None for future in done):
+                return [future.result() for future in futures]
+        for future in futures:
+            future.cancel()
+        return None
 
 
 def _replay(
@@ -124,7 +150,9 @@ def run_demo(args: argparse.Namespace, run_host: Callable[[], None], stop: threa
     with tempfile.TemporaryDirectory(prefix="swanky-demo-") as tmp:
         log.info("demo: simulating %s for %.0f s", ", ".join(robots), seconds)
         started = time.monotonic()
-        bags = write_bags(Path(tmp), robots, seconds)
+        bags = write_bags(Path(tmp), robots, seconds, stop)
+        if bags is None:
+            return
         log.info("demo: bags written in %.1f s; relaying them over %s",
                  time.monotonic() - started, args.demo_endpoint)
         relays = [

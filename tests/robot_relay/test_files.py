@@ -169,8 +169,14 @@ def test_serve_over_zenoh(server: FileServer) -> None:
         queryable.undeclare()
 
 
-def test_package_path_option() -> None:
-    assert parse_package_path("pkg=/x/y") == ("pkg", Path("/x/y"))
+def test_package_path_option(tmp_path: Path) -> None:
+    assert parse_package_path(f"pkg={tmp_path}") == ("pkg", tmp_path)
+    with pytest.raises(ConfigError) as missing:
+        parse_package_path(f"pkg={tmp_path}/no/such")
+    assert str(missing.value) == (
+        f"--package-path pkg={tmp_path}/no/such: {tmp_path}/no/such is not a directory "
+        "(nothing is there)"
+    )
     for bad in ("pkg", "=dir", "pkg=", "a/b=dir", "..=dir"):
         with pytest.raises(ConfigError, match="NAME=DIR"):
             parse_package_path(bad)
