@@ -51,32 +51,37 @@ def robot_root_frame(robot: str) -> str:
     return f"tf#/{robot}"
 
 
-def _strings(array: pa.Array) -> list[Any]:
-    """The values of a component column (one list per row) or batch, flattened."""
+def _flat(array: pa.Array) -> pa.Array:
+    """A component column (one list per row) or batch as one array of values."""
     if pa.types.is_list(array.type) or pa.types.is_large_list(array.type):
-        array = array.flatten()
-    values: list[Any] = array.to_pylist()
-    return values
+        return array.flatten()
+    return array
 
 
-def _column_values(columns: Iterable[Any]) -> dict[str, list[Any]]:
+def _column_values(columns: Iterable[Any]) -> dict[str, pa.Array]:
     found = {}
     for column in columns:
         name = column.component_descriptor().component
         if name in (_PARENT, _CHILD, _FRAME):
-            found[name] = _strings(column.as_arrow_array())
+            found[name] = _flat(column.as_arrow_array())
     return found
 
 
-def _archetype_values(archetype: Any) -> dict[str, list[Any]]:
+def _archetype_values(archetype: Any) -> dict[str, pa.Array]:
     found = {}
     if isinstance(archetype, rr.Transform3D):
         for name, batch in ((_PARENT, archetype.parent_frame), (_CHILD, archetype.child_frame)):
             if batch is not None:
-                found[name] = _strings(batch.as_arrow_array())
+                found[name] = _flat(batch.as_arrow_array())
     elif isinstance(archetype, rr.CoordinateFrame) and archetype.frame is not None:
-        found[_FRAME] = _strings(archetype.frame.as_arrow_array())
+        found[_FRAME] = _flat(archetype.frame.as_arrow_array())
     return found
+
+
+def _distinct(*arrays: pa.Array) -> set[tuple[Any, ...]]:
+    """The distinct rows of equally long arrays (a TF run repeats a few relations many times)."""
+    columns = [array.to_pylist() for array in arrays]
+    return set(zip(*columns, strict=True))
 
 
 def frames_logged(entries: Sequence[LogEntry]) -> tuple[set[tuple[str, str]], set[str]]:
@@ -86,20 +91,22 @@ def frames_logged(entries: Sequence[LogEntry]) -> tuple[set[tuple[str, str]], se
     relations: set[tuple[str, str]] = set()
     frames: set[str] = set()
     for entry in entries:
-        parts: Iterable[dict[str, list[Any]]]
+        parts: Iterable[dict[str, pa.Array]]
         if isinstance(entry, ColumnsItem):
             parts = [_column_values(entry.columns)]
         else:
             parts = [_archetype_values(a) for a in entry.archetypes]
         for values in parts:
-            frames.update(f for f in values.get(_FRAME, ()) if f)
-            parents = values.get(_PARENT, [])
-            children = values.get(_CHILD) or [f"tf#{entry.path}"] * len(parents)
-            relations.update(
-                (child, parent)
-                for child, parent in zip(children, parents, strict=False)
-                if child and parent
-            )
+            if _FRAME in values:
+                frames.update(f for (f,) in _distinct(values[_FRAME]) if f)
+            if _PARENT not in values:
+                continue
+            parents = values[_PARENT]
+            if _CHILD in values and len(values[_CHILD]) == len(parents):
+                pairs = _distinct(values[_CHILD], parents)
+            else:
+                pairs = {(f"tf#{entry.path}", parent) for (parent,) in _distinct(parents)}
+            relations.update((child, parent) for child, parent in pairs if child and parent)
     return relations, frames
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 import rerun as rr
 from rerun.chunk import RrdReader
 
@@ -210,13 +211,24 @@ def test_bag_without_any_tf_has_every_frame_reachable(tmp_path: Path) -> None:
         recording.static_relations)
 
 
-def test_real_scan_bag_without_tf_is_reachable(shared_data: Path, tmp_path: Path) -> None:
-    out = tmp_path / "scan.rrd"
-    bag = shared_data / "hokuyo_scan_ccny" / "laser_scan_matcher_demo.bag"
-    assert host_main(["--bag", str(bag), "--robot", ROBOT, "--save", str(out)]) == 0
+@pytest.mark.parametrize(
+    ("bag", "target"),
+    [
+        # No TF at all: a real Hokuyo scan in "laser"; the viewer's own target.
+        ("hokuyo_scan_ccny/laser_scan_matcher_demo.bag", f"tf#{ORIGIN}"),
+        # Empty frame ids everywhere, a grid with resolution 0.
+        ("ros_numpy_msgs_synthetic/ros_numpy_test.bag", f"tf#{ORIGIN}"),
+        # odom -> base_footprint on /tf, base_footprint -> base_link on /tf_static.
+        ("tf_nav2_sim_evo/tf_example.bag", f"{ROBOT}/odom"),
+    ],
+)
+def test_real_bags_reach_every_entity(shared_data: Path, tmp_path: Path, bag: str, target: str) -> None:
+    out = tmp_path / "real.rrd"
+    assert host_main(["--bag", str(shared_data / bag), "--robot", ROBOT, "--save", str(out)]) == 0
     recording = read_recording(out)
-    assert recording.entity_frames[f"{ORIGIN}/scan"] == f"{ROBOT}/laser"
-    assert recording.unreachable("tf#/", static_only=True) == {}
+    assert recording.target() == target
+    assert len(recording.entity_frames) > 2
+    assert recording.unreachable(target) == {}
 
 
 # --- RobotFrames itself ---------------------------------------------------------------------------
