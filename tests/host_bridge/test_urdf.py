@@ -506,10 +506,10 @@ def test_gltf_base_colour_is_linear_and_made_srgb(tmp_path: Path) -> None:
     for z, rgb in ((0.0, [linear, linear, linear]), (2.0, [255, 0, 0])):
         box = trimesh.creation.box(extents=[1, 1, 1])
         box.apply_translation([0, 0, z])
-        box.visual = trimesh.visual.TextureVisuals(material=trimesh.visual.material.PBRMaterial(
-            baseColorFactor=[*rgb, 255]))
+        material = trimesh.visual.material.PBRMaterial(baseColorFactor=[*rgb, 255])  # type: ignore[no-untyped-call]
+        box.visual = trimesh.visual.TextureVisuals(material=material)  # type: ignore[no-untyped-call]
         parts.append(box)
-    trimesh.Scene(parts).export(tmp_path / "two.glb")
+    trimesh.Scene(parts).export(tmp_path / "two.glb")  # type: ignore[no-untyped-call]
     parts[0].export(tmp_path / "one.glb")
     xml = mesh_urdf((f"file://{tmp_path}/one.glb", "1 1 1"), (f"file://{tmp_path}/two.glb", "1 1 1"))
     items = by_path(convert(xml, make_ctx("r", ResourceResolver())))
@@ -560,3 +560,27 @@ def test_urdf_file_replaces_the_robot_description(
     assert [r.getMessage() for r in caplog.records] == [
         f"[r] /robot_description: not drawn, the robot model is --urdf {path}"]
     assert len(from_file) == 10
+
+
+def test_urdf_file_warning_names_the_file_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Through the command line: the --urdf file's missing mesh is one warning line that names
+    the file once (it read ``robot.urdf: robot.urdf: ...``)."""
+    from host_bridge.cli import main as host_main
+    from tests.host_bridge.user_robot import BagContent, write_bag
+
+    for variable in ("ROS_PACKAGE_PATH", "AMENT_PREFIX_PATH"):
+        monkeypatch.delenv(variable, raising=False)
+    path = write_user_robot(tmp_path)
+    (tmp_path / "meshes" / "arm.dae").unlink()
+    bag = write_bag(tmp_path / "bag", BagContent())
+    with caplog.at_level("WARNING", logger="swanky.host"):
+        assert host_main(["--bag", str(bag), "--urdf", str(path), "--save", str(tmp_path / "o.rrd")]) == 0
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warning == (
+        f"[robot] {path}: robot model 'arm_bot': 1 of 5 visuals not drawn: mesh files not found: "
+        f"file://{tmp_path}/meshes/arm.dae for link 'upper_arm'; looked in no --package-path "
+        "and no ROS_PACKAGE_PATH/AMENT_PREFIX_PATH; no robot file server to ask "
+        "(further PartialConvertErrors on this topic are counted, not shown)"
+    )

@@ -49,8 +49,8 @@ class Recording:
     # (child, parent) of every relation, and of the static ones only (what holds at any time).
     relations: set[tuple[str, str]] = field(default_factory=set)
     static_relations: set[tuple[str, str]] = field(default_factory=set)
-    # Transform3D rows per entity: (static, translation, child frame).
-    transforms: dict[str, list[tuple[bool, list[float] | None, str | None]]] = field(
+    # Transform3D rows per entity: (static, translation or None, child frame or None).
+    transforms: dict[str, list[tuple[bool, Any, str | None]]] = field(
         default_factory=lambda: defaultdict(list)
     )
     # The robot's 3D view: origin and the target frame its blueprint names (None: unnamed).
@@ -121,13 +121,13 @@ def read_recording(path: Path) -> Recording:
     for store in reader.blueprints():  # the last one sent is the layout the viewer shows
         views: dict[str, dict[str, Any]] = defaultdict(dict)
         for chunk in reader.stream(store=store):
-            view = "/".join(chunk.entity_path.split("/")[:3])
+            view_path = "/".join(chunk.entity_path.split("/")[:3])  # /view/<id>
             batch = chunk.to_record_batch()
             for name in ("ViewBlueprint:display_name", "ViewBlueprint:space_origin",
                          "SpatialInformation:target_frame"):
                 values = column(batch, name)
                 if values:
-                    views[view][name] = values[-1][0]
+                    views[view_path][name] = values[-1][0]
         for view in views.values():
             if view.get("ViewBlueprint:display_name") == f"{ROBOT} 3D":
                 found.view_origin = view["ViewBlueprint:space_origin"]
