@@ -106,14 +106,34 @@ def _plot_query(entry: TopicEntry) -> str:
     return _subtree(entry.entity_path)
 
 
-def _image_views(topics: Sequence[TopicEntry]) -> list[rrb.View]:
-    """A 2D view per image topic, rooted at its camera's pinhole when it has one, so overlays
-    of the same camera and the 3D scene's projection land on the picture."""
-    pinholes = {
+def _pinholes(topics: Iterable[TopicEntry]) -> set[str]:
+    """Entity paths of the cameras' pinholes (logged by the CameraInfo converter)."""
+    return {
         pinhole_path(ConvertContext(robot=t.robot, topic=t.topic, entity_path=t.entity_path, times={}))
         for t in topics
         if t.msgtype == CAMERA_INFO_TYPE
     }
+
+
+def _flat_pictures(topics: Sequence[TopicEntry]) -> list[str]:
+    """Images and their overlays under no pinhole: 2D content a 3D view cannot place (it shows
+    "2D visualizers require a pinhole ancestor" for them), so 3D views leave them out."""
+    pinholes = _pinholes(topics)
+    return [
+        t.entity_path for t in topics
+        if t.msgtype in IMAGE_TYPES | IMAGE_OVERLAY_TYPES
+        and not any(_is_under(t.entity_path, p) for p in pinholes)
+    ]
+
+
+def _spatial_contents(included: Sequence[str], topics: Sequence[TopicEntry]) -> list[str]:
+    return [*included, *(f"- {path.rstrip('/')}/**" for path in _flat_pictures(topics))]
+
+
+def _image_views(topics: Sequence[TopicEntry]) -> list[rrb.View]:
+    """A 2D view per image topic, rooted at its camera's pinhole when it has one, so overlays
+    of the same camera and the 3D scene's projection land on the picture."""
+    pinholes = _pinholes(topics)
     views: list[rrb.View] = []
     for image in (t for t in topics if t.msgtype in IMAGE_TYPES):
         cameras = [p for p in pinholes if _is_under(image.entity_path, p)]
@@ -179,7 +199,9 @@ def robot_layout(robot: str, topics: Sequence[TopicEntry], *, stats: bool = Fals
         right.append(rrb.Tabs(*plots))
     right.append(_log_view(topics))
     return rrb.Horizontal(
-        rrb.Spatial3DView(name=f"{robot} 3D", origin=f"/{robot}"),
+        rrb.Spatial3DView(
+            name=f"{robot} 3D", origin=f"/{robot}", contents=_spatial_contents(["$origin/**"], topics)
+        ),
         rrb.Vertical(*right),
         column_shares=[3, 2],
         name=robot,
@@ -194,10 +216,12 @@ def build_blueprint(topics: Iterable[TopicEntry], *, stats: bool = False) -> rrb
     layouts = [robot_layout(robot, entries, stats=stats) for robot, entries in by_robot.items()]
     if len(layouts) == 1:
         return rrb.Blueprint(layouts[0])
+    every = [t for entries in by_robot.values() for t in entries]
     shared: list[rrb.View] = [rrb.Spatial3DView(
-        name="All robots 3D", origin="/", contents=[_subtree(f"/{robot}") for robot in by_robot],
+        name="All robots 3D", origin="/",
+        contents=_spatial_contents([_subtree(f"/{robot}") for robot in by_robot], every),
     )]
-    gps = _gps_view("All robots GPS", (t for entries in by_robot.values() for t in entries))
+    gps = _gps_view("All robots GPS", every)
     if gps is not None:
         shared.append(gps)
     overview = rrb.Horizontal(*shared, name="All robots")

@@ -84,7 +84,8 @@ def test_one_robot_gets_3d_images_map_plots_and_log() -> None:
         "Log": "TextLog",
     }
     assert found["tb3 3D"].origin == "/tb3"
-    assert found["tb3 3D"].contents == "$origin/**"
+    # An image with no camera pinhole is 2D content the 3D view cannot place (a red error there).
+    assert found["tb3 3D"].contents == ["$origin/**", "- /tb3/front/image/**"]
     # Images of the camera namespace sit under its pinhole (logged at /tb3/camera by the
     # CameraInfo converter), with the camera's detections drawn over them; an image with no
     # CameraInfo is its own 2D space.
@@ -137,7 +138,7 @@ def test_several_robots_get_a_shared_tab_then_one_tab_each() -> None:
     assert [str(tab.name) for tab in tabs] == ["All robots", "pupper", "tb3"]
     shared = by_name(views(tabs[0]))
     assert shared["All robots 3D"].origin == "/"
-    assert shared["All robots 3D"].contents == ["+ /pupper/**", "+ /tb3/**"]
+    assert shared["All robots 3D"].contents == ["+ /pupper/**", "+ /tb3/**", "- /tb3/front/image/**"]
     assert shared["All robots GPS"].contents == ["+ /tb3/gps/fix/**"]
     pupper_views = by_name(views(tabs[1]))
     assert set(pupper_views) == {"pupper 3D", "IMU", "Log"}

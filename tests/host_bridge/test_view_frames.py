@@ -53,14 +53,41 @@ class Recording:
     transforms: dict[str, list[tuple[bool, Any, str | None]]] = field(
         default_factory=lambda: defaultdict(list)
     )
-    # The robot's 3D view: origin and the target frame its blueprint names (None: unnamed).
+    # Component columns logged per entity.
+    components: dict[str, set[str]] = field(default_factory=lambda: defaultdict(set))
+    # The robot's 3D view: origin, the target frame its blueprint names (None: unnamed), and
+    # its contents queries.
     view_origin: str | None = None
     view_target: str | None = None
+    view_contents: list[str] = field(default_factory=list)
 
     def target(self) -> str:
         """The view's target as the viewer picks it: the blueprint's, else the origin's frame."""
         assert self.view_origin is not None
         return self.view_target or self.entity_frames.get(self.view_origin, f"tf#{self.view_origin}")
+
+    def in_view(self, entity: str) -> bool:
+        """Whether the view's queries (``+ path/**``, ``- path/**``, ``$origin``) take ``entity``."""
+        assert self.view_origin is not None
+        included = excluded = False
+        for query in self.view_contents:
+            sign, _, pattern = query.partition(" ") if query[0] in "+-" else ("+", "", query)
+            pattern = pattern.replace("$origin", self.view_origin)
+            root = pattern.removesuffix("/**")
+            matches = entity == root or (pattern.endswith("/**") and entity.startswith(root + "/"))
+            included |= matches and sign == "+"
+            excluded |= matches and sign == "-"
+        return included and not excluded
+
+    def pictures_without_pinhole(self) -> list[str]:
+        """2D content in the 3D view under no pinhole: red errors in a 3D view."""
+        pinholes = [e for e, names in self.components.items() if "Pinhole:image_from_camera" in names]
+        return sorted(
+            entity for entity, names in self.components.items()
+            if names & {"Image:buffer", "EncodedImage:blob", "VideoStream:sample"}
+            and self.in_view(entity)
+            and not any(entity == p or entity.startswith(p + "/") for p in pinholes)
+        )
 
     def unreachable(self, target: str, *, static_only: bool = False) -> dict[str, str]:
         """Entities under the robot whose frame has no path to ``target``, with that frame."""
@@ -101,6 +128,7 @@ def read_recording(path: Path) -> Recording:
         batch = chunk.to_record_batch()
         entity = chunk.entity_path
         found.entity_frames.setdefault(entity, f"tf#{entity}")
+        found.components[entity].update(batch.schema.names)
         frames = column(batch, "CoordinateFrame:frame")
         if frames:
             found.entity_frames[entity] = [f for f in frames if f][-1][0]
@@ -124,14 +152,15 @@ def read_recording(path: Path) -> Recording:
             view_path = "/".join(chunk.entity_path.split("/")[:3])  # /view/<id>
             batch = chunk.to_record_batch()
             for name in ("ViewBlueprint:display_name", "ViewBlueprint:space_origin",
-                         "SpatialInformation:target_frame"):
+                         "SpatialInformation:target_frame", "ViewContents:query"):
                 values = column(batch, name)
                 if values:
-                    views[view_path][name] = values[-1][0]
+                    views[view_path][name] = values[-1]
         for view in views.values():
-            if view.get("ViewBlueprint:display_name") == f"{ROBOT} 3D":
-                found.view_origin = view["ViewBlueprint:space_origin"]
-                found.view_target = view.get("SpatialInformation:target_frame")
+            if view.get("ViewBlueprint:display_name") == [f"{ROBOT} 3D"]:
+                found.view_origin = view["ViewBlueprint:space_origin"][0]
+                found.view_target = view.get("SpatialInformation:target_frame", [None])[0]
+                found.view_contents = view["ViewContents:query"]
     return found
 
 
@@ -229,6 +258,7 @@ def test_real_bags_reach_every_entity(shared_data: Path, tmp_path: Path, bag: st
     assert recording.target() == target
     assert len(recording.entity_frames) > 2
     assert recording.unreachable(target) == {}
+    assert recording.pictures_without_pinhole() == []
 
 
 # --- RobotFrames itself ---------------------------------------------------------------------------
