@@ -18,9 +18,9 @@ import numpy as np
 import numpy.typing as npt
 from rosbags.typesys import Stores, get_typestore
 
+from host_bridge.contract import ConvertContext, LogEntry
 from host_bridge.converters import walls
 from host_bridge.converters.occupancy import grid_from_msg
-from host_bridge.registry import ConvertContext, LogEntry
 from host_bridge.segments import grid_to_image
 
 SIZE = 4000

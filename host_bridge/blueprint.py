@@ -23,12 +23,12 @@ from pathlib import Path
 
 import rerun.blueprint as rrb
 
+from host_bridge.contract import ConvertContext
 from host_bridge.converters.camera import pinhole_path
 from host_bridge.converters.urdf import is_robot_description
 from host_bridge.decode import is_service_event_type
 from host_bridge.dispatch import WARNINGS_PATH
 from host_bridge.errors import ConfigError
-from host_bridge.registry import ConvertContext
 from host_bridge.stats import STATS_ROOT
 
 TIMER_PREFIX = "/instrumentation/timer/"

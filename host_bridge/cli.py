@@ -174,8 +174,8 @@ def resolver(args: argparse.Namespace, robot_fetch: RobotFetch | None = None) ->
 def log_urdf_file(args: argparse.Namespace, dispatcher: Dispatcher) -> None:
     """The --urdf model of robot --robot, logged once (static) before any data; the robot's
     /robot_description is then not drawn."""
+    from host_bridge.contract import ConvertContext
     from host_bridge.converters.urdf import model_items_from_file
-    from host_bridge.registry import ConvertContext
 
     ctx = ConvertContext(
         robot=args.robot, topic="/robot_description", entity_path=f"/{args.robot}/robot_model",

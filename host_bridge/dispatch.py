@@ -20,20 +20,18 @@ from typing import Any
 import rerun as rr
 
 from host_bridge.config import HostConfig
-from host_bridge.decode import Decoder
-from host_bridge.errors import ConfigError, HostError, PartialConvertError
-from host_bridge.frames import RobotFrames
-from host_bridge.registry import (
+from host_bridge.contract import (
     TIMELINE_LOG,
     TIMELINE_RECEIVE,
     TIMELINE_ROS,
     ConvertContext,
     LogEntry,
     LogItem,
-    Registry,
-    default_registry,
-    slow_converters,
 )
+from host_bridge.decode import Decoder
+from host_bridge.errors import ConfigError, HostError, PartialConvertError
+from host_bridge.frames import RobotFrames
+from host_bridge.registry import Registry, default_registry, slow_converters
 from host_bridge.sink import RerunSink
 from robot_relay.wire import RawMessage
 

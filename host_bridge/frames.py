@@ -32,9 +32,9 @@ from typing import Any
 import pyarrow as pa
 import rerun as rr
 
+from host_bridge.contract import ColumnsItem, LogEntry, LogItem
 from host_bridge.converters.joints import ROBOT_MODEL_KEY, RobotModel
 from host_bridge.converters.tf import static_transform_path
-from host_bridge.registry import ColumnsItem, LogEntry, LogItem
 
 log = logging.getLogger("swanky.host")
 

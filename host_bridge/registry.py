@@ -1,124 +1,16 @@
-"""Converter protocol, log items, the per-message context, and the type -> converter map.
-
-A converter is a pure function ``(msg, ctx) -> list[LogEntry]``: it never calls ``rr.log``; the
-sink does. Converters of high-rate small types may also offer a run form that turns many
-messages of one topic into columns for ``rr.send_columns``.
+"""The type -> converter map.
 
 The registry is assembled explicitly in :func:`default_registry` from each converter module's
 ``CONVERTERS`` mapping; nothing registers itself on import, and a type registered twice is an
-error.
+error. The contract converters follow is :mod:`host_bridge.contract`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import Any
+from collections.abc import Callable, Mapping
 
-import numpy as np
-import numpy.typing as npt
-import rerun as rr
-
-from host_bridge.errors import ConvertError, PartialConvertError, RegistryError
-
-TIMELINE_ROS = "ros_time"
-TIMELINE_RECEIVE = "receive_time"
-TIMELINE_LOG = "log_time"
-
-
-@dataclass(frozen=True, slots=True)
-class LogItem:
-    """Archetypes to log at one entity path.
-
-    ``times`` replaces the message's timeline values for this item (a TF message carries one
-    stamp per transform); ``None`` keeps them. Static items ignore times.
-    """
-
-    path: str
-    archetypes: tuple[rr.AsComponents, ...]
-    static: bool = False
-    times: Mapping[str, int] | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class ColumnsItem:
-    """Rows for ``rr.send_columns``: one row per entry of each ``times`` array (int64 ns)."""
-
-    path: str
-    columns: Iterable[Any]
-    times: Mapping[str, npt.NDArray[np.int64]]
-
-
-LogEntry = LogItem | ColumnsItem
-
-
-@dataclass(frozen=True, slots=True)
-class ConvertContext:
-    """What a converter may know beyond the message itself.
-
-    ``state`` is per-topic scratch the dispatcher keeps between messages (odometry trails,
-    the last map a grid update patches); ``robot_state`` is shared by all topics of one robot
-    (the URDF that /joint_states moves). They are the only things a converter may mutate.
-    """
-
-    robot: str
-    topic: str
-    entity_path: str
-    times: Mapping[str, int]
-    options: Mapping[str, Any] = field(default_factory=dict)
-    state: dict[str, Any] = field(default_factory=dict)
-    robot_state: dict[str, Any] = field(default_factory=dict)
-
-    def frame(self, frame_id: str) -> str | None:
-        """Rerun frame name of a ROS frame: ``<robot>/<frame_id>``; None for an empty id."""
-        frame_id = frame_id.strip("/")
-        return f"{self.robot}/{frame_id}" if frame_id else None
-
-    def child_path(self, *parts: str) -> str:
-        return "/".join([self.entity_path, *parts])
-
-
-Converter = Callable[[Any, ConvertContext], list[LogEntry]]
-RunConverter = Callable[[Sequence[Any], Sequence[ConvertContext]], list[LogEntry]]
-
-
-@dataclass(frozen=True, slots=True)
-class ConverterSpec:
-    convert: Converter
-    convert_run: RunConverter | None = None
-
-
-def combine(*specs: ConverterSpec) -> ConverterSpec:
-    """One spec running several converters on the same message (JointState: the robot's
-    kinematics and the joint plots); a part that fails does not cost the others' output."""
-
-    def gather(parts: Sequence[Callable[[], list[LogEntry]]]) -> list[LogEntry]:
-        entries: list[LogEntry] = []
-        errors: list[ConvertError] = []
-        for part in parts:
-            try:
-                entries.extend(part())
-            except PartialConvertError as err:
-                entries.extend(err.items)
-                errors.append(err)
-            except ConvertError as err:
-                errors.append(err)
-        if errors:
-            raise PartialConvertError("; ".join(str(e) for e in errors), entries)
-        return entries
-
-    def convert(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-        return gather([lambda s=s: s.convert(msg, ctx) for s in specs])  # type: ignore[misc]
-
-    def convert_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-        def run_of(spec: ConverterSpec) -> list[LogEntry]:
-            if spec.convert_run is not None:
-                return spec.convert_run(msgs, ctxs)
-            return [e for m, c in zip(msgs, ctxs, strict=True) for e in spec.convert(m, c)]
-
-        return gather([lambda s=s: run_of(s) for s in specs])  # type: ignore[misc]
-
-    return ConverterSpec(convert, convert_run)
+from host_bridge.contract import ConverterSpec, combine
+from host_bridge.errors import RegistryError
 
 
 class Registry:

@@ -25,8 +25,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from host_bridge.contract import ColumnsItem, LogEntry, LogItem
 from host_bridge.errors import SinkError
-from host_bridge.registry import ColumnsItem, LogEntry, LogItem
 
 log = logging.getLogger("swanky.host")
 

@@ -36,8 +36,8 @@ from typing import TYPE_CHECKING
 
 import rerun as rr
 
+from host_bridge.contract import TIMELINE_LOG, TIMELINE_RECEIVE, LogItem
 from host_bridge.dispatch import TopicCounters, sequence_gap
-from host_bridge.registry import TIMELINE_LOG, TIMELINE_RECEIVE, LogItem
 from robot_relay.errors import WireError
 from robot_relay.stats import RelayReport, stats_selector
 from robot_relay.wire import RawMessage, parse_robot_key

@@ -9,7 +9,7 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.registry import ConvertContext
+from host_bridge.contract import ConvertContext
 
 
 def stamp_ns(stamp: Any) -> int:

@@ -34,9 +34,9 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
+from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import frame_components, header_frame
 from host_bridge.errors import ConvertError
-from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
 
 
 def pinhole_path(ctx: ConvertContext) -> str:

@@ -14,7 +14,7 @@ from typing import Any
 
 import rerun as rr
 
-from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 
 _OK, _WARN, _ERROR = 0, 1, 2
 _LEVELS = {

@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
+from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import time_columns
 from host_bridge.errors import PartialConvertError
-from host_bridge.registry import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 
 _TIME_TYPES = ("builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration")
 MAX_SEQUENCE_MESSAGES = 16

@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
+from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry
 from host_bridge.converters._common import time_columns
 from host_bridge.converters.scalars import scalar_columns
-from host_bridge.registry import ColumnsItem, ConvertContext, ConverterSpec, LogEntry
 
 STATUS_NO_FIX = -1
 COVARIANCE_TYPE_UNKNOWN = 0

@@ -22,8 +22,8 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
+from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import frame_components, time_columns
-from host_bridge.registry import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 
 Float64Array = npt.NDArray[np.float64]
 RowIndex = npt.NDArray[np.intp]

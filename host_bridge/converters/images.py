@@ -46,9 +46,9 @@ import numpy.typing as npt
 import pyarrow as pa
 import rerun as rr
 
+from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters.video import CODEC_SPELLINGS, VideoFrame, video_codec, video_entries
 from host_bridge.errors import ConvertError
-from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
 
 _MODES = ("auto", "depth", "color")
 

@@ -24,6 +24,7 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
+from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import time_columns, xyz
 from host_bridge.converters.scalars import (
     SubPath,
@@ -32,7 +33,6 @@ from host_bridge.converters.scalars import (
     series_names_once,
     series_spec,
 )
-from host_bridge.registry import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 
 XYZ = ("x", "y", "z")
 _VECTORS = ("linear_acceleration", "angular_velocity")

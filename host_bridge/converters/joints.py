@@ -36,8 +36,8 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
+from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.errors import ConvertError, PartialConvertError
-from host_bridge.registry import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 
 ROBOT_MODEL_KEY = "urdf"
 TF_CHILDREN_KEY = "tf_children"

@@ -35,9 +35,9 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
+from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import stamp_ns, xyz, xyzw
 from host_bridge.errors import ConvertError
-from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
 
 (ARROW, CUBE, SPHERE, CYLINDER, LINE_STRIP, LINE_LIST, CUBE_LIST, SPHERE_LIST, POINTS,
  TEXT_VIEW_FACING, MESH_RESOURCE, TRIANGLE_LIST) = range(12)

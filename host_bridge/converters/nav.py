@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
+from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import frame_components
 from host_bridge.converters.geometry import points_array, pose_arrays, pose_arrows
-from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
 
 _DEFAULT_ARROW_LENGTH_M = 0.1
 # GridCells are flat squares in RViz; a box this thin reads as a tile without z-fighting the map.

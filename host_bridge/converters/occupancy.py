@@ -47,9 +47,9 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
+from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import frame_components, xyz, xyzw
 from host_bridge.errors import ConvertError
-from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
 
 GRIDS_KEY = "occupancy_grids"
 UPDATES_SUFFIX = "_updates"

@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
+from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry
 from host_bridge.converters._common import time_columns, xyz
 from host_bridge.converters.geometry import pose_run
-from host_bridge.registry import ColumnsItem, ConvertContext, ConverterSpec, LogEntry
 
 TWIST_SERIES = ("linear/x", "linear/y", "linear/z", "angular/x", "angular/y", "angular/z")
 

@@ -15,9 +15,9 @@ import numpy.typing as npt
 import rerun as rr
 
 from host_bridge.colormap import apply_colormap
+from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import frame_components
 from host_bridge.errors import ConvertError
-from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
 
 # PointField.datatype -> numpy type code (byte order is added per cloud).
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}

@@ -20,8 +20,8 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
+from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import frame_components
-from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
 
 _RIM_SEGMENTS = 32
 _EDGES = 4

@@ -15,9 +15,9 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
+from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import time_columns
 from host_bridge.errors import ConvertError
-from host_bridge.registry import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 
 SubPath = tuple[str, ...]
 """Entity path parts below the topic entity; ``()`` is the topic entity itself."""

@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
+from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import stamp_ns, time_columns, xyz, xyzw
-from host_bridge.registry import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 
 
 def _is_static(ctx: ConvertContext) -> bool:

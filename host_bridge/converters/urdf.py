@@ -55,6 +55,7 @@ import rerun as rr
 import trimesh
 import yourdfpy
 
+from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters.joints import (
     ROBOT_MODEL_KEY,
     JointModel,
@@ -69,7 +70,6 @@ from host_bridge.converters.joints import (
 )
 from host_bridge.converters.tf import static_transform_path
 from host_bridge.errors import ConvertError, MissingResourceError, PartialConvertError
-from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.resources import ResourceResolver
 
 log = logging.getLogger("swanky.host")

@@ -40,16 +40,9 @@ import numpy.typing as npt
 import pyarrow as pa
 import rerun as rr
 
+from host_bridge.contract import TIMELINE_ROS, ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import time_columns
 from host_bridge.errors import ConvertError
-from host_bridge.registry import (
-    TIMELINE_ROS,
-    ColumnsItem,
-    ConvertContext,
-    ConverterSpec,
-    LogEntry,
-    LogItem,
-)
 
 COMPRESSED_VIDEO = "foxglove_msgs/msg/CompressedVideo"
 

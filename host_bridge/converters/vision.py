@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
+from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import frame_components, xyz, xyzw
-from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
 
 _MAX_CLASS_ID = 0xFFFF  # Rerun class ids are u16
 

@@ -43,10 +43,10 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
+from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import frame_components
 from host_bridge.converters.occupancy import Grid, grid_for_update, grid_from_msg
 from host_bridge.errors import ConvertError
-from host_bridge.registry import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.segments import (
     Float64Array,
     detect_segments,

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import rerun as rr
 
-from host_bridge.registry import TIMELINE_RECEIVE, LogItem
+from host_bridge.contract import TIMELINE_RECEIVE, LogItem
 from robot_relay.wire import RawMessage
 
 log = logging.getLogger("swanky.host")

@@ -14,7 +14,7 @@ import rerun as rr
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.registry import ColumnsItem, ConvertContext, LogEntry, LogItem
+from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
 
 ROBOT = "r"
 TYPES = get_typestore(Stores.ROS2_HUMBLE).types

@@ -12,9 +12,9 @@ import numpy.typing as npt
 import pytest
 import rerun as rr
 
+from host_bridge.contract import LogItem
 from host_bridge.converters.camera import CONVERTERS, convert_camera_info
 from host_bridge.errors import ConvertError
-from host_bridge.registry import LogItem
 from tests.host_bridge.test_images import ROBOT, T, first_message, header, make_ctx, pylist
 
 INFO_TOPIC = "/camera/camera_info"

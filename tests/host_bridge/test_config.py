@@ -18,10 +18,11 @@ from rosbags.typesys import Stores, get_typestore
 
 from host_bridge import cli
 from host_bridge.config import HostConfig, TopicSettings
+from host_bridge.contract import LogEntry, LogItem
 from host_bridge.converters import images, laser
 from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import ConfigError as HostConfigError
-from host_bridge.registry import LogEntry, LogItem, default_registry
+from host_bridge.registry import default_registry
 from host_bridge.sink import RerunSink
 from robot_relay.errors import ConfigError
 from robot_relay.wire import RawMessage

@@ -16,8 +16,8 @@ import rerun as rr
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
+from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry
 from host_bridge.converters.geometry import CONVERTERS
-from host_bridge.registry import ColumnsItem, ConvertContext, LogEntry
 from tests.host_bridge.sensor_test_support import TYPES as T
 from tests.host_bridge.sensor_test_support import archetype, header, log_item
 

@@ -16,6 +16,7 @@ import rerun as rr
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
+from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
 from host_bridge.converters.images import (
     CONVERTERS,
     convert_compressed_image,
@@ -23,7 +24,6 @@ from host_bridge.converters.images import (
     convert_image,
 )
 from host_bridge.errors import ConvertError
-from host_bridge.registry import ColumnsItem, ConvertContext, LogEntry, LogItem
 
 TYPESTORE = get_typestore(Stores.ROS2_HUMBLE)
 T = TYPESTORE.types

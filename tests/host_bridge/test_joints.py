@@ -16,9 +16,9 @@ import trimesh
 import yourdfpy
 from rerun.urdf import UrdfTree
 
+from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
 from host_bridge.converters import joints, urdf
 from host_bridge.errors import ConvertError, PartialConvertError
-from host_bridge.registry import ColumnsItem, ConvertContext, LogEntry, LogItem
 from host_bridge.resources import ResourceResolver
 
 

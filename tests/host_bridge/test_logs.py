@@ -8,8 +8,8 @@ from typing import Any
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
+from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry
 from host_bridge.converters.logs import CONVERTERS
-from host_bridge.registry import ColumnsItem, ConvertContext, LogEntry
 from tests.host_bridge.sensor_test_support import TYPES as ROS2
 from tests.host_bridge.sensor_test_support import read_topic
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import rerun as rr
 
+from host_bridge.contract import ConvertContext, LogEntry, LogItem
 from host_bridge.converters import markers
 from host_bridge.errors import ConvertError
-from host_bridge.registry import ConvertContext, LogEntry, LogItem
 from tests.host_bridge.sensor_test_support import ROBOT, archetype, header, log_item, make_ctx, msg
 
 TOPIC = "/viz"

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import rerun as rr
 
+from host_bridge.contract import ConvertContext
 from host_bridge.converters.nav import CONVERTERS
-from host_bridge.registry import ConvertContext
 from tests.host_bridge.sensor_test_support import TYPES, archetype, header, log_item, read_topic
 
 PATH = CONVERTERS["nav_msgs/msg/Path"]

@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
+from host_bridge.contract import ColumnsItem, ConvertContext, LogItem
 from host_bridge.converters.generic import convert_generic
 from host_bridge.converters.laser import convert_scan
 from host_bridge.converters.odometry import convert_odometry_run
 from host_bridge.converters.tf import convert_tf, convert_tf_run
-from host_bridge.registry import ColumnsItem, ConvertContext, LogItem, default_registry
+from host_bridge.registry import default_registry
 
 T = get_typestore(Stores.ROS2_HUMBLE).types
 

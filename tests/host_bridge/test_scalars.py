@@ -8,9 +8,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from host_bridge.contract import ConvertContext, LogEntry, LogItem
 from host_bridge.converters.scalars import CONVERTERS
 from host_bridge.errors import ConvertError
-from host_bridge.registry import ConvertContext, LogEntry, LogItem
 from tests.host_bridge.sensor_test_support import (
     column_rows,
     columns_item,

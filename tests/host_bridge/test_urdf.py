@@ -14,10 +14,10 @@ import trimesh
 import trimesh.transformations as tra
 from PIL import Image
 
+from host_bridge.contract import ConvertContext, LogEntry, LogItem
 from host_bridge.converters import urdf
 from host_bridge.converters.joints import RobotModel
 from host_bridge.errors import ConfigError, ConvertError, PartialConvertError
-from host_bridge.registry import ConvertContext, LogEntry, LogItem
 from host_bridge.resources import ResourceResolver, parse_package_path
 from tests.host_bridge.user_robot import (
     ARM_DARK,

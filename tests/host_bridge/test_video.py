@@ -28,6 +28,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 
 from host_bridge.blueprint import TopicEntry, build_blueprint
 from host_bridge.cli import main as host_main
+from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
 from host_bridge.converters.images import convert_compressed_image, convert_compressed_image_run
 from host_bridge.converters.video import (
     COMPRESSED_VIDEO,
@@ -39,7 +40,7 @@ from host_bridge.converters.video import (
 from host_bridge.decode import base_typestore
 from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import ConvertError
-from host_bridge.registry import ColumnsItem, ConvertContext, LogEntry, LogItem, default_registry
+from host_bridge.registry import default_registry
 from host_bridge.sink import RerunSink, SinkOptions
 from robot_relay.wire import RawMessage
 from tests.host_bridge.sensor_test_support import flat

@@ -22,9 +22,9 @@ import rerun as rr
 from rerun.chunk import RrdReader
 
 from host_bridge.cli import main as host_main
+from host_bridge.contract import LogItem
 from host_bridge.converters.joints import robot_model
 from host_bridge.frames import RobotFrames
-from host_bridge.registry import LogItem
 from tests.host_bridge.user_robot import (
     FINGER_RIGHT_XYZ,
     MIMIC_MULTIPLIER,

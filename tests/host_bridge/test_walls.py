@@ -12,8 +12,8 @@ import numpy.typing as npt
 import pytest
 import rerun as rr
 
+from host_bridge.contract import LogItem
 from host_bridge.converters import occupancy, walls
-from host_bridge.registry import LogItem
 from tests.host_bridge.sensor_test_support import archetype, flat, log_item, make_ctx
 from tests.host_bridge.test_occupancy import grid_msg, shared_contexts, update_msg
 
