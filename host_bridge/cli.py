@@ -409,7 +409,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         code = 2
     finally:
         complete = outputs.close()
-    return code if complete else max(code, 1)
+    code = code if complete else max(code, 1)
+    if outputs.sink is not None and outputs.sink.abandoned:
+        # Rerun's exit handler would wait for the viewer that stopped answering, too.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
 
 if __name__ == "__main__":

@@ -42,6 +42,13 @@ REDAP_DEFAULT_PORT = 51234
 """The port Rerun's own URL parser (re_uri) assumes for a viewer URL that names none."""
 VIEWER_SCHEMES = ("rerun", "rerun+http", "rerun+https")
 PROBE_TIMEOUT_S = 2.0
+H2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+"""What an HTTP/2 client sends first: the magic line and an empty SETTINGS frame (RFC 9113)."""
+H2_FRAME_HEADER = 9
+H2_FRAME_TYPE = 3
+H2_SETTINGS = 4
+DISCONNECT_TIMEOUT_S = 6.0
+"""Longer than Rerun's own 5 s wait for a viewer it is still connecting to at shutdown."""
 FLUSH_STEP_S = 1.0
 """Flushes wait in steps this long, so Python sees signals and a dead viewer in between."""
 
@@ -72,21 +79,38 @@ class ViewerAddress:
     name: str
     host: str
     port: int
+    tls: bool = False
     spawned: bool = False
     """The viewer --spawn opened: closing its window is how a user ends looking, not an error."""
 
+    @property
+    def where(self) -> str:
+        return f"{self.host}:{self.port}"
 
-def _probe(host: str, port: int) -> str | None:
-    """None if something accepts TCP connections at host:port, else why not."""
+
+def _probe(viewer: ViewerAddress) -> str | None:
+    """None if a Rerun viewer answers at the address, else why not. Over plain HTTP a viewer's
+    gRPC server answers the HTTP/2 preface with its SETTINGS at once; a port where something
+    else listens (the web viewer's page, say) or a frozen viewer does not."""
     try:
-        with socket.create_connection((host, port), timeout=PROBE_TIMEOUT_S):
-            return None
+        sock = socket.create_connection((viewer.host, viewer.port), timeout=PROBE_TIMEOUT_S)
     except socket.gaierror as err:
-        return f"cannot resolve {host!r}: {err.strerror}"
+        return f"cannot resolve {viewer.host!r} ({err.strerror})"
     except TimeoutError:
-        return f"no answer from {host}:{port} within {PROBE_TIMEOUT_S:.0f} s"
+        return f"no answer within {PROBE_TIMEOUT_S:.0f} s"
     except OSError as err:
-        return f"{host}:{port}: {err.strerror or err}"
+        return str(err.strerror or err)
+    with sock:
+        if viewer.tls:  # no TLS handshake here: Rerun's own client reports certificate trouble
+            return None
+        try:
+            sock.sendall(H2_PREFACE)
+            answer = sock.recv(H2_FRAME_HEADER)
+        except OSError:
+            answer = b""
+    if len(answer) > H2_FRAME_TYPE and answer[H2_FRAME_TYPE] == H2_SETTINGS:
+        return None
+    return "something listens there but does not answer as a Rerun viewer (gRPC)"
 
 
 def viewer_address(url: str) -> ViewerAddress:
@@ -101,7 +125,7 @@ def viewer_address(url: str) -> ViewerAddress:
     except ValueError as err:
         msg = f"--rerun-addr {url}: bad port ({err}; {example})"
         raise SinkError(msg) from err
-    return ViewerAddress(url, parts.hostname, port)
+    return ViewerAddress(url, parts.hostname, port, tls=parts.scheme != "rerun+http")
 
 
 def viewer_executable() -> str | None:
@@ -168,6 +192,8 @@ class RerunSink:
         self.web_url: str | None = None
         self.web_note: str | None = None
         self._viewers: list[ViewerAddress] = []
+        self._save = options.save
+        self.abandoned = False
         self._open(options)
         # Rerun's time context is per thread (the dispatcher and the slow-converter worker).
         self._local = threading.local()
@@ -191,11 +217,12 @@ class RerunSink:
 
     def _connect(self, url: str) -> rr.GrpcSink:
         address = viewer_address(url)
-        problem = _probe(address.host, address.port)
+        problem = _probe(address)
         if problem is not None:
             msg = (
-                f"--rerun-addr {url}: no Rerun viewer there ({problem}); start one (`rerun` "
-                f"listens on port {VIEWER_PORT}) or use --spawn, --save FILE.rrd or --serve-web"
+                f"--rerun-addr {url}: no Rerun viewer at {address.where}: {problem}; start one "
+                f"(`rerun` listens on port {VIEWER_PORT}) or use --spawn, --save FILE.rrd or "
+                "--serve-web"
             )
             raise SinkError(msg)
         try:
@@ -225,7 +252,11 @@ class RerunSink:
                 "screen use --save FILE.rrd or --serve-web"
             )
             raise SinkError(msg) from err
-        if _probe(LOOPBACK, VIEWER_PORT) is not None:
+        viewer = ViewerAddress(
+            f"rerun+http://{LOOPBACK}:{VIEWER_PORT}/proxy (the spawned viewer)", LOOPBACK,
+            VIEWER_PORT, spawned=True,
+        )
+        if _probe(viewer) is not None:
             # rr.spawn only warns when the viewer dies at once: without this check every later
             # flush would wait for it.
             msg = (
@@ -234,9 +265,7 @@ class RerunSink:
                 "--save FILE.rrd or --serve-web"
             )
             raise SinkError(msg)
-        self._viewers.append(
-            ViewerAddress(f"the spawned viewer (port {VIEWER_PORT})", LOOPBACK, VIEWER_PORT, spawned=True)
-        )
+        self._viewers.append(viewer)
         return rr.GrpcSink(f"rerun+http://{LOOPBACK}:{VIEWER_PORT}/proxy")
 
     def _serve_grpc(self, options: SinkOptions) -> rr.GrpcServerSink:
@@ -318,7 +347,9 @@ class RerunSink:
                     log.info("the Rerun viewer was closed; not waiting for it")
                     return
                 if lost:
-                    named = "; ".join(f"{viewer.name} ({problem})" for viewer, problem in lost)
+                    named = "; ".join(
+                        f"{viewer.name} ({viewer.where}: {problem})" for viewer, problem in lost
+                    )
                     msg = f"lost the Rerun viewer at {named}: what it had not received yet is not shown"
                     raise SinkError(msg) from err
                 if self._give_up():
@@ -327,7 +358,7 @@ class RerunSink:
 
     def _lost_viewers(self, err: RuntimeError) -> list[tuple[ViewerAddress, str]]:
         """The viewers, with why, that a failed flush step means are gone, not just slow."""
-        probed = [(viewer, _probe(viewer.host, viewer.port)) for viewer in self._viewers]
+        probed = [(viewer, _probe(viewer)) for viewer in self._viewers]
         lost = [(viewer, problem) for viewer, problem in probed if problem is not None]
         # Rerun's words when its client gave up ("unable to connect", "connection severed"),
         # e.g. something else took the port after the viewer died.
@@ -337,8 +368,28 @@ class RerunSink:
 
     def close(self) -> None:
         """Flush and close the sinks, so a saved .rrd is complete even when a viewer is gone
-        (SinkError then names it, after the file is closed)."""
+        (SinkError then names it, after the file is closed).
+
+        A viewer that stopped answering (frozen, or its network gone without a word) holds
+        Rerun's disconnect for ever; after ``DISCONNECT_TIMEOUT_S`` it is left behind and
+        ``abandoned`` set: the process must then end with ``os._exit``, as Rerun's exit handler
+        would wait for it too."""
+        problem: SinkError | None = None
         try:
             self.flush()
-        finally:
-            self.recording.disconnect()
+        except SinkError as err:
+            problem = err
+        closing = threading.Thread(target=self.recording.disconnect, name="rerun-close", daemon=True)
+        closing.start()
+        closing.join(DISCONNECT_TIMEOUT_S)
+        if closing.is_alive():
+            self.abandoned = True
+            stuck = "; ".join(viewer.name for viewer in self._viewers) or "a Rerun sink"
+            saved = "" if self._save is None else (
+                f"; {self._save} is not finished: it lacks its index footer"
+                + ("" if problem is None else " and what the viewer was waiting for")
+            )
+            msg = f"gave up closing {stuck} after {DISCONNECT_TIMEOUT_S:.0f} s: it stopped answering{saved}"
+            raise SinkError(msg) from problem
+        if problem is not None:
+            raise problem

@@ -18,8 +18,8 @@ import socket
 import tempfile
 import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from host_bridge.demo.bag import write_demo_bag
@@ -82,12 +82,17 @@ def _write_bag(job: tuple[Path, float, float]) -> Path:
     return write_demo_bag(path, seconds, route_offset=route_offset)
 
 
-def _leave_signals_to_the_host() -> None:
-    """In a bag-writing process: Ctrl-C (and systemd's SIGTERM) reach the whole process group,
-    and the host stops the demo itself: no KeyboardInterrupt traceback from every worker, no
-    broken pool. A worker finishes its bag (a second or two) and exits with the pool."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+@contextmanager
+def _ctrl_c_ignored() -> Iterator[None]:
+    """Processes started meanwhile ignore Ctrl-C for good (SIG_IGN survives exec, and Python
+    then installs no KeyboardInterrupt handler): it reaches the whole process group, and the
+    host stops the demo itself by terminating them. A Ctrl-C in these few milliseconds of
+    process starting is lost; the host's own handler is back right after. Main thread only."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def write_bags(
@@ -95,7 +100,7 @@ def write_bags(
 ) -> list[Path] | None:
     """One bag per robot, spread evenly along the loop; several are written in parallel
     processes (the simulation is CPU-bound Python) so a fleet starts about as fast as one.
-    None if ``stop`` was set meanwhile: bags not started are dropped, not waited for."""
+    None if ``stop`` was set meanwhile: the writing processes are terminated, not waited for."""
     spacing = lap_length() / len(robots)
     jobs = [(directory / robot, seconds, i * spacing) for i, robot in enumerate(robots)]
     workers = min(len(jobs), os.cpu_count() or 1)
@@ -107,16 +112,14 @@ def write_bags(
             bags.append(_write_bag(job))
         return bags
     context = multiprocessing.get_context("spawn")  # never fork a process running zenoh threads
-    with ProcessPoolExecutor(
-        max_workers=workers, mp_context=context, initializer=_leave_signals_to_the_host
-    ) as pool:
-        futures = [pool.submit(_write_bag, job) for job in jobs]
+    with _ctrl_c_ignored():  # the pool starts its processes right away
+        pool = context.Pool(workers)
+    with pool:  # leaving it terminates the processes
+        written = pool.map_async(_write_bag, jobs)
         while not stop.is_set():
-            done, pending = wait(futures, timeout=0.1, return_when=FIRST_EXCEPTION)
-            if not pending or any(future.exception() is not None for future in done):
-                return [future.result() for future in futures]
-        for future in futures:
-            future.cancel()
+            if written.ready():
+                return written.get()
+            written.wait(0.1)
         return None
 
 

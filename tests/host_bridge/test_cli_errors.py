@@ -68,10 +68,22 @@ def test_rerun_addr_without_a_viewer_is_named_before_converting(
     code, err, out = run_host(capsys, *args, "--rerun-addr", url)
     assert time.monotonic() - started < 10
     assert (code, err, out) == (2, [
-        f"swanky-host: error: --rerun-addr {url}: no Rerun viewer there (127.0.0.1:{port}: "
-        f"Connection refused); start one (`rerun` listens on port {VIEWER_PORT}) or use --spawn, "
+        f"swanky-host: error: --rerun-addr {url}: no Rerun viewer at 127.0.0.1:{port}: "
+        f"Connection refused; start one (`rerun` listens on port {VIEWER_PORT}) or use --spawn, "
         "--save FILE.rrd or --serve-web"
     ], "")
+
+
+def test_rerun_addr_where_no_viewer_answers(capsys: pytest.CaptureFixture[str], bag: Path) -> None:
+    """E.g. the web viewer's page port given instead of the viewer's: it accepts connections."""
+    with listening_socket() as not_a_viewer:
+        port = not_a_viewer.getsockname()[1]
+        url = f"rerun+http://127.0.0.1:{port}/proxy"
+        assert run_host(capsys, "--bag", str(bag), "--rerun-addr", url) == (2, [
+            f"swanky-host: error: --rerun-addr {url}: no Rerun viewer at 127.0.0.1:{port}: "
+            "something listens there but does not answer as a Rerun viewer (gRPC); start one "
+            f"(`rerun` listens on port {VIEWER_PORT}) or use --spawn, --save FILE.rrd or --serve-web"
+        ], "")
 
 
 @pytest.mark.parametrize(
