@@ -15,6 +15,8 @@ import pytest
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from host_bridge.decode import Decoder
+from robot_relay.cli import topic_filter
+from robot_relay.config import DEFAULT_DENY
 from robot_relay.relay import Relay
 from robot_relay.sources.qos import LIVE_DEPTH_FLOOR, adapted_qos
 from robot_relay.sources.ros2 import (
@@ -359,3 +361,13 @@ def test_relay_keeps_a_latched_publisher_and_its_cache_when_only_the_depth_chang
     finally:
         relay.close()
         session.close()
+
+
+def test_parameter_events_and_hidden_topics_are_forwarded_only_when_named() -> None:
+    everything = topic_filter(["*"], DEFAULT_DENY)
+    assert [everything(t) for t in ("/odom", "/parameter_events", "/nav/_action/status")] == [
+        True, False, False
+    ]
+    named = topic_filter(["/parameter_events", "/o*"], DEFAULT_DENY)
+    assert [named(t) for t in ("/parameter_events", "/odom", "/scan")] == [True, True, False]
+    assert not topic_filter(["/p*"], DEFAULT_DENY)("/parameter_events")  # a glob does not name it
