@@ -49,7 +49,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     )
     parser.add_argument(
         "--exclude", nargs="+", metavar="GLOB",
-        help="topics not to forward (globs; default: hidden topics, '*/_*')",
+        help="topics not to forward (globs; default: hidden topics '*/_*' and /parameter_events; "
+        "a topic named exactly in --topics is forwarded anyway)",
     )
     parser.add_argument(
         "--wait-for-host", type=float, default=None, metavar="SECONDS",
