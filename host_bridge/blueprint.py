@@ -3,11 +3,12 @@
 :func:`build_blueprint` is pure: robots and their topics (ROS type, entity path) in, a
 ``rerun.blueprint.Blueprint`` out. Per robot: one 3D view of everything under ``/<robot>`` (model,
 scan, cloud, map, walls, trails, camera frustums), a 2D view per image topic, a map for GPS
-fixes, time series grouped by kind, and a text log. Several robots get one tab each, after a tab
-with every robot in one 3D view. The 3D views name no target frame: the data does
-(host_bridge/frames.py logs the robot's ``map``, ``odom`` or model root as the frame of
-``/<robot>`` and keeps every frame of the robot connected to it), so a saved blueprint still fits
-a robot whose frames differ.
+fixes, time series grouped by kind, bar charts of custom types' long arrays, and a text log.
+Where a type goes is its row's :class:`~host_bridge.registry.View` in the type table. Several
+robots get one tab each, after a tab with every robot in one 3D view. The 3D views name no
+target frame: the data does (host_bridge/frames.py logs the robot's ``map``, ``odom`` or model
+root as the frame of ``/<robot>`` and keeps every frame of the robot connected to it), so a saved
+blueprint still fits a robot whose frames differ.
 
 :class:`BlueprintFollower` owns the "when": the dispatcher tells it of each new topic, and it
 rebuilds and re-sends the blueprint when the set of (robot, topic, type) changed, at most once per
@@ -25,59 +26,45 @@ import rerun.blueprint as rrb
 
 from host_bridge.contract import ConvertContext
 from host_bridge.converters.camera import pinhole_path
-from host_bridge.converters.urdf import is_robot_description
-from host_bridge.decode import is_service_event_type
 from host_bridge.dispatch import WARNINGS_PATH
 from host_bridge.errors import ConfigError
+from host_bridge.registry import Registry, View, default_registry
 from host_bridge.stats import STATS_ROOT
 
 TIMER_PREFIX = "/instrumentation/timer/"
-MAP_TYPE = "nav_msgs/msg/OccupancyGrid"
 
-IMAGE_TYPES = frozenset({
-    "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "foxglove_msgs/msg/CompressedVideo",
-})
-CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
-# Drawn over the images of their camera namespace.
-IMAGE_OVERLAY_TYPES = frozenset({"vision_msgs/msg/Detection2D", "vision_msgs/msg/Detection2DArray"})
-GPS_TYPES = frozenset({"sensor_msgs/msg/NavSatFix"})
-TEXT_TYPES = frozenset({
-    "rcl_interfaces/msg/Log", "rosgraph_msgs/msg/Log", "std_msgs/msg/String",
-    "diagnostic_msgs/msg/DiagnosticArray",
-})
-# Shown by the 3D view only: they log no scalars worth a plot.
-SPATIAL_TYPES = frozenset({
-    "tf2_msgs/msg/TFMessage", "sensor_msgs/msg/LaserScan", "sensor_msgs/msg/PointCloud2",
-    MAP_TYPE, "map_msgs/msg/OccupancyGridUpdate", "nav_msgs/msg/GridCells",
-    "nav2_msgs/msg/Costmap", "nav2_msgs/msg/CostmapUpdate",
-    "nav_msgs/msg/Path", "geometry_msgs/msg/PoseArray", "geometry_msgs/msg/PoseStamped",
-    "geometry_msgs/msg/PoseWithCovarianceStamped", "geometry_msgs/msg/PointStamped",
-    "geometry_msgs/msg/PolygonStamped", "visualization_msgs/msg/Marker",
-    "visualization_msgs/msg/MarkerArray", "vision_msgs/msg/Detection3D",
-    "vision_msgs/msg/Detection3DArray", "trajectory_msgs/msg/JointTrajectory", CAMERA_INFO_TYPE,
-})
-# Time series, one view per group, in this order; other types (scalars, ranges, twists,
-# wrenches, custom types through the generic converter) are "Signals".
-PLOT_GROUPS: dict[str, str] = {
-    "nav_msgs/msg/Odometry": "Odometry",
-    "sensor_msgs/msg/Imu": "IMU",
-    "sensor_msgs/msg/MagneticField": "IMU",
-    "sensor_msgs/msg/BatteryState": "Battery",
-    "sensor_msgs/msg/JointState": "Joints",
-}
+# Time series, one view per group, in this order; timers (by topic) have their own.
 SIGNALS = "Signals"
 TIMERS = "Timers"
+PLOT_GROUPS: dict[View, str] = {
+    View.ODOMETRY: "Odometry", View.IMU: "IMU", View.BATTERY: "Battery", View.JOINTS: "Joints",
+    View.SIGNALS: SIGNALS, View.CUSTOM: SIGNALS,
+}
 PLOT_ORDER = ("Odometry", "IMU", "Battery", "Joints", SIGNALS, TIMERS)
+# Rerun's time series do not draw bar charts: the generic converter's long arrays (a custom
+# scan, a histogram) get a bar chart view of every custom topic of the robot. It stays empty
+# when none of them has such an array; the layout only knows types, not what they logged.
+ARRAYS = "Arrays"
 
 
 @dataclass(frozen=True, slots=True, order=True)
 class TopicEntry:
-    """One topic as the layout sees it."""
+    """One topic as the dispatcher tells of it."""
 
     robot: str
     topic: str
     msgtype: str
     entity_path: str
+
+
+@dataclass(frozen=True, slots=True)
+class _Placed:
+    """A topic and the view kind its type's row gives it."""
+
+    robot: str
+    topic: str
+    entity_path: str
+    view: View
 
 
 def _subtree(path: str) -> str:
@@ -88,59 +75,54 @@ def _is_under(path: str, root: str) -> bool:
     return path == root or path.startswith(root.rstrip("/") + "/")
 
 
-def _plot_group(entry: TopicEntry) -> str | None:
+def _plot_group(entry: _Placed) -> str | None:
     if entry.topic.startswith(TIMER_PREFIX):
         return TIMERS
-    if entry.msgtype in PLOT_GROUPS:
-        return PLOT_GROUPS[entry.msgtype]
-    other = SPATIAL_TYPES | IMAGE_TYPES | IMAGE_OVERLAY_TYPES | GPS_TYPES | TEXT_TYPES
-    if entry.msgtype in other or _is_text(entry) or is_robot_description(entry.topic):
-        return None
-    return SIGNALS
+    return PLOT_GROUPS.get(entry.view)
 
 
-def _plot_query(entry: TopicEntry) -> str:
-    if entry.msgtype == "nav_msgs/msg/Odometry":
+def _plot_query(entry: _Placed) -> str:
+    if entry.view is View.ODOMETRY:
         # Only the twist is scalar; the pose and its trail are for the 3D view.
         return _subtree(f"{entry.entity_path}/twist")
     return _subtree(entry.entity_path)
 
 
-def _pinholes(topics: Iterable[TopicEntry]) -> set[str]:
+def _pinholes(topics: Iterable[_Placed]) -> set[str]:
     """Entity paths of the cameras' pinholes (logged by the CameraInfo converter)."""
     return {
         pinhole_path(ConvertContext(robot=t.robot, topic=t.topic, entity_path=t.entity_path, times={}))
         for t in topics
-        if t.msgtype == CAMERA_INFO_TYPE
+        if t.view is View.CAMERA
     }
 
 
-def _flat_pictures(topics: Sequence[TopicEntry]) -> list[str]:
+def _flat_pictures(topics: Sequence[_Placed]) -> list[str]:
     """Images and their overlays under no pinhole: 2D content a 3D view cannot place (it shows
     "2D visualizers require a pinhole ancestor" for them), so 3D views leave them out."""
     pinholes = _pinholes(topics)
     return [
         t.entity_path for t in topics
-        if t.msgtype in IMAGE_TYPES | IMAGE_OVERLAY_TYPES
+        if t.view in (View.IMAGE, View.IMAGE_OVERLAY)
         and not any(_is_under(t.entity_path, p) for p in pinholes)
     ]
 
 
-def _spatial_contents(included: Sequence[str], topics: Sequence[TopicEntry]) -> list[str]:
+def _spatial_contents(included: Sequence[str], topics: Sequence[_Placed]) -> list[str]:
     return [*included, *(f"- {path.rstrip('/')}/**" for path in _flat_pictures(topics))]
 
 
-def _image_views(topics: Sequence[TopicEntry]) -> list[rrb.View]:
+def _image_views(topics: Sequence[_Placed]) -> list[rrb.View]:
     """A 2D view per image topic, rooted at its camera's pinhole when it has one, so overlays
     of the same camera and the 3D scene's projection land on the picture."""
     pinholes = _pinholes(topics)
     views: list[rrb.View] = []
-    for image in (t for t in topics if t.msgtype in IMAGE_TYPES):
+    for image in (t for t in topics if t.view is View.IMAGE):
         cameras = [p for p in pinholes if _is_under(image.entity_path, p)]
         origin = max(cameras, key=len) if cameras else image.entity_path
         overlays = [
             t.entity_path for t in topics
-            if t.msgtype in IMAGE_OVERLAY_TYPES and _is_under(t.entity_path, origin)
+            if t.view is View.IMAGE_OVERLAY and _is_under(t.entity_path, origin)
         ]
         views.append(rrb.Spatial2DView(
             name=image.topic, origin=origin,
@@ -152,7 +134,7 @@ def _image_views(topics: Sequence[TopicEntry]) -> list[rrb.View]:
     return views
 
 
-def _plot_views(robot: str, topics: Sequence[TopicEntry], stats: bool) -> list[rrb.View]:
+def _plot_views(robot: str, topics: Sequence[_Placed], stats: bool) -> list[rrb.View]:
     groups: dict[str, list[str]] = {}
     for entry in topics:
         group = _plot_group(entry)
@@ -163,29 +145,25 @@ def _plot_views(robot: str, topics: Sequence[TopicEntry], stats: bool) -> list[r
         for group in PLOT_ORDER
         if group in groups
     ]
+    arrays = [_subtree(t.entity_path) for t in topics if t.view is View.CUSTOM]
+    if arrays:
+        views.append(rrb.BarChartView(name=ARRAYS, origin=f"/{robot}", contents=arrays))
     if stats:
         views.append(rrb.TimeSeriesView(name="Stats", origin=f"{STATS_ROOT}/{robot}"))
     return views
 
 
-def _is_text(entry: TopicEntry) -> bool:
-    return entry.msgtype in TEXT_TYPES or is_service_event_type(entry.msgtype)
-
-
-def _log_view(topics: Sequence[TopicEntry]) -> rrb.View:
-    queries = [
-        _subtree(t.entity_path) for t in topics
-        if _is_text(t) and not is_robot_description(t.topic)
-    ]
+def _log_view(topics: Sequence[_Placed]) -> rrb.View:
+    queries = [_subtree(t.entity_path) for t in topics if t.view is View.LOG]
     return rrb.TextLogView(name="Log", origin="/", contents=[*queries, _subtree(WARNINGS_PATH)])
 
 
-def _gps_view(name: str, topics: Iterable[TopicEntry]) -> rrb.View | None:
-    fixes = [_subtree(t.entity_path) for t in topics if t.msgtype in GPS_TYPES]
+def _gps_view(name: str, topics: Iterable[_Placed]) -> rrb.View | None:
+    fixes = [_subtree(t.entity_path) for t in topics if t.view is View.MAP]
     return rrb.MapView(name=name, origin="/", contents=fixes) if fixes else None
 
 
-def robot_layout(robot: str, topics: Sequence[TopicEntry], *, stats: bool = False) -> rrb.Container:
+def robot_layout(robot: str, topics: Sequence[_Placed], *, stats: bool = False) -> rrb.Container:
     """3D view on the left; cameras and map, plots (as tabs) and the log on the right."""
     right: list[rrb.Container | rrb.View] = []
     pictures: list[rrb.View] = _image_views(topics)
@@ -208,11 +186,17 @@ def robot_layout(robot: str, topics: Sequence[TopicEntry], *, stats: bool = Fals
     )
 
 
-def build_blueprint(topics: Iterable[TopicEntry], *, stats: bool = False) -> rrb.Blueprint:
-    """The layout for these topics; ``stats`` adds each robot's ``/_stats/<robot>`` plots."""
-    by_robot: dict[str, list[TopicEntry]] = {}
+def build_blueprint(
+    topics: Iterable[TopicEntry], *, registry: Registry | None = None, stats: bool = False
+) -> rrb.Blueprint:
+    """The layout for these topics, placed by their rows in ``registry`` (default: Swanky's
+    table); ``stats`` adds each robot's ``/_stats/<robot>`` plots."""
+    table = registry or default_registry()
+    by_robot: dict[str, list[_Placed]] = {}
     for entry in sorted(set(topics)):
-        by_robot.setdefault(entry.robot, []).append(entry)
+        view = table.row(entry.msgtype, entry.topic).view
+        placed = _Placed(entry.robot, entry.topic, entry.entity_path, view)
+        by_robot.setdefault(entry.robot, []).append(placed)
     layouts = [robot_layout(robot, entries, stats=stats) for robot, entries in by_robot.items()]
     if len(layouts) == 1:
         return rrb.Blueprint(layouts[0])
@@ -241,10 +225,12 @@ class BlueprintFollower:
         *,
         interval: float = 1.0,
         stats: bool = False,
+        registry: Registry | None = None,
     ) -> None:
         self._send = send
         self._interval = interval
         self._stats = stats
+        self._registry = registry or default_registry()
         self._topics: set[TopicEntry] = set()
         self._sent: frozenset[TopicEntry] = frozenset()
         self._lock = threading.Lock()
@@ -271,7 +257,7 @@ class BlueprintFollower:
         topics = frozenset(self._topics)
         if topics == self._sent:
             return
-        self._send(build_blueprint(topics, stats=self._stats))
+        self._send(build_blueprint(topics, registry=self._registry, stats=self._stats))
         self._sent = topics
 
     def close(self) -> None:

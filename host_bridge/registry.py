@@ -1,62 +1,130 @@
-"""The type -> converter map.
+"""The type table: each ROS type's converter, and what the layout and the dispatcher need to
+know about it.
 
-The registry is assembled explicitly in :func:`default_registry` from each converter module's
-``CONVERTERS`` mapping; nothing registers itself on import, and a type registered twice is an
-error. The contract converters follow is :mod:`host_bridge.contract`.
+One :class:`Row` per type, written out in :func:`default_registry` with the full type name, so a
+new type is one converter module and one line there (CONTRIBUTING.md). Nothing registers itself
+on import and a type registered twice is an error. The contract converters follow is
+:mod:`host_bridge.contract`; how the relay forwards a type is its own table,
+``robot_relay.policy.TRAFFIC`` (the robot has no host code), and
+``tests/host_bridge/test_registry.py`` checks that every type it names has a row here.
+
+The converter modules are imported when the table is built, not with this module: the command
+line imports it and must start fast.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from enum import Enum
+from fnmatch import fnmatchcase
 
 from host_bridge.contract import ConverterSpec, combine
 from host_bridge.errors import RegistryError
 
+CATCH_ALL = "*"
+_GLOB_CHARS = frozenset("*?[")
+
+
+class View(Enum):
+    """Where Swanky's layout (:mod:`host_bridge.blueprint`) shows a type's topics, besides the
+    robot's 3D view, which holds everything under ``/<robot>``."""
+
+    SPATIAL = "the 3D view only (scans, clouds, maps, markers, poses, the robot model)"
+    CAMERA = "the 3D view; its pinhole roots the 2D views of the images beside it"
+    IMAGE = "a 2D view of its own, in its camera's pinhole when it has one"
+    IMAGE_OVERLAY = "drawn on the images of its camera namespace"
+    MAP = "the map view (GPS fixes)"
+    LOG = "the text log"
+    ODOMETRY = "the Odometry plots (the twist; the pose is for the 3D view)"
+    IMU = "the IMU plots"
+    BATTERY = "the Battery plots"
+    JOINTS = "the Joints plots"
+    SIGNALS = "the Signals plots"
+    CUSTOM = "the generic converter's: Signals plots, and bar charts of its long arrays"
+
+
+@dataclass(frozen=True, slots=True)
+class Row:
+    """One line of the table.
+
+    ``msgtype`` is a full type name, or a glob for a family of types (``*/srv/*_Event``), tried
+    after the exact names in table order; ``*`` is the catch-all. ``topics`` limits the row to
+    the topics it accepts, tried before the type's other row (std_msgs/String on
+    /robot_description is a robot model, elsewhere text). ``heavy``: big messages of which only
+    the newest matters (a frame, a cloud, a whole map): the host may convert them latest-only
+    when it falls behind. ``slow``: a second converter too slow for the receive path (wall
+    meshes of a map), run after ``spec`` in a worker that keeps only the newest message.
+    """
+
+    msgtype: str
+    spec: ConverterSpec
+    view: View
+    heavy: bool = False
+    slow: ConverterSpec | None = None
+    topics: Callable[[str], bool] | None = None
+
+    @property
+    def is_family(self) -> bool:
+        return not _GLOB_CHARS.isdisjoint(self.msgtype)
+
 
 class Registry:
-    """Map from full ROS type name (``sensor_msgs/msg/LaserScan``) to its converter."""
+    """The table, looked up by full ROS type name (``sensor_msgs/msg/LaserScan``) and topic."""
 
-    def __init__(self, fallback: ConverterSpec) -> None:
-        self._fallback = fallback
-        self._specs: dict[str, ConverterSpec] = {}
-        self._topic_specs: list[tuple[str, Callable[[str], bool], ConverterSpec]] = []
-        self._families: list[tuple[Callable[[str], bool], ConverterSpec]] = []
-
-    def add(self, msgtype: str, spec: ConverterSpec) -> None:
-        if msgtype in self._specs:
-            msg = f"type {msgtype!r} is registered twice; each type has exactly one converter"
+    def __init__(self, rows: Iterable[Row]) -> None:
+        self._rows = tuple(rows)
+        self._exact: dict[str, Row] = {}
+        self._routed: list[Row] = []
+        self._families: list[Row] = []
+        seen: set[tuple[str, Callable[[str], bool] | None]] = set()
+        for row in self._rows:
+            if (row.msgtype, row.topics) in seen:
+                msg = f"type {row.msgtype!r} is registered twice; each type has exactly one row"
+                raise RegistryError(msg)
+            seen.add((row.msgtype, row.topics))
+            if row.slow is not None and (row.is_family or row.topics is not None):
+                msg = f"{row.msgtype!r}: a slow converter is run per type, not per topic or family"
+                raise RegistryError(msg)
+            if row.topics is not None:
+                self._routed.append(row)
+            elif row.is_family:
+                if self._families and self._families[-1].msgtype == CATCH_ALL:
+                    msg = f"{row.msgtype!r} comes after the {CATCH_ALL!r} row and is never reached"
+                    raise RegistryError(msg)
+                self._families.append(row)
+            else:
+                self._exact[row.msgtype] = row
+        if not self._families or self._families[-1].msgtype != CATCH_ALL:
+            msg = f"the table needs a {CATCH_ALL!r} row last: the converter of every other type"
             raise RegistryError(msg)
-        self._specs[msgtype] = spec
 
-    def add_all(self, specs: Mapping[str, ConverterSpec]) -> None:
-        for msgtype, spec in specs.items():
-            self.add(msgtype, spec)
-
-    def add_for_topics(
-        self, msgtype: str, topics: Callable[[str], bool], spec: ConverterSpec
-    ) -> None:
-        """A converter for some topics of a type only (/robot_description is a String)."""
-        self._topic_specs.append((msgtype, topics, spec))
-
-    def add_family(self, accepts: Callable[[str], bool], spec: ConverterSpec) -> None:
-        """A converter for every type a naming rule accepts, after the exact types (service
-        events are ``<pkg>/srv/<Name>_Event``, one type per service)."""
-        self._families.append((accepts, spec))
+    def row(self, msgtype: str, topic: str = "") -> Row:
+        for row in self._routed:
+            if fnmatchcase(msgtype, row.msgtype) and row.topics is not None and row.topics(topic):
+                return row
+        exact = self._exact.get(msgtype)
+        if exact is not None:
+            return exact
+        return next(row for row in self._families if fnmatchcase(msgtype, row.msgtype))
 
     def get(self, msgtype: str, topic: str = "") -> ConverterSpec:
-        for special_type, accepts, spec in self._topic_specs:
-            if special_type == msgtype and accepts(topic):
-                return spec
-        if msgtype in self._specs:
-            return self._specs[msgtype]
-        family = next((spec for accepts, spec in self._families if accepts(msgtype)), None)
-        return family or self._fallback
+        return self.row(msgtype, topic).spec
+
+    def rows(self) -> tuple[Row, ...]:
+        """Every row in table order (a test walks them all)."""
+        return self._rows
 
     def types(self) -> list[str]:
-        return sorted(self._specs)
+        """The type names the table spells out (no globs)."""
+        return sorted({row.msgtype for row in self._rows if not row.is_family})
+
+    def slow_converters(self) -> dict[str, ConverterSpec]:
+        return {t: row.slow for t, row in self._exact.items() if row.slow is not None}
 
 
 def default_registry() -> Registry:
+    """Swanky's table. Every type spelt out; see :class:`Row` and :class:`View` for the columns."""
     from host_bridge.converters import (
         camera,
         diagnostics,
@@ -80,29 +148,96 @@ def default_registry() -> Registry:
         urdf,
         video,
         vision,
+        walls,
     )
-    from host_bridge.decode import is_service_event_type
 
-    registry = Registry(generic.SPEC)
-    plots = dict(scalars.CONVERTERS)
-    kinematics = dict(joints.CONVERTERS)
-    joint_state = "sensor_msgs/msg/JointState"
-    registry.add(joint_state, combine(kinematics.pop(joint_state), plots.pop(joint_state)))
-    registry.add_all(plots)
-    registry.add_all(kinematics)
-    for module in (tf, laser, odometry, pointcloud, imu, geo, proximity, markers, vision, images,
-                   camera, geometry, nav, logs, diagnostics, video):
-        registry.add_all(module.CONVERTERS)
-    registry.add_for_topics("std_msgs/msg/String", urdf.is_robot_description, urdf.SPEC)
-    registry.add_all(occupancy.CONVERTERS)
-    registry.add_all(occupancy.COSTMAP_CONVERTERS)
-    registry.add_family(is_service_event_type, services.SPEC)
-    return registry
+    return Registry([
+        Row("tf2_msgs/msg/TFMessage", tf.SPEC, View.SPATIAL),
+        Row("sensor_msgs/msg/LaserScan", laser.SPEC, View.SPATIAL),
+        Row("sensor_msgs/msg/PointCloud2", pointcloud.SPEC, View.SPATIAL, heavy=True),
+        Row("nav_msgs/msg/Odometry", odometry.SPEC, View.ODOMETRY),
+        Row("sensor_msgs/msg/Imu", imu.IMU, View.IMU),
+        Row("sensor_msgs/msg/MagneticField", imu.MAGNETIC_FIELD, View.IMU),
+        Row("sensor_msgs/msg/NavSatFix", geo.SPEC, View.MAP),
+        Row("sensor_msgs/msg/Range", proximity.SPEC, View.SIGNALS),
+        # Cameras. CompressedImage is not heavy: its format may name a video codec, and a lost
+        # video frame spoils the picture until the next keyframe.
+        Row("sensor_msgs/msg/Image", images.IMAGE, View.IMAGE, heavy=True),
+        Row("sensor_msgs/msg/CompressedImage", images.COMPRESSED_IMAGE, View.IMAGE),
+        Row("foxglove_msgs/msg/CompressedVideo", video.SPEC, View.IMAGE),
+        Row("sensor_msgs/msg/CameraInfo", camera.SPEC, View.CAMERA),
+        Row("vision_msgs/msg/Detection2D", vision.DETECTION_2D, View.IMAGE_OVERLAY),
+        Row("vision_msgs/msg/Detection2DArray", vision.DETECTION_2D_ARRAY, View.IMAGE_OVERLAY),
+        Row("vision_msgs/msg/Detection3D", vision.DETECTION_3D, View.SPATIAL),
+        Row("vision_msgs/msg/Detection3DArray", vision.DETECTION_3D_ARRAY, View.SPATIAL),
+        # Maps: a grid is drawn at once, its walls come from the slow worker.
+        Row("nav_msgs/msg/OccupancyGrid", occupancy.GRID, View.SPATIAL, heavy=True,
+            slow=walls.GRID_WALLS),
+        Row("map_msgs/msg/OccupancyGridUpdate", occupancy.GRID_UPDATE, View.SPATIAL,
+            slow=walls.UPDATE_WALLS),
+        Row("nav2_msgs/msg/Costmap", occupancy.COSTMAP, View.SPATIAL, heavy=True),
+        Row("nav2_msgs/msg/CostmapUpdate", occupancy.COSTMAP_UPDATE, View.SPATIAL),
+        Row("nav_msgs/msg/GridCells", nav.GRID_CELLS, View.SPATIAL),
+        Row("nav_msgs/msg/Path", nav.PATH, View.SPATIAL),
+        Row("geometry_msgs/msg/PoseStamped", geometry.POSE_STAMPED, View.SPATIAL),
+        Row("geometry_msgs/msg/PoseWithCovarianceStamped", geometry.POSE_WITH_COVARIANCE,
+            View.SPATIAL),
+        Row("geometry_msgs/msg/PoseArray", geometry.POSE_ARRAY, View.SPATIAL),
+        Row("geometry_msgs/msg/PointStamped", geometry.POINT, View.SPATIAL),
+        Row("geometry_msgs/msg/PolygonStamped", geometry.POLYGON, View.SPATIAL),
+        Row("geometry_msgs/msg/TwistStamped", geometry.TWIST, View.SIGNALS),
+        Row("geometry_msgs/msg/WrenchStamped", geometry.WRENCH, View.SIGNALS),
+        Row("geometry_msgs/msg/Vector3Stamped", geometry.VECTOR3, View.SIGNALS),
+        Row("visualization_msgs/msg/Marker", markers.MARKER, View.SPATIAL),
+        Row("visualization_msgs/msg/MarkerArray", markers.MARKER_ARRAY, View.SPATIAL),
+        # The robot: its model moves with the joints, which are also plotted.
+        Row("std_msgs/msg/String", urdf.SPEC, View.SPATIAL, topics=urdf.is_robot_description),
+        Row("sensor_msgs/msg/JointState", combine(joints.JOINT_STATE, scalars.JOINT_STATE),
+            View.JOINTS),
+        Row("trajectory_msgs/msg/JointTrajectory", joints.JOINT_TRAJECTORY, View.SPATIAL),
+        Row("sensor_msgs/msg/BatteryState", scalars.BATTERY, View.BATTERY),
+        Row("sensor_msgs/msg/Temperature", scalars.TEMPERATURE, View.SIGNALS),
+        Row("sensor_msgs/msg/FluidPressure", scalars.FLUID_PRESSURE, View.SIGNALS),
+        Row("sensor_msgs/msg/Illuminance", scalars.ILLUMINANCE, View.SIGNALS),
+        Row("sensor_msgs/msg/RelativeHumidity", scalars.RELATIVE_HUMIDITY, View.SIGNALS),
+        # Text.
+        Row("rcl_interfaces/msg/Log", logs.ROS2_LOG, View.LOG),
+        Row("rosgraph_msgs/msg/Log", logs.ROS1_LOG, View.LOG),
+        Row("std_msgs/msg/String", logs.STRING, View.LOG),
+        Row("diagnostic_msgs/msg/DiagnosticArray", diagnostics.SPEC, View.LOG),
+        Row("*/srv/*_Event", services.SPEC, View.LOG),  # /<service>/_service_event
+        # Plain numbers.
+        Row("std_msgs/msg/Bool", scalars.NUMBER, View.SIGNALS),
+        Row("std_msgs/msg/Byte", scalars.NUMBER, View.SIGNALS),
+        Row("std_msgs/msg/Char", scalars.NUMBER, View.SIGNALS),
+        Row("std_msgs/msg/Int8", scalars.NUMBER, View.SIGNALS),
+        Row("std_msgs/msg/UInt8", scalars.NUMBER, View.SIGNALS),
+        Row("std_msgs/msg/Int16", scalars.NUMBER, View.SIGNALS),
+        Row("std_msgs/msg/UInt16", scalars.NUMBER, View.SIGNALS),
+        Row("std_msgs/msg/Int32", scalars.NUMBER, View.SIGNALS),
+        Row("std_msgs/msg/UInt32", scalars.NUMBER, View.SIGNALS),
+        Row("std_msgs/msg/Int64", scalars.NUMBER, View.SIGNALS),
+        Row("std_msgs/msg/UInt64", scalars.NUMBER, View.SIGNALS),
+        Row("std_msgs/msg/Float32", scalars.NUMBER, View.SIGNALS),
+        Row("std_msgs/msg/Float64", scalars.NUMBER, View.SIGNALS),
+        Row("std_msgs/msg/ByteMultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
+        Row("std_msgs/msg/Int8MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
+        Row("std_msgs/msg/UInt8MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
+        Row("std_msgs/msg/Int16MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
+        Row("std_msgs/msg/UInt16MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
+        Row("std_msgs/msg/Int32MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
+        Row("std_msgs/msg/UInt32MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
+        Row("std_msgs/msg/Int64MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
+        Row("std_msgs/msg/UInt64MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
+        Row("std_msgs/msg/Float32MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
+        Row("std_msgs/msg/Float64MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
+        Row("builtin_interfaces/msg/Time", scalars.SECONDS, View.SIGNALS),
+        Row("builtin_interfaces/msg/Duration", scalars.SECONDS, View.SIGNALS),
+        # Every other type, custom ones included.
+        Row(CATCH_ALL, generic.SPEC, View.CUSTOM),
+    ])
 
 
 def slow_converters() -> dict[str, ConverterSpec]:
-    """Converters too heavy for the receive path (wall meshes from a 4000x4000 map): the
-    dispatcher runs them after the fast ones, in a worker that keeps only the latest message."""
-    from host_bridge.converters import walls
-
-    return dict(walls.SLOW_CONVERTERS)
+    """The slow converters of Swanky's table, by type (the dispatcher's worker runs them)."""
+    return default_registry().slow_converters()

@@ -39,8 +39,7 @@ import rerun as rr
 from host_bridge.contract import TIMELINE_LOG, TIMELINE_RECEIVE, LogItem
 from host_bridge.dispatch import TopicCounters, sequence_gap
 from robot_relay.errors import WireError
-from robot_relay.stats import RelayReport, stats_selector
-from robot_relay.wire import RawMessage, parse_robot_key
+from robot_relay.wire import RawMessage, RelayReport, parse_robot_key, stats_selector
 
 if TYPE_CHECKING:
     import zenoh

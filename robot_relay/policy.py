@@ -6,11 +6,13 @@ relay config's ``defaults``, then the one most specific ``policy`` entry matchin
 :func:`robot_relay.configfile.first_match`). Entries do not merge with each other; a key an
 entry leaves out comes from ``defaults`` and then the built-ins.
 
-Built-ins: transforms and laser scans go first (``data_high``), images and point clouds last
-(``data_low``); sensor streams and best-effort topics drop under congestion (a stale scan is
-worth nothing), reliable and latched ones block. Latched topics are never rate-capped, whatever
-the config says: a latched topic is state (static transforms from several broadcasters, the
-map) and keeping only the newest message would lose part of it.
+Built-ins, by message type (:data:`TRAFFIC`): transforms and laser scans go first
+(``data_high``), images, point clouds and video last (``data_low``); sensor streams drop under
+congestion (a stale scan is worth nothing), and so do best-effort topics of other types, while
+reliable and latched ones block. Video blocks whatever its QoS: a lost frame spoils the picture
+until the next keyframe. Latched topics are never rate-capped, whatever the config says: a
+latched topic is state (static transforms from several broadcasters, the map) and keeping only
+the newest message would lose part of it.
 
 Pure: no Zenoh, no threads, no clock. The relay maps names to Zenoh enums and owns the timing.
 """
@@ -32,14 +34,37 @@ PRIORITIES = (
 Congestion = Literal["drop", "block"]
 Compression = Literal["none", "lz4", "zstd"]
 
-HIGH_PRIORITY_TYPES = frozenset({"tf2_msgs/msg/TFMessage", "sensor_msgs/msg/LaserScan"})
-BULK_TYPES = frozenset({
-    "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/PointCloud2",
-    "sensor_msgs/msg/PointCloud",
-})
-SENSOR_TYPES = BULK_TYPES | {
-    "sensor_msgs/msg/LaserScan", "sensor_msgs/msg/Imu", "sensor_msgs/msg/MagneticField",
-    "sensor_msgs/msg/Range", "sensor_msgs/msg/CameraInfo",
+
+@dataclass(frozen=True, slots=True)
+class TrafficClass:
+    """A type's built-in share of the link. ``congestion`` None: as the QoS says (best-effort
+    drops, reliable blocks); latched topics always block (they are state)."""
+
+    priority: str
+    congestion: Congestion | None = None
+
+
+DEFAULT_TRAFFIC = TrafficClass("data")
+FRAMES = TrafficClass("data_high")
+SCANS = TrafficClass("data_high", "drop")
+BULK = TrafficClass("data_low", "drop")
+SENSOR = TrafficClass("data", "drop")
+VIDEO = TrafficClass("data_low", "block")
+
+# The types forwarded other than DEFAULT_TRAFFIC. The host's type table (host_bridge/registry.py)
+# is separate, since the robot has no host code; a test checks it has a row for each type here.
+TRAFFIC: Mapping[str, TrafficClass] = {
+    "tf2_msgs/msg/TFMessage": FRAMES,
+    "sensor_msgs/msg/LaserScan": SCANS,
+    "sensor_msgs/msg/Image": BULK,
+    "sensor_msgs/msg/CompressedImage": BULK,
+    "sensor_msgs/msg/PointCloud2": BULK,
+    "sensor_msgs/msg/PointCloud": BULK,
+    "foxglove_msgs/msg/CompressedVideo": VIDEO,
+    "sensor_msgs/msg/Imu": SENSOR,
+    "sensor_msgs/msg/MagneticField": SENSOR,
+    "sensor_msgs/msg/Range": SENSOR,
+    "sensor_msgs/msg/CameraInfo": SENSOR,
 }
 
 
@@ -57,15 +82,13 @@ POLICY_KEYS = frozenset(f.name for f in fields(Policy))
 
 
 def builtin_policy(msgtype: str, qos: QosProfile) -> Policy:
-    if msgtype in HIGH_PRIORITY_TYPES:
-        priority = "data_high"
-    elif msgtype in BULK_TYPES:
-        priority = "data_low"
-    else:
-        priority = "data"
-    sensor = msgtype in SENSOR_TYPES or qos.reliability == "best_effort"
-    congestion: Congestion = "drop" if sensor and qos.durability != "transient_local" else "block"
-    return Policy(priority=priority, congestion=congestion)
+    traffic = TRAFFIC.get(msgtype, DEFAULT_TRAFFIC)
+    congestion: Congestion = traffic.congestion or (
+        "drop" if qos.reliability == "best_effort" else "block"
+    )
+    if qos.durability == "transient_local":
+        congestion = "block"
+    return Policy(priority=traffic.priority, congestion=congestion)
 
 
 @dataclass(frozen=True, slots=True)

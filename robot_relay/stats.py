@@ -9,68 +9,19 @@ reports into rates.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import threading
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
 
 import zenoh
 
-from robot_relay.wire import PREFIX, parse_versioned_json
+from robot_relay.wire import RelayReport, stats_key
 
 log = logging.getLogger("swanky.relay")
 
-STATS_VERSION = 1
 REPORT_PERIOD_S = 1.0
-
-
-def stats_key(robot: str) -> str:
-    return f"{PREFIX}/{robot}/stats"
-
-
-def stats_selector(robots: str = "*") -> str:
-    return f"{PREFIX}/{robots}/stats"
-
-
-@dataclass(frozen=True, slots=True)
-class RelayReport:
-    """``drops``: per topic, messages lost before the relay (publication sequence gaps)."""
-
-    robot: str
-    time_ns: int
-    cpu_percent: float
-    messages: int
-    payload_bytes: int
-    drops: Mapping[str, int] = field(default_factory=dict)
-
-    def to_json(self) -> str:
-        return json.dumps({
-            "version": STATS_VERSION,
-            "robot": self.robot,
-            "time_ns": self.time_ns,
-            "cpu_percent": round(self.cpu_percent, 2),
-            "messages": self.messages,
-            "bytes": self.payload_bytes,
-            "drops": dict(self.drops),
-        })
-
-    @classmethod
-    def from_json(cls, text: str | bytes, key: str) -> RelayReport:
-        return parse_versioned_json(
-            text, key, "relay stats", STATS_VERSION,
-            lambda doc: cls(
-                robot=str(doc["robot"]),
-                time_ns=int(doc["time_ns"]),
-                cpu_percent=float(doc["cpu_percent"]),
-                messages=int(doc["messages"]),
-                payload_bytes=int(doc["bytes"]),
-                # Added to version 1 later: a relay without it reports no drops.
-                drops={str(topic): int(count) for topic, count in doc.get("drops", {}).items()},
-            ),
-        )
 
 
 def process_cpu_seconds() -> float:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import re
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal, TypeVar
 
@@ -18,6 +18,7 @@ from robot_relay.errors import GraphError, WireError
 PREFIX = "swanky"
 ATTACHMENT_VERSION = 1
 CATALOG_VERSION = 1
+STATS_VERSION = 1
 CDR_ENCODING = "application/cdr"
 ROBOT_NAME_PATTERN = re.compile(r"^[A-Za-z0-9_-]+$")
 
@@ -288,6 +289,56 @@ class Catalog:
             return cls(robot=doc["robot"], source=doc["source"], topics=topics)
 
         return parse_versioned_json(text, key, "catalog", CATALOG_VERSION, build)
+
+
+def stats_key(robot: str) -> str:
+    return f"{PREFIX}/{robot}/stats"
+
+
+def stats_selector(robots: str = "*") -> str:
+    return f"{PREFIX}/{robots}/stats"
+
+
+@dataclass(frozen=True, slots=True)
+class RelayReport:
+    """The relay's health once a second (robot_relay/stats.py puts it, the host plots it).
+
+    Counts are cumulative, so a lost report loses nothing. ``drops``: per topic, messages lost
+    before the relay (publication sequence gaps).
+    """
+
+    robot: str
+    time_ns: int
+    cpu_percent: float
+    messages: int
+    payload_bytes: int
+    drops: Mapping[str, int] = field(default_factory=dict)
+
+    def to_json(self) -> str:
+        return json.dumps({
+            "version": STATS_VERSION,
+            "robot": self.robot,
+            "time_ns": self.time_ns,
+            "cpu_percent": round(self.cpu_percent, 2),
+            "messages": self.messages,
+            "bytes": self.payload_bytes,
+            "drops": dict(self.drops),
+        })
+
+    @classmethod
+    def from_json(cls, text: str | bytes, key: str) -> RelayReport:
+        return parse_versioned_json(
+            text, key, "relay stats", STATS_VERSION,
+            lambda doc: cls(
+                robot=str(doc["robot"]),
+                time_ns=int(doc["time_ns"]),
+                cpu_percent=float(doc["cpu_percent"]),
+                messages=int(doc["messages"]),
+                payload_bytes=int(doc["bytes"]),
+                # Added to version 1 later: a relay without it reports no drops.
+                drops={str(topic): int(count) for topic, count in doc.get("drops", {}).items()},
+            ),
+        )
 
 
 @dataclass(frozen=True, slots=True)

@@ -84,6 +84,4 @@ def convert_camera_info(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return [LogItem(pinhole_path(ctx), (pinhole, *frame_components(frame)))]
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    "sensor_msgs/msg/CameraInfo": ConverterSpec(convert=convert_camera_info),
-}
+SPEC = ConverterSpec(convert=convert_camera_info)

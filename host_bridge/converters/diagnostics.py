@@ -53,6 +53,4 @@ def _diagnostic_array(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return entries
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    "diagnostic_msgs/msg/DiagnosticArray": ConverterSpec(convert=_diagnostic_array),
-}
+SPEC = ConverterSpec(convert=_diagnostic_array)

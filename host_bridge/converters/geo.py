@@ -55,8 +55,4 @@ def convert_navsatfix(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return convert_navsatfix_run([msg], [ctx])
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    "sensor_msgs/msg/NavSatFix": ConverterSpec(
-        convert=convert_navsatfix, convert_run=convert_navsatfix_run
-    ),
-}
+SPEC = ConverterSpec(convert=convert_navsatfix, convert_run=convert_navsatfix_run)

@@ -336,15 +336,11 @@ def _polygon_stamped(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return [LogItem(ctx.entity_path, (lines, *frame_components(ctx.frame(msg.header.frame_id))))]
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    "geometry_msgs/msg/PoseStamped": ConverterSpec(
-        convert=_pose_stamped, convert_run=_pose_stamped_run,
-    ),
-    "geometry_msgs/msg/PoseWithCovarianceStamped": ConverterSpec(convert=_pose_with_covariance),
-    "geometry_msgs/msg/PoseArray": ConverterSpec(convert=_pose_array),
-    "geometry_msgs/msg/TwistStamped": _vector_converter(_TWIST),
-    "geometry_msgs/msg/WrenchStamped": _vector_converter(_WRENCH),
-    "geometry_msgs/msg/Vector3Stamped": _vector_converter(_VECTOR3),
-    "geometry_msgs/msg/PointStamped": ConverterSpec(convert=_point_stamped),
-    "geometry_msgs/msg/PolygonStamped": ConverterSpec(convert=_polygon_stamped),
-}
+POSE_STAMPED = ConverterSpec(convert=_pose_stamped, convert_run=_pose_stamped_run)
+POSE_WITH_COVARIANCE = ConverterSpec(convert=_pose_with_covariance)
+POSE_ARRAY = ConverterSpec(convert=_pose_array)
+TWIST = _vector_converter(_TWIST)
+WRENCH = _vector_converter(_WRENCH)
+VECTOR3 = _vector_converter(_VECTOR3)
+POINT = ConverterSpec(convert=_point_stamped)
+POLYGON = ConverterSpec(convert=_polygon_stamped)

@@ -556,15 +556,14 @@ def convert_compressed_image(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return convert_compressed_image_run([msg], [ctx])
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    "sensor_msgs/msg/Image": ConverterSpec(convert=convert_image),
-    "sensor_msgs/msg/CompressedImage": ConverterSpec(
-        convert=convert_compressed_image, convert_run=convert_compressed_image_run
-    ),
-}
+IMAGE = ConverterSpec(convert=convert_image)
+COMPRESSED_IMAGE = ConverterSpec(
+    convert=convert_compressed_image, convert_run=convert_compressed_image_run
+)
 
 __all__ = [
-    "CONVERTERS",
+    "COMPRESSED_IMAGE",
+    "IMAGE",
     "convert_compressed_image",
     "convert_compressed_image_run",
     "convert_image",

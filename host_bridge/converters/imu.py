@@ -114,7 +114,5 @@ def _magnetic_field(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
     return {} if all(math.isnan(v) for v in field) else {(): field}
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    "sensor_msgs/msg/Imu": ConverterSpec(convert=convert_imu, convert_run=convert_imu_run),
-    "sensor_msgs/msg/MagneticField": series_spec(_magnetic_field, {(): XYZ}),
-}
+IMU = ConverterSpec(convert=convert_imu, convert_run=convert_imu_run)
+MAGNETIC_FIELD = series_spec(_magnetic_field, {(): XYZ})

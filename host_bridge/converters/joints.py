@@ -317,9 +317,6 @@ def convert_joint_trajectory(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return _report_unknown(ctx, model, unknown, _transform_items(ctx, model, values))
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    "sensor_msgs/msg/JointState": ConverterSpec(
-        convert=convert_joint_state, convert_run=convert_joint_state_run
-    ),
-    "trajectory_msgs/msg/JointTrajectory": ConverterSpec(convert=convert_joint_trajectory),
-}
+# JointState's row combines this (the robot model moves) with scalars.JOINT_STATE (plots).
+JOINT_STATE = ConverterSpec(convert=convert_joint_state, convert_run=convert_joint_state_run)
+JOINT_TRAJECTORY = ConverterSpec(convert=convert_joint_trajectory)

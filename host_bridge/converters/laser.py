@@ -71,4 +71,4 @@ def convert_scan(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return items
 
 
-CONVERTERS = {"sensor_msgs/msg/LaserScan": ConverterSpec(convert_scan)}
+SPEC = ConverterSpec(convert_scan)

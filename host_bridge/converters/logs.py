@@ -74,10 +74,6 @@ def _log_levels(thresholds: npt.NDArray[np.int_]) -> Callable[[Sequence[Any]], l
     return lambda msgs: rerun_levels([m.level for m in msgs], thresholds)
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    "rcl_interfaces/msg/Log": _text_spec(
-        _log_text, _log_levels(ROS2_THRESHOLDS), stamp=lambda m: m.stamp,
-    ),
-    "rosgraph_msgs/msg/Log": _text_spec(_log_text, _log_levels(ROS1_THRESHOLDS)),
-    "std_msgs/msg/String": _text_spec(lambda m: str(m.data), lambda msgs: [_INFO] * len(msgs)),
-}
+ROS2_LOG = _text_spec(_log_text, _log_levels(ROS2_THRESHOLDS), stamp=lambda m: m.stamp)
+ROS1_LOG = _text_spec(_log_text, _log_levels(ROS1_THRESHOLDS))
+STRING = _text_spec(lambda m: str(m.data), lambda msgs: [_INFO] * len(msgs))

@@ -342,7 +342,5 @@ def convert_marker_array(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return _convert_markers(msg.markers, ctx)
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    "visualization_msgs/msg/Marker": ConverterSpec(convert=convert_marker),
-    "visualization_msgs/msg/MarkerArray": ConverterSpec(convert=convert_marker_array),
-}
+MARKER = ConverterSpec(convert=convert_marker)
+MARKER_ARRAY = ConverterSpec(convert=convert_marker_array)

@@ -44,7 +44,5 @@ def _grid_cells(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return [LogItem(ctx.entity_path, (boxes, *frame_components(ctx.frame(msg.header.frame_id))))]
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    "nav_msgs/msg/Path": ConverterSpec(convert=_path),
-    "nav_msgs/msg/GridCells": ConverterSpec(convert=_grid_cells),
-}
+PATH = ConverterSpec(convert=_path)
+GRID_CELLS = ConverterSpec(convert=_grid_cells)

@@ -29,9 +29,9 @@ patches ``/costmap``; option ``grid_topic`` overrides that naming rule). A patch
 Grid instead of writing into the old one, so a worker thread may read a grid while the receive
 path replaces it.
 
-Dispatcher contract: :data:`CONVERTERS` here are the fast path (a few ms even for a large map;
-validation, one flip-copy). The wall meshes built from the same messages are slow (see
-``walls.py``) and are offered separately as ``walls.SLOW_CONVERTERS`` for the same two types;
+Dispatcher contract: :data:`GRID` and :data:`GRID_UPDATE` here are the fast path (a few ms even
+for a large map; validation, one flip-copy). The wall meshes built from the same messages are
+slow (see ``walls.py``): the registry's rows of the same two types name them as ``slow``;
 the dispatcher runs those in a latest-only worker after this module's converter has handled
 the same message (an update's walls read the grid this module patched).
 """
@@ -272,12 +272,8 @@ def convert_costmap_update(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return grid_items(grid)
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    "nav_msgs/msg/OccupancyGrid": ConverterSpec(convert_grid),
-    "map_msgs/msg/OccupancyGridUpdate": ConverterSpec(convert_update),
-}
-# Costmaps are drawn, not turned into walls (walls.SLOW_CONVERTERS matches CONVERTERS).
-COSTMAP_CONVERTERS: dict[str, ConverterSpec] = {
-    "nav2_msgs/msg/Costmap": ConverterSpec(convert_costmap),
-    "nav2_msgs/msg/CostmapUpdate": ConverterSpec(convert_costmap_update),
-}
+GRID = ConverterSpec(convert_grid)
+GRID_UPDATE = ConverterSpec(convert_update)
+# Costmaps are drawn, not turned into walls (walls.GRID_WALLS and UPDATE_WALLS are for the maps).
+COSTMAP = ConverterSpec(convert_costmap)
+COSTMAP_UPDATE = ConverterSpec(convert_costmap_update)

@@ -169,6 +169,4 @@ def convert_pointcloud2(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return [LogItem(ctx.entity_path, (points, *frame))]
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    "sensor_msgs/msg/PointCloud2": ConverterSpec(convert=convert_pointcloud2),
-}
+SPEC = ConverterSpec(convert=convert_pointcloud2)

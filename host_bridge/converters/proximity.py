@@ -71,6 +71,4 @@ def convert_range(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     ]
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    "sensor_msgs/msg/Range": ConverterSpec(convert=convert_range),
-}
+SPEC = ConverterSpec(convert=convert_range)

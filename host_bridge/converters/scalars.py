@@ -143,27 +143,16 @@ def _joints(msg: Any, topic: str) -> Mapping[SubPath, Values]:
     return series
 
 
-_NUMBERS = (
-    "Bool", "Byte", "Char", "Int8", "UInt8", "Int16", "UInt16", "Int32", "UInt32", "Int64",
-    "UInt64", "Float32", "Float64",
-)
-_ARRAYS = (
-    "Byte", "Int8", "UInt8", "Int16", "UInt16", "Int32", "UInt32", "Int64", "UInt64", "Float32",
-    "Float64",
-)
-_SENSORS = {
-    "Temperature": "temperature",
-    "FluidPressure": "fluid_pressure",
-    "Illuminance": "illuminance",
-    "RelativeHumidity": "relative_humidity",
-}
-
-CONVERTERS: dict[str, ConverterSpec] = {
-    **{f"std_msgs/msg/{name}": series_spec(_data) for name in _NUMBERS},
-    **{f"std_msgs/msg/{name}MultiArray": series_spec(_array) for name in _ARRAYS},
-    "builtin_interfaces/msg/Time": series_spec(_seconds),
-    "builtin_interfaces/msg/Duration": series_spec(_seconds),
-    **{f"sensor_msgs/msg/{name}": series_spec(_field(f)) for name, f in _SENSORS.items()},
-    "sensor_msgs/msg/BatteryState": series_spec(_battery),
-    "sensor_msgs/msg/JointState": series_spec(_joints),
-}
+NUMBER = series_spec(_data)
+"""std_msgs' single numbers (``data``: Bool, Byte, Char, Int8 ... Float64)."""
+NUMBER_ARRAY = series_spec(_array)
+"""std_msgs' ``*MultiArray``: one multi-series plot."""
+SECONDS = series_spec(_seconds)
+"""builtin_interfaces Time and Duration."""
+TEMPERATURE = series_spec(_field("temperature"))
+FLUID_PRESSURE = series_spec(_field("fluid_pressure"))
+ILLUMINANCE = series_spec(_field("illuminance"))
+RELATIVE_HUMIDITY = series_spec(_field("relative_humidity"))
+BATTERY = series_spec(_battery)
+JOINT_STATE = series_spec(_joints)
+"""JointState's plots; its row combines them with joints.JOINT_STATE (the model moves)."""

@@ -90,4 +90,4 @@ def convert_tf(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return convert_tf_run([msg], [ctx])
 
 
-CONVERTERS = {"tf2_msgs/msg/TFMessage": ConverterSpec(convert_tf, convert_tf_run)}
+SPEC = ConverterSpec(convert_tf, convert_tf_run)

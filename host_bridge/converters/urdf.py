@@ -459,6 +459,6 @@ def is_robot_description(topic: str) -> bool:
     return topic.rstrip("/").split("/")[-1] == "robot_description"
 
 
-# Keyed by topic, not type: std_msgs/String carries plain text everywhere else, so the
-# dispatcher picks this for topics where is_robot_description() holds.
+# Routed by topic, not type: std_msgs/String carries plain text everywhere else, so the
+# registry's row picks this for topics where is_robot_description() holds.
 SPEC = ConverterSpec(convert=convert)

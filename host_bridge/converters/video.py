@@ -342,12 +342,10 @@ def convert_compressed_video(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return convert_compressed_video_run([msg], [ctx])
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    COMPRESSED_VIDEO: ConverterSpec(convert_compressed_video, convert_compressed_video_run),
-}
+SPEC = ConverterSpec(convert_compressed_video, convert_compressed_video_run)
 
 __all__ = [
-    "CONVERTERS",
+    "SPEC",
     "VideoFrame",
     "VideoTopicState",
     "convert_compressed_video",

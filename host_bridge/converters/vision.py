@@ -93,9 +93,7 @@ def convert_detection3d(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return _boxes3d([msg], msg.header.frame_id, ctx)
 
 
-CONVERTERS: dict[str, ConverterSpec] = {
-    "vision_msgs/msg/Detection2DArray": ConverterSpec(convert=convert_detection2d_array),
-    "vision_msgs/msg/Detection2D": ConverterSpec(convert=convert_detection2d),
-    "vision_msgs/msg/Detection3DArray": ConverterSpec(convert=convert_detection3d_array),
-    "vision_msgs/msg/Detection3D": ConverterSpec(convert=convert_detection3d),
-}
+DETECTION_2D_ARRAY = ConverterSpec(convert=convert_detection2d_array)
+DETECTION_2D = ConverterSpec(convert=convert_detection2d)
+DETECTION_3D_ARRAY = ConverterSpec(convert=convert_detection3d_array)
+DETECTION_3D = ConverterSpec(convert=convert_detection3d)

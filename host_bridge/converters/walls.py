@@ -10,9 +10,9 @@ Cost (measured on a busy 2-core machine): 2-4 s for a 4000x4000 floor plan (16 M
 walls), 2.4-4x one bare Canny + HoughLinesP call on the same image (``benchmarks/walls_4000.py``);
 Hough, run per window and edge orientation, and the merge take most of it. A 400x400 part of
 that plan takes about 25 ms. That is too slow for the receive path, so this module offers
-:data:`SLOW_CONVERTERS` (OccupancyGrid and OccupancyGridUpdate, the same types as
-``occupancy.CONVERTERS``) for the dispatcher to run in a latest-only worker thread after
-``occupancy`` has converted the same message (an update's walls are built from the grid
+:data:`GRID_WALLS` and :data:`UPDATE_WALLS` (the ``slow`` converters of the registry's
+OccupancyGrid and OccupancyGridUpdate rows) for the dispatcher to run in a latest-only worker
+thread after ``occupancy`` has converted the same message (an update's walls are built from the grid
 ``occupancy`` just patched). A grid whose cells, geometry and wall options hash to what its wall
 entity already shows yields no items, so a re-published static map costs one hash
 (``robot_state[DIGESTS_KEY]``, keyed by wall entity: a grid and its updates draw the same
@@ -185,7 +185,5 @@ def update_wall_items(update_msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return _grid_wall_items(grid_for_update(ctx), ctx.robot_state)
 
 
-SLOW_CONVERTERS: dict[str, ConverterSpec] = {
-    "nav_msgs/msg/OccupancyGrid": ConverterSpec(wall_items),
-    "map_msgs/msg/OccupancyGridUpdate": ConverterSpec(update_wall_items),
-}
+GRID_WALLS = ConverterSpec(wall_items)
+UPDATE_WALLS = ConverterSpec(update_wall_items)

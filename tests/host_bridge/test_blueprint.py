@@ -7,14 +7,19 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
+import rerun as rr
 import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from host_bridge.blueprint import BlueprintFollower, TopicEntry, build_blueprint
 from host_bridge.cli import main as host_main
+from host_bridge.contract import ConvertContext
 from host_bridge.demo.bag import write_demo_bag
 from host_bridge.dispatch import Dispatcher
+from host_bridge.registry import default_registry
 from host_bridge.sink import APPLICATION_ID, RerunSink, SinkOptions
 from robot_relay.wire import RawMessage
 from tests.host_bridge.test_dispatch import float_cdr, string_cdr
@@ -80,7 +85,7 @@ def test_one_robot_gets_3d_images_map_plots_and_log() -> None:
         "/camera/image_raw/compressed": "2D", "/front/image": "2D",
         "GPS": "Map",
         "Odometry": "TimeSeries", "IMU": "TimeSeries", "Battery": "TimeSeries",
-        "Signals": "TimeSeries", "Timers": "TimeSeries",
+        "Signals": "TimeSeries", "Timers": "TimeSeries", "Arrays": "BarChart",
         "Log": "TextLog",
     }
     assert found["tb3 3D"].origin == "/tb3"
@@ -104,6 +109,8 @@ def test_one_robot_gets_3d_images_map_plots_and_log() -> None:
     # Scalars and custom types (generic converter) are signals; timers have their own plot.
     assert found["Signals"].contents == ["+ /tb3/acme/custom/**", "+ /tb3/temperature/**"]
     assert found["Timers"].contents == ["+ /tb3/instrumentation/timer/loop/**"]
+    # Time series do not draw the bar charts of custom types' long arrays: a view of their own.
+    assert found["Arrays"].contents == ["+ /tb3/acme/custom/**"]
     assert found["Log"].contents == [
         "+ /tb3/diagnostics/**", "+ /tb3/rosout/**", "+ /_swanky/warnings/**",
     ]
@@ -117,8 +124,35 @@ def test_one_robot_layout_is_3d_beside_a_column_of_the_rest() -> None:
     column = children(parts[1])
     assert [type(p).__name__ for p in column] == ["Grid", "Tabs", "TextLogView"]
     assert [v.name for v in children(column[1])] == [
-        "Odometry", "IMU", "Battery", "Signals", "Timers",
+        "Odometry", "IMU", "Battery", "Signals", "Timers", "Arrays",
     ]
+
+
+def test_custom_types_long_arrays_land_in_the_bar_chart_view() -> None:
+    """The generic converter logs an array longer than 64 as a BarChart under the topic; the
+    Arrays view holds every custom topic of the robot, and only those."""
+    text = "float64 speed\nfloat32[] histogram\n"
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg(text, "acme_msgs/msg/Histogram"))
+    message = store.types["acme_msgs/msg/Histogram"](
+        speed=1.5, histogram=np.arange(100, dtype=np.float32)
+    )
+    table = default_registry()
+    context = ConvertContext(robot="tb3", topic="/hist", entity_path="/tb3/hist", times={})
+    logged = {
+        entry.path: entry for entry in table.get("acme_msgs/msg/Histogram").convert(message, context)
+    }
+    (bars,) = logged["/tb3/hist/histogram"].archetypes  # type: ignore[union-attr]
+    assert isinstance(bars, rr.BarChart)
+
+    topics = {"/hist": "acme_msgs/msg/Histogram", "/speed": "std_msgs/msg/Float64",
+              "/scan": "sensor_msgs/msg/LaserScan"}
+    found = by_name(views(build_blueprint(entries("tb3", topics), registry=table)))
+    assert found["Arrays"].class_identifier == "BarChart"
+    assert found["Arrays"].contents == ["+ /tb3/hist/**"]
+    assert found["Signals"].contents == ["+ /tb3/hist/**", "+ /tb3/speed/**"]
+    known_only = by_name(views(build_blueprint(entries("tb3", {"/speed": "std_msgs/msg/Float64"}))))
+    assert "Arrays" not in known_only
 
 
 def test_stats_add_a_plot_of_the_robot_stats_root() -> None:
@@ -283,8 +317,6 @@ def test_bad_blueprint_file_is_named_before_anything_opens(
     name, content = case
     path = tmp_path / name
     if content == "recording":
-        import rerun as rr
-
         recording = rr.RecordingStream(APPLICATION_ID)
         recording.save(path)
         recording.log("/x", rr.Points3D([[0, 0, 0]]))

@@ -13,7 +13,7 @@ import pytest
 import rerun as rr
 
 from host_bridge.contract import LogItem
-from host_bridge.converters.camera import CONVERTERS, convert_camera_info
+from host_bridge.converters.camera import convert_camera_info
 from host_bridge.errors import ConvertError
 from tests.host_bridge.test_images import ROBOT, T, first_message, header, make_ctx, pylist
 
@@ -142,7 +142,3 @@ def test_real_ros1_camera_info_matches_its_image(shared_data: Path) -> None:
     assert pylist(pinhole.parent_frame) == [f"{ROBOT}/raspicam"] == frames
     image_entity = make_ctx("/raspicam_node/image/compressed").entity_path
     assert image_entity.startswith(path + "/")
-
-
-def test_module_registers_camera_info() -> None:
-    assert set(CONVERTERS) == {"sensor_msgs/msg/CameraInfo"}

@@ -7,11 +7,11 @@ from typing import Any
 import rerun as rr
 
 from host_bridge.contract import ConvertContext, LogItem
-from host_bridge.converters.diagnostics import CONVERTERS
+from host_bridge.converters.diagnostics import SPEC
 from tests.host_bridge.sensor_test_support import TYPES as T
 from tests.host_bridge.sensor_test_support import header
 
-CONVERT = CONVERTERS["diagnostic_msgs/msg/DiagnosticArray"].convert
+CONVERT = SPEC.convert
 
 
 def _status(level: int, name: str, message: str, values: dict[str, str] | None = None) -> Any:

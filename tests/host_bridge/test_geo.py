@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from host_bridge.converters.geo import CONVERTERS, convert_navsatfix, convert_navsatfix_run
+from host_bridge.converters.geo import SPEC, convert_navsatfix, convert_navsatfix_run
 from tests.host_bridge.sensor_test_support import (
     column_rows,
     columns_item,
@@ -90,5 +90,5 @@ def test_single_fix_and_no_fix_message() -> None:
     entries = convert_navsatfix(fix(40.0, -75.0, alt=3.5), make_ctx("/fix"))
     assert [e.path for e in entries] == ["/r/fix", "/r/fix/altitude"]
     assert convert_navsatfix(fix(40.0, -75.0, status=-1), make_ctx("/fix")) == []
-    spec = CONVERTERS["sensor_msgs/msg/NavSatFix"]
+    spec = SPEC
     assert spec.convert_run is convert_navsatfix_run

@@ -17,11 +17,19 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry
-from host_bridge.converters.geometry import CONVERTERS
+from host_bridge.converters.geometry import (
+    POINT,
+    POLYGON,
+    POSE_ARRAY,
+    POSE_STAMPED,
+    POSE_WITH_COVARIANCE,
+    TWIST,
+    VECTOR3,
+    WRENCH,
+)
 from tests.host_bridge.sensor_test_support import TYPES as T
 from tests.host_bridge.sensor_test_support import archetype, header, log_item
 
-POSE_STAMPED = CONVERTERS["geometry_msgs/msg/PoseStamped"]
 NS = 1_000_000_000
 
 
@@ -225,7 +233,7 @@ def _rotation(xyzw: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
 
 
 def test_diagonal_covariance_gives_sqrt_half_sizes_and_no_rotation() -> None:
-    spec = CONVERTERS["geometry_msgs/msg/PoseWithCovarianceStamped"]
+    spec = POSE_WITH_COVARIANCE
     msg = _with_covariance((1.0, 2.0, 0.0), np.diag([4.0, 1.0, 0.25]))
     entries = spec.convert(msg, _ctx())
     ellipsoid = _ellipsoid(entries)
@@ -245,7 +253,7 @@ def test_rotated_covariance_ellipsoid_reproduces_the_covariance() -> None:
         [[1, 0, 0], [0, cr, -sr], [0, sr, cr]],
     )
     cov = axes @ np.diag([9.0, 4.0, 1.0]) @ axes.T
-    spec = CONVERTERS["geometry_msgs/msg/PoseWithCovarianceStamped"]
+    spec = POSE_WITH_COVARIANCE
     ellipsoid = _ellipsoid(spec.convert(_with_covariance((0.0, 0.0, 0.0), cov), _ctx()))
     half = _values(ellipsoid.half_sizes)[0]
     np.testing.assert_allclose(half, [3.0, 2.0, 1.0], rtol=1e-5)
@@ -257,7 +265,7 @@ def test_rotated_covariance_ellipsoid_reproduces_the_covariance() -> None:
 
 
 def test_non_finite_covariance_keeps_the_pose_without_ellipsoid() -> None:
-    spec = CONVERTERS["geometry_msgs/msg/PoseWithCovarianceStamped"]
+    spec = POSE_WITH_COVARIANCE
     entries = spec.convert(_with_covariance((1.0, 0.0, 0.0), np.full((3, 3), np.nan)), _ctx())
     assert [e.path for e in entries] == ["/tb3/goal", "/tb3/goal/trail"]
 
@@ -276,7 +284,7 @@ def test_pose_array_draws_one_arrow_along_each_x_axis() -> None:
             _pose((0, 0, 1), (0, 0, 0, 0)),
         ],
     )
-    spec = CONVERTERS["geometry_msgs/msg/PoseArray"]
+    spec = POSE_ARRAY
     item = log_item(spec.convert(msg, _ctx(options={"arrow_length": 2.0})), "/tb3/goal")
     arrows = archetype(item, rr.Arrows3D)
     np.testing.assert_allclose(_values(arrows.origins), [[0, 0, 0], [1, 2, 0], [0, 0, 1]])
@@ -294,7 +302,7 @@ def _twist(linear: Sequence[float], angular: Sequence[float], frame_id: str = "b
 
 
 def test_twist_stamped_arrows_and_per_component_scalars() -> None:
-    spec = CONVERTERS["geometry_msgs/msg/TwistStamped"]
+    spec = TWIST
     entries = spec.convert(_twist((0.5, 0.0, 0.0), (0.0, 0.0, -0.25)), _ctx("/cmd"))
     arrows, frame = _at(entries, "/tb3/cmd")
     assert _column(arrows, "Arrows3D:vectors") == [[[0.5, 0.0, 0.0], [0.0, 0.0, -0.25]]]
@@ -317,12 +325,12 @@ def test_wrench_and_vector3_use_their_field_names() -> None:
         header=header(""),
         wrench=T["geometry_msgs/msg/Wrench"](force=_vec((1, 2, 3)), torque=_vec((4, 5, 6))),
     )
-    entries = CONVERTERS["geometry_msgs/msg/WrenchStamped"].convert(wrench, _ctx("/ft"))
+    entries = WRENCH.convert(wrench, _ctx("/ft"))
     (arrows,) = _at(entries, "/tb3/ft")  # empty frame_id: no CoordinateFrame item
     assert _column(arrows, "Arrows3D:vectors") == [[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]]
     assert _column(_at(entries, "/tb3/ft/torque/y")[0], "Scalars:scalars") == [[5.0]]
     vector = T["geometry_msgs/msg/Vector3Stamped"](header=header("imu"), vector=_vec((0, -9.8, 0)))
-    entries = CONVERTERS["geometry_msgs/msg/Vector3Stamped"].convert(vector, _ctx("/g"))
+    entries = VECTOR3.convert(vector, _ctx("/g"))
     assert _column(_at(entries, "/tb3/g")[0], "Arrows3D:labels") == [["vector"]]
     assert _column(_at(entries, "/tb3/g/vector/y")[0], "Scalars:scalars") == [[pytest.approx(-9.8)]]
 
@@ -332,7 +340,7 @@ def test_point_stamped_and_closed_polygon() -> None:
         header=header("map"),
         point=_vec((1, 2, 3), "Point"),
     )
-    point_spec = CONVERTERS["geometry_msgs/msg/PointStamped"]
+    point_spec = POINT
     item = log_item(point_spec.convert(point, _ctx("/clicked")), "/tb3/clicked")
     np.testing.assert_allclose(_values(archetype(item, rr.Points3D).positions), [[1, 2, 3]])
     square = [_vec((x, y, 0.0), "Point32") for x, y in [(0, 0), (1, 0), (1, 1), (0, 1)]]
@@ -340,7 +348,7 @@ def test_point_stamped_and_closed_polygon() -> None:
         header=header("base_link"),
         polygon=T["geometry_msgs/msg/Polygon"](points=square),
     )
-    polygon_spec = CONVERTERS["geometry_msgs/msg/PolygonStamped"]
+    polygon_spec = POLYGON
     item = log_item(polygon_spec.convert(polygon, _ctx("/footprint")), "/tb3/footprint")
     strips = archetype(item, rr.LineStrips3D).strips.as_arrow_array().to_pylist()
     assert strips == [[[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 0]]]
@@ -406,7 +414,7 @@ def test_real_location_and_velocity_convert_as_runs(
     location, velocity = amr_bag["/location"], amr_bag["/velocity"]
     assert (len(location), len(velocity)) == (5273, 5270)
     pose_run = POSE_STAMPED.convert_run
-    twist_run = CONVERTERS["geometry_msgs/msg/TwistStamped"].convert_run
+    twist_run = TWIST.convert_run
     assert pose_run is not None
     assert twist_run is not None
     started = time.perf_counter()

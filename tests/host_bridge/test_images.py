@@ -18,7 +18,6 @@ from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
 from host_bridge.converters.images import (
-    CONVERTERS,
     convert_compressed_image,
     convert_compressed_image_run,
     convert_image,
@@ -696,7 +695,3 @@ def test_real_legacy_jpg_compressed_image_with_exif(shared_data: Path) -> None:
     decoded = cv2.imdecode(blob, cv2.IMREAD_COLOR)
     assert decoded is not None
     assert decoded.shape == (960, 1280, 3)
-
-
-def test_module_registers_both_image_types() -> None:
-    assert set(CONVERTERS) == {"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"}

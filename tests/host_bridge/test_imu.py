@@ -12,7 +12,7 @@ import pytest
 import rerun as rr
 
 from host_bridge.contract import ColumnsItem, LogItem
-from host_bridge.converters.imu import CONVERTERS, convert_imu, convert_imu_run
+from host_bridge.converters.imu import MAGNETIC_FIELD, convert_imu, convert_imu_run
 from tests.host_bridge.sensor_test_support import (
     archetype,
     column_rows,
@@ -101,7 +101,7 @@ def test_real_zero_quaternion_run_has_no_nan_and_keeps_scalars(
 def test_real_magnetic_field_run(phidgets: dict[str, list[Any]]) -> None:
     msgs = phidgets["/imu/mag"]
     ctxs = [make_ctx("/imu/mag", stamp_ns=stamp_ns(m)) for m in msgs]
-    spec = CONVERTERS["sensor_msgs/msg/MagneticField"]
+    spec = MAGNETIC_FIELD
     assert spec.convert_run is not None
     entries = spec.convert_run(msgs, ctxs)
     item = columns_item(entries, "/r/imu/mag")
@@ -175,7 +175,7 @@ def test_run_with_mixed_orientations_and_empty_frame_id() -> None:
 
 def test_magnetic_field_without_a_reading_logs_nothing() -> None:
     nan = float("nan")
-    spec = CONVERTERS["sensor_msgs/msg/MagneticField"]
+    spec = MAGNETIC_FIELD
 
     def field(x: float, y: float, z: float) -> Any:
         return msg("sensor_msgs/msg/MagneticField", header=header("imu"),

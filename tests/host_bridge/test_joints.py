@@ -300,11 +300,3 @@ def test_trajectory_uses_its_first_point() -> None:
         np.testing.assert_array_equal(transform_matrix(item), transform_matrix(state[path]))
     empty = SimpleNamespace(joint_names=["shoulder"], points=[])
     assert joints.convert_joint_trajectory(empty, ctx) == []
-
-
-def test_converters_keys() -> None:
-    assert sorted(joints.CONVERTERS) == [
-        "sensor_msgs/msg/JointState",
-        "trajectory_msgs/msg/JointTrajectory",
-    ]
-    assert joints.CONVERTERS["sensor_msgs/msg/JointState"].convert_run is not None

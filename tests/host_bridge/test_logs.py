@@ -9,7 +9,7 @@ import pytest
 from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry
-from host_bridge.converters.logs import CONVERTERS
+from host_bridge.converters.logs import ROS1_LOG, ROS2_LOG, STRING
 from tests.host_bridge.sensor_test_support import TYPES as ROS2
 from tests.host_bridge.sensor_test_support import read_topic
 
@@ -81,7 +81,7 @@ def _ros1_log(level: int, name: str = "/talker", text: str = "hello") -> Any:
     ],
 )
 def test_ros2_log_levels_and_text(level: int, expected: str) -> None:
-    (item,) = CONVERTERS["rcl_interfaces/msg/Log"].convert(
+    (item,) = ROS2_LOG.convert(
         _ros2_log(level, "talker", "Publishing: 'Hello World: 1'", ns=7 * NS + 5),
         _ctx(ns=99),
     )
@@ -100,7 +100,7 @@ def test_ros2_log_levels_and_text(level: int, expected: str) -> None:
     [(1, "DEBUG"), (2, "INFO"), (4, "WARN"), (8, "ERROR"), (16, "CRITICAL"), (0, "TRACE")],
 )
 def test_ros1_log_levels(level: int, expected: str) -> None:
-    (item,) = CONVERTERS["rosgraph_msgs/msg/Log"].convert(_ros1_log(level), _ctx(ns=5))
+    (item,) = ROS1_LOG.convert(_ros1_log(level), _ctx(ns=5))
     rows = _rows(item)
     assert rows["TextLog:level"] == [expected]
     assert rows["TextLog:text"] == ["[/talker] hello"]
@@ -109,7 +109,7 @@ def test_ros1_log_levels(level: int, expected: str) -> None:
 
 
 def test_rosout_run_is_one_column_with_a_row_per_line() -> None:
-    spec = CONVERTERS["rcl_interfaces/msg/Log"]
+    spec = ROS2_LOG
     assert spec.convert_run is not None
     msgs = [
         _ros2_log(level, f"node{level}", f"line {level}", ns=level * NS)
@@ -139,7 +139,7 @@ def test_real_string_topics_become_info_lines(
 ) -> None:
     run = list(read_topic(shared_data / "tb3_nav_sim_paths_amr" / "rosbag_demo.bag", topic))
     assert len(run) == count
-    spec = CONVERTERS["std_msgs/msg/String"]
+    spec = STRING
     assert spec.convert_run is not None
     (item,) = spec.convert_run(run, [_ctx(topic, ns=i) for i in range(count)])
     assert item.path == f"/tb3{topic}"

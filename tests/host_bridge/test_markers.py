@@ -109,13 +109,6 @@ def rotate(q: list[float], v: list[float]) -> np.ndarray[Any, Any]:
     return vec + 2.0 * np.cross(u, np.cross(u, vec) + w * vec)
 
 
-def test_converters_keys() -> None:
-    assert set(markers.CONVERTERS) == {
-        "visualization_msgs/msg/Marker",
-        "visualization_msgs/msg/MarkerArray",
-    }
-
-
 def test_cube_pose_size_and_frame() -> None:
     item = log_item(
         convert(

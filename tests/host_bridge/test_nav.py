@@ -10,11 +10,8 @@ import pytest
 import rerun as rr
 
 from host_bridge.contract import ConvertContext
-from host_bridge.converters.nav import CONVERTERS
+from host_bridge.converters.nav import GRID_CELLS, PATH
 from tests.host_bridge.sensor_test_support import TYPES, archetype, header, log_item, read_topic
-
-PATH = CONVERTERS["nav_msgs/msg/Path"]
-GRID_CELLS = CONVERTERS["nav_msgs/msg/GridCells"]
 
 
 def _ctx(topic: str, options: dict[str, Any] | None = None) -> ConvertContext:

@@ -272,7 +272,3 @@ def test_bad_updates_are_convert_errors_naming_the_topic(
     occupancy.convert_grid(grid_msg(np.zeros((4, 5), dtype=np.int8)), grid_ctx)
     with pytest.raises(ConvertError, match=rf"^{update_topic}: .*{message}"):
         occupancy.convert_update(update_msg(x, y, patch), update_ctx)
-
-
-def test_converter_keys() -> None:
-    assert sorted(occupancy.CONVERTERS) == [UPDATE_TYPE, "nav_msgs/msg/OccupancyGrid"]

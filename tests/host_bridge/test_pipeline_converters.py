@@ -14,7 +14,7 @@ from host_bridge.converters.generic import convert_generic
 from host_bridge.converters.laser import convert_scan
 from host_bridge.converters.odometry import convert_odometry_run
 from host_bridge.converters.tf import convert_tf, convert_tf_run
-from host_bridge.registry import default_registry
+from host_bridge.registry import Row, default_registry
 
 T = get_typestore(Stores.ROS2_HUMBLE).types
 
@@ -171,25 +171,36 @@ def test_generic_fallback_plots_numbers_and_logs_text() -> None:
     assert column(items["/tb3/battery/location"], "TextLog:text") == [["slot"]]  # type: ignore[arg-type]
 
 
-@pytest.mark.parametrize("msgtype", default_registry().types())
-def test_every_registered_type_has_a_converter_that_handles_a_default_message(
-    msgtype: str,
-) -> None:
-    """Walks the registry: each converter accepts a default-constructed message of its type
-    (or refuses it with a ConvertError, never another exception)."""
+TABLE = default_registry()
+
+
+@pytest.mark.parametrize(
+    "row",
+    [row for row in TABLE.rows() if not row.is_family],
+    ids=lambda row: row.msgtype + (" (by topic)" if row.topics else ""),
+)
+def test_every_registered_type_has_a_converter_that_handles_a_default_message(row: Row) -> None:
+    """Walks the type table: each row's converter (and its slow one) accepts a
+    default-constructed message of its type (or refuses it with a ConvertError, never another
+    exception)."""
     from host_bridge.decode import base_typestore
     from host_bridge.errors import ConvertError
 
     store = base_typestore()
-    spec = default_registry().get(msgtype)
-    if msgtype not in store.types:
-        pytest.skip(f"{msgtype} is a ROS 1 type (only ROS 1 bags carry it)")
-    msg = _default_message(store, msgtype)
-    try:
-        entries = spec.convert(msg, ctx("/topic"))
-    except ConvertError:
-        return
-    assert all(e.path.startswith("/tb3/") for e in entries)
+    if row.msgtype not in store.types:
+        pytest.skip(f"{row.msgtype} is a ROS 1 type (only ROS 1 bags carry it)")
+    topic = "/robot_description" if row.topics is not None else "/topic"
+    assert TABLE.row(row.msgtype, topic) is row
+    msg = _default_message(store, row.msgtype)
+    context = ctx(topic)
+    for spec in (row.spec, row.slow):
+        if spec is None:
+            continue
+        try:
+            entries = spec.convert(msg, context)
+        except ConvertError:
+            continue
+        assert all(e.path.startswith("/tb3/") for e in entries)
 
 
 def _default_message(store: Any, msgtype: str) -> Any:

@@ -12,7 +12,7 @@ import pytest
 import rerun as rr
 
 from host_bridge.colormap import apply_colormap
-from host_bridge.converters.pointcloud import CONVERTERS, convert_pointcloud2
+from host_bridge.converters.pointcloud import convert_pointcloud2
 from host_bridge.errors import ConvertError
 from tests.host_bridge.sensor_test_support import (
     archetype,
@@ -304,7 +304,3 @@ def test_real_synthetic_cloud_matches_per_field_reference(shared_data: Path) -> 
     assert keep.sum() == len(positions) > 0
     item = log_item(convert_pointcloud2(message, make_ctx("/cloud")), PATH)
     assert not any(isinstance(a, rr.CoordinateFrame) for a in item.archetypes)  # empty frame_id
-
-
-def test_registered_type() -> None:
-    assert list(CONVERTERS) == ["sensor_msgs/msg/PointCloud2"]

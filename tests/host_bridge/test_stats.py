@@ -11,8 +11,7 @@ from host_bridge.contract import TIMELINE_LOG, TIMELINE_RECEIVE
 from host_bridge.dispatch import TopicCounters
 from host_bridge.sink import RerunSink, SinkOptions
 from host_bridge.stats import RelayRates, StatsTap, StatsTracker, TopicStats, topic_stats_items
-from robot_relay.stats import RelayReport
-from robot_relay.wire import RawMessage
+from robot_relay.wire import RawMessage, RelayReport
 from tests.rrd import entity_rows
 
 S = 1_000_000_000

@@ -178,12 +178,3 @@ def test_older_vision_msgs_layout_converts() -> None:
     assert values(boxes.half_sizes) == [[1.0, 3.0]]
     assert values(boxes.labels) == ["3 0.60"]
     assert values(boxes.class_ids) == [3]
-
-
-def test_converters_keys() -> None:
-    assert set(vision.CONVERTERS) == {
-        "vision_msgs/msg/Detection2DArray",
-        "vision_msgs/msg/Detection2D",
-        "vision_msgs/msg/Detection3DArray",
-        "vision_msgs/msg/Detection3D",
-    }

@@ -223,7 +223,3 @@ def test_update_rebuilds_the_walls_of_the_patched_grid() -> None:
     entries = walls.update_wall_items(patch, update_ctx)
     mesh = archetype(log_item(entries, "/r/map/walls"), rr.Mesh3D)
     assert flat(mesh.vertex_positions, 3).shape == (3 * 24, 3)
-
-
-def test_slow_converter_keys_match_the_fast_ones() -> None:
-    assert sorted(walls.SLOW_CONVERTERS) == sorted(occupancy.CONVERTERS)

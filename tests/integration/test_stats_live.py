@@ -17,8 +17,7 @@ from host_bridge.inputs.zenoh import ZenohInput
 from host_bridge.sink import RerunSink, SinkOptions
 from host_bridge.stats import StatsTap
 from robot_relay.relay import Relay
-from robot_relay.stats import stats_key
-from robot_relay.wire import Catalog, RawMessage, TopicInfo
+from robot_relay.wire import Catalog, RawMessage, TopicInfo, stats_key
 from tests.integration.procs import command, free_port, running
 from tests.rrd import entity_rows
 

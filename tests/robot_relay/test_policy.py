@@ -11,7 +11,14 @@ import pytest
 from robot_relay.cli import apply_config, parse_args
 from robot_relay.config import DEFAULT_DENY, RelayConfig, load_relay_config
 from robot_relay.errors import ConfigError
-from robot_relay.policy import Policy, PolicyTable, RateLimiter
+from robot_relay.policy import (
+    DEFAULT_TRAFFIC,
+    PRIORITIES,
+    TRAFFIC,
+    Policy,
+    PolicyTable,
+    RateLimiter,
+)
 from robot_relay.wire import FLAG_LZ4, FLAG_ZSTD, QosProfile, compressor, decompress
 
 REPO = Path(__file__).resolve().parents[2]
@@ -35,6 +42,20 @@ def test_builtin_defaults_put_tf_and_scans_first_and_images_last() -> None:
     assert table.resolve("/odom", "nav_msgs/msg/Odometry", RELIABLE) == Policy(None, "data", "block")
     assert table.resolve("/odom", "nav_msgs/msg/Odometry", BEST_EFFORT).congestion == "drop"
     assert table.resolve("/map", "nav_msgs/msg/OccupancyGrid", LATCHED).congestion == "block"
+
+
+def test_builtins_never_drop_video_whatever_its_qos() -> None:
+    """A lost video frame spoils the picture until the next keyframe: block, not drop."""
+    table = PolicyTable()
+    for qos in (RELIABLE, BEST_EFFORT):
+        assert table.resolve("/camera/video", "foxglove_msgs/msg/CompressedVideo", qos) == Policy(
+            None, "data_low", "block"
+        )
+
+
+def test_traffic_table_names_zenoh_priorities() -> None:
+    assert {c.priority for c in TRAFFIC.values()} <= set(PRIORITIES)
+    assert DEFAULT_TRAFFIC.priority in PRIORITIES
 
 
 def test_exact_name_beats_specific_glob_beats_broad_glob_beats_defaults() -> None:

@@ -7,7 +7,8 @@ import json
 import pytest
 
 from robot_relay.errors import WireError
-from robot_relay.stats import CpuMeter, RelayReport, process_cpu_seconds, stats_key
+from robot_relay.stats import CpuMeter, process_cpu_seconds
+from robot_relay.wire import RelayReport, stats_key
 
 
 def test_cpu_meter_is_cpu_time_over_wall_time() -> None:

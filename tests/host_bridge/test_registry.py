@@ -1,0 +1,123 @@
+"""The type table: which converter each type gets, the rows routed by topic or family, the
+columns others read (view, heavy, slow), the table's own rules, and that it agrees with the
+relay's traffic table."""
+
+from __future__ import annotations
+
+import pytest
+
+from host_bridge.contract import ConverterSpec
+from host_bridge.converters import (
+    camera,
+    generic,
+    images,
+    joints,
+    logs,
+    markers,
+    occupancy,
+    pointcloud,
+    services,
+    urdf,
+    video,
+    vision,
+    walls,
+)
+from host_bridge.errors import RegistryError
+from host_bridge.registry import CATCH_ALL, Registry, Row, View, default_registry
+from robot_relay.policy import TRAFFIC
+
+TABLE = default_registry()
+
+# Forwarded with a traffic class by the relay, converted by the generic converter on the host:
+# the ROS 1-era cloud (points as a list of Point32 messages) has no converter of its own yet.
+RELAY_ONLY = {"sensor_msgs/msg/PointCloud"}
+
+
+@pytest.mark.parametrize(
+    ("msgtype", "spec"),
+    [
+        ("sensor_msgs/msg/PointCloud2", pointcloud.SPEC),
+        ("sensor_msgs/msg/Image", images.IMAGE),
+        ("sensor_msgs/msg/CompressedImage", images.COMPRESSED_IMAGE),
+        ("foxglove_msgs/msg/CompressedVideo", video.SPEC),
+        ("sensor_msgs/msg/CameraInfo", camera.SPEC),
+        ("visualization_msgs/msg/Marker", markers.MARKER),
+        ("visualization_msgs/msg/MarkerArray", markers.MARKER_ARRAY),
+        ("vision_msgs/msg/Detection2D", vision.DETECTION_2D),
+        ("vision_msgs/msg/Detection2DArray", vision.DETECTION_2D_ARRAY),
+        ("vision_msgs/msg/Detection3D", vision.DETECTION_3D),
+        ("vision_msgs/msg/Detection3DArray", vision.DETECTION_3D_ARRAY),
+        ("nav_msgs/msg/OccupancyGrid", occupancy.GRID),
+        ("map_msgs/msg/OccupancyGridUpdate", occupancy.GRID_UPDATE),
+        ("nav2_msgs/msg/Costmap", occupancy.COSTMAP),
+        ("nav2_msgs/msg/CostmapUpdate", occupancy.COSTMAP_UPDATE),
+        ("trajectory_msgs/msg/JointTrajectory", joints.JOINT_TRAJECTORY),
+    ],
+)
+def test_each_type_gets_its_converter(msgtype: str, spec: ConverterSpec) -> None:
+    assert TABLE.get(msgtype) is spec
+    assert msgtype in TABLE.types()
+
+
+def test_special_cases_are_plain_rows() -> None:
+    # std_msgs/String: a robot model on /robot_description (namespaced too), text elsewhere.
+    assert TABLE.get("std_msgs/msg/String", "/robot_description") is urdf.SPEC
+    assert TABLE.get("std_msgs/msg/String", "/tb1/robot_description") is urdf.SPEC
+    assert TABLE.get("std_msgs/msg/String", "/chatter") is logs.STRING
+    assert TABLE.row("std_msgs/msg/String", "/robot_description").view is View.SPATIAL
+    assert TABLE.row("std_msgs/msg/String", "/chatter").view is View.LOG
+    # Service events: one type per service, a family rule.
+    event = TABLE.row("lifecycle_msgs/srv/ChangeState_Event")
+    assert (event.spec, event.view) == (services.SPEC, View.LOG)
+    assert TABLE.get("lifecycle_msgs/srv/ChangeState_Request") is generic.SPEC
+    # JointState moves the model and is plotted: both converters, with a run form.
+    joint_state = TABLE.row("sensor_msgs/msg/JointState")
+    assert joint_state.view is View.JOINTS
+    assert joint_state.spec.convert_run is not None
+    # Anything else: the generic converter.
+    unknown = TABLE.row("acme_msgs/msg/Gauge")
+    assert (unknown.spec, unknown.view) == (generic.SPEC, View.CUSTOM)
+    assert [t for t in TABLE.types() if set(t) & set("*?[")] == []
+
+
+def test_slow_and_heavy_columns() -> None:
+    assert TABLE.slow_converters() == {
+        "nav_msgs/msg/OccupancyGrid": walls.GRID_WALLS,
+        "map_msgs/msg/OccupancyGridUpdate": walls.UPDATE_WALLS,
+    }
+    heavy = sorted(row.msgtype for row in TABLE.rows() if row.heavy)
+    assert heavy == [
+        "nav2_msgs/msg/Costmap", "nav_msgs/msg/OccupancyGrid", "sensor_msgs/msg/Image",
+        "sensor_msgs/msg/PointCloud2",
+    ]  # never video, which a lost frame spoils: CompressedImage may carry it
+
+
+def test_every_type_the_relay_classes_has_a_row_on_the_host() -> None:
+    """The relay's traffic table (robot_relay/policy.py) cannot import the host's; a type
+    spelt differently in one of them would silently get the defaults."""
+    assert sorted(set(TRAFFIC) - set(TABLE.types())) == sorted(RELAY_ONLY)
+    assert TABLE.get("sensor_msgs/msg/PointCloud") is generic.SPEC
+
+
+SPEC = ConverterSpec(convert=lambda msg, ctx: [])
+CATCH = Row(CATCH_ALL, SPEC, View.CUSTOM)
+
+
+def test_a_type_registered_twice_is_an_error() -> None:
+    with pytest.raises(RegistryError, match="'acme_msgs/msg/Gauge' is registered twice"):
+        Registry([Row("acme_msgs/msg/Gauge", SPEC, View.SIGNALS),
+                  Row("acme_msgs/msg/Gauge", SPEC, View.SPATIAL), CATCH])
+    with pytest.raises(RegistryError, match="'sensor_msgs/msg/Image' is registered twice"):
+        Registry([*TABLE.rows(), Row("sensor_msgs/msg/Image", SPEC, View.IMAGE)])
+
+
+def test_table_rules() -> None:
+    with pytest.raises(RegistryError, match=r"needs a '\*' row last"):
+        Registry([Row("acme_msgs/msg/Gauge", SPEC, View.SIGNALS)])
+    with pytest.raises(RegistryError, match=r"'acme_msgs/\*' comes after the '\*' row"):
+        Registry([CATCH, Row("acme_msgs/*", SPEC, View.SIGNALS)])
+    with pytest.raises(RegistryError, match="a slow converter is run per type"):
+        Registry([Row("acme_msgs/*", SPEC, View.SIGNALS, slow=SPEC), CATCH])
+    # An exact row after the catch-all is fine: exact names are looked up first.
+    table = Registry([CATCH, Row("acme_msgs/msg/Gauge", SPEC, View.SIGNALS)])
+    assert table.row("acme_msgs/msg/Gauge").view is View.SIGNALS

@@ -1,0 +1,214 @@
+"""Who imports whom, read from the source (AST), not by importing it.
+
+- The host's modules import each other without a cycle at module level, and the imports inside
+  functions (how a module defers a heavy dependency) close no cycle either but the one listed
+  in :data:`DEFERRED_CYCLES`. Imports under ``TYPE_CHECKING`` never run and are not counted.
+- The robot side imports nothing from the host (ruff's banned-api rule TID251 says the same for
+  the linter), and at module level only the standard library and its ``[relay]`` extra: it runs
+  on a Pi with Python 3.10 and none of the host's packages.
+- The host imports from the robot side only the modules in :data:`HOST_MAY_IMPORT`, each with
+  its reason.
+- The type table's module imports no converter at module level: the command line imports it
+  and must start without them.
+"""
+
+from __future__ import annotations
+
+import ast
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("robot_relay", "host_bridge")
+
+# robot_relay module -> (importers allowed, why the host needs it).
+HOST_MAY_IMPORT: dict[str, tuple[str, str]] = {
+    "robot_relay.wire": ("host_bridge", "the protocol both sides speak"),
+    "robot_relay.session": ("host_bridge", "Zenoh flags and session opening, alike on both commands"),
+    "robot_relay.sources.bag": ("host_bridge", "--bag reads bags with the source the relay replays"),
+    "robot_relay.errors": ("host_bridge", "the errors the modules above raise"),
+    "robot_relay.configfile": (
+        "host_bridge", "both config files load alike: line-numbered errors, topic-glob precedence",
+    ),
+    "robot_relay.files": ("host_bridge", "--package-path NAME=DIR is parsed alike on both commands"),
+    "robot_relay.relay": ("host_bridge.demo", "the demo is a simulated robot: it runs a relay"),
+}
+# Cycles closed by imports inside functions, with why they are left.
+DEFERRED_CYCLES = [
+    # The bundled definitions need the base typestore and the base typestore includes them.
+    ["host_bridge.decode", "host_bridge.schemas"],
+]
+# The [relay] extra (pyproject.toml); rclpy and rosbags are imported inside the sources' functions.
+RELAY_THIRD_PARTY = {"zenoh", "yaml", "jsonschema"}
+
+
+@dataclass(frozen=True, slots=True)
+class Import:
+    importer: str
+    imported: str
+    line: int
+    when: Literal["module", "function", "typing"]
+    """``module``: runs when the importer is imported; ``function``: when a function of it is
+    called; ``typing``: never (under ``if TYPE_CHECKING:``)."""
+
+    @property
+    def module_level(self) -> bool:
+        return self.when == "module"
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def is_module(name: str) -> bool:
+    path = ROOT.joinpath(*name.split("."))
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
+
+
+def imported_modules(node: ast.Import | ast.ImportFrom, importer: str, package: bool) -> list[str]:
+    """Full module names an import statement loads: ``from a.b import c`` is ``a.b.c`` when that
+    is a module of ours, else ``a.b``."""
+    if isinstance(node, ast.Import):
+        return [alias.name for alias in node.names]
+    base = node.module or ""
+    if node.level:
+        parent = importer.split(".")[: len(importer.split(".")) - node.level + package]
+        base = ".".join([*parent, *([base] if base else [])])
+    submodules = [f"{base}.{a.name}" for a in node.names if is_module(f"{base}.{a.name}")]
+    return submodules or [base]
+
+
+def imports_of(path: Path) -> list[Import]:
+    importer = module_name(path)
+    package = path.name == "__init__.py"
+    found: list[Import] = []
+
+    def visit(node: ast.AST, when: Literal["module", "function", "typing"]) -> None:
+        for child in ast.iter_child_nodes(node):
+            inner = when
+            if isinstance(child, ast.If) and "TYPE_CHECKING" in ast.unparse(child.test):
+                inner = "typing"
+            elif when == "module" and isinstance(
+                child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)
+            ):
+                inner = "function"
+            if isinstance(child, (ast.Import, ast.ImportFrom)):
+                found.extend(
+                    Import(importer, name, child.lineno, when)
+                    for name in imported_modules(child, importer, package)
+                )
+            visit(child, inner)
+
+    visit(ast.parse(path.read_text(), str(path)), "module")
+    return found
+
+
+ALL_IMPORTS = [i for pkg in PACKAGES for path in sorted((ROOT / pkg).rglob("*.py"))
+               for i in imports_of(path)]
+
+
+def where(i: Import) -> str:
+    return f"{i.importer.replace('.', '/')}.py:{i.line}: {i.imported}"
+
+
+def in_package(name: str, package: str) -> bool:
+    return name == package or name.startswith(package + ".")
+
+
+def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (or a self-import), by
+    Tarjan's algorithm."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def connect(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for nxt in sorted(edges.get(node, ())):
+            if nxt not in index:
+                connect(nxt)
+                low[node] = min(low[node], low[nxt])
+            elif nxt in stack:
+                low[node] = min(low[node], index[nxt])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                component.append(member)
+                if member == node:
+                    break
+            if len(component) > 1 or node in edges.get(node, ()):
+                found.append(sorted(component))
+
+    for node in sorted(edges):
+        if node not in index:
+            connect(node)
+    return found
+
+
+def test_the_imports_are_found() -> None:
+    """The scan itself: known imports of each kind are seen as what they are."""
+    seen = {(i.importer, i.imported, i.when) for i in ALL_IMPORTS}
+    assert ("host_bridge.blueprint", "host_bridge.registry", "module") in seen
+    assert ("host_bridge.registry", "host_bridge.converters.laser", "function") in seen
+    assert ("host_bridge.stats", "host_bridge.sink", "typing") in seen
+    assert ("host_bridge.dispatch", "robot_relay.wire", "module") in seen
+
+
+def host_graph(*when: str) -> dict[str, set[str]]:
+    edges: dict[str, set[str]] = {}
+    for i in ALL_IMPORTS:
+        if i.when in when and in_package(i.importer, "host_bridge") and in_package(
+            i.imported, "host_bridge"
+        ):
+            edges.setdefault(i.importer, set()).add(i.imported)
+    return edges
+
+
+def test_host_modules_import_each_other_without_a_cycle() -> None:
+    assert cycles(host_graph("module")) == []
+    assert cycles(host_graph("module", "function")) == DEFERRED_CYCLES
+
+
+def test_cycle_finder_finds_a_cycle() -> None:
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"a"}}) == [["a"]]
+
+
+def test_robot_side_imports_nothing_of_the_host() -> None:
+    relay = [i for i in ALL_IMPORTS if in_package(i.importer, "robot_relay")]
+    assert [where(i) for i in relay if in_package(i.imported, "host_bridge")] == []
+
+
+def test_robot_side_imports_only_its_extra_at_module_level() -> None:
+    relay = [i for i in ALL_IMPORTS if in_package(i.importer, "robot_relay") and i.module_level]
+    others = [
+        where(i) for i in relay
+        if i.imported.split(".")[0] not in {*sys.stdlib_module_names, *RELAY_THIRD_PARTY, "robot_relay"}
+    ]
+    assert others == []
+
+
+def test_host_imports_only_the_robot_modules_it_is_allowed() -> None:
+    host = [i for i in ALL_IMPORTS if in_package(i.importer, "host_bridge")]
+    outside = [
+        where(i) for i in host
+        if in_package(i.imported, "robot_relay")
+        and not (i.imported in HOST_MAY_IMPORT
+                 and in_package(i.importer, HOST_MAY_IMPORT[i.imported][0]))
+    ]
+    assert outside == []
+    used = {i.imported for i in host if in_package(i.imported, "robot_relay")}
+    assert sorted(set(HOST_MAY_IMPORT) - used) == []  # the list holds nothing stale
+
+
+def test_the_type_table_imports_no_converter_at_module_level() -> None:
+    table = [i for i in ALL_IMPORTS if i.importer == "host_bridge.registry" and i.module_level]
+    assert [where(i) for i in table if in_package(i.imported, "host_bridge.converters")] == []
