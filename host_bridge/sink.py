@@ -386,8 +386,7 @@ class RerunSink:
             self.abandoned = True
             stuck = "; ".join(viewer.name for viewer in self._viewers) or "a Rerun sink"
             saved = "" if self._save is None else (
-                f"; {self._save} is not finished: it lacks its index footer"
-                + ("" if problem is None else " and what the viewer was waiting for")
+                f"; {self._save} lacks its index footer (`rerun rrd optimize` adds one)"
             )
             msg = f"gave up closing {stuck} after {DISCONNECT_TIMEOUT_S:.0f} s: it stopped answering{saved}"
             raise SinkError(msg) from problem

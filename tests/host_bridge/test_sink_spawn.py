@@ -4,6 +4,7 @@ cannot use), not a hang."""
 
 from __future__ import annotations
 
+import logging
 import os
 import socket
 import subprocess
@@ -12,11 +13,15 @@ import sysconfig
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import rerun as rr
 
 from host_bridge import sink
+from host_bridge.contract import LogItem
 from host_bridge.errors import SinkError
+from tests.integration.procs import headless_viewer
+from tests.rrd import entity_rows
 
 
 def test_viewer_beside_the_interpreter_is_found_without_path(
@@ -106,3 +111,24 @@ def test_readme_demo_command_without_venv_on_path_finds_the_viewer(tmp_path: Pat
         "are unset); on a machine without a screen use --save FILE.rrd or --serve-web"
     ))
     assert "Traceback" not in done.stderr
+
+
+def test_closing_the_spawned_viewer_is_no_error(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Closing the viewer's window, then Ctrl-C: how a user ends the README's demo."""
+    with headless_viewer() as (_, port, viewer):
+        monkeypatch.setattr(sink, "VIEWER_PORT", port)
+        monkeypatch.setattr(rr, "spawn", lambda **kwargs: None)  # it is already there
+        rerun_sink = sink.RerunSink(sink.SinkOptions(spawn=True, save=tmp_path / "out.rrd"))
+        points = [LogItem(f"/p{i}", (rr.Points3D(np.full((50, 3), i, np.float32)),)) for i in range(20)]
+        rerun_sink.log(points[:10], {"ros_time": 1})
+        rerun_sink.flush()
+        viewer.kill()
+        viewer.wait(timeout=10)
+        rerun_sink.log(points[10:], {"ros_time": 2})
+        with caplog.at_level(logging.INFO, logger="swanky.host"):
+            rerun_sink.close()  # no SinkError
+    rows = entity_rows(tmp_path / "out.rrd")
+    assert sorted(path for path in rows if path.startswith("/p")) == sorted(f"/p{i}" for i in range(20))
+    assert caplog.messages in ([], ["the Rerun viewer was closed; not waiting for it"])

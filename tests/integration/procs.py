@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import signal
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from pathlib import Path
 
 import zenoh
 
@@ -50,3 +53,33 @@ def running(cmd: Sequence[str]) -> Iterator[subprocess.Popen[str]]:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait(timeout=10)
+
+
+def listening(port: int) -> bool:
+    with socket.socket() as sock:
+        return sock.connect_ex(("127.0.0.1", port)) == 0
+
+
+@contextmanager
+def headless_viewer() -> Iterator[tuple[str, int, subprocess.Popen[bytes]]]:
+    """A real Rerun gRPC server (``rerun --serve-grpc``, no window): its URL, port and process.
+    The binary is started itself, not the ``rerun`` Python wrapper, so killing it kills the
+    server."""
+    port = free_port()
+    spec = importlib.util.find_spec("rerun_cli")  # rerun-sdk's viewer binary, beside its wrapper
+    assert spec is not None
+    assert spec.origin is not None
+    binary = Path(spec.origin).parent / "rerun"
+    proc = subprocess.Popen(
+        [str(binary), "--serve-grpc", "--port", str(port)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 30
+        while not listening(port):
+            assert time.monotonic() < deadline, "rerun --serve-grpc did not listen within 30 s"
+            time.sleep(0.1)
+        yield f"rerun+http://127.0.0.1:{port}/proxy", port, proc
+    finally:
+        proc.kill()
+        proc.wait(timeout=10)

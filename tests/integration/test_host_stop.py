@@ -4,10 +4,8 @@ a ``--save`` file holds every message the summary says was converted."""
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import signal
-import socket
 import subprocess
 import time
 from collections.abc import Iterator, Sequence
@@ -17,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from host_bridge.sink import DISCONNECT_TIMEOUT_S
-from tests.integration.procs import command, free_port
+from tests.integration.procs import command, free_port, headless_viewer
 from tests.integration.robot_bags import Entry, Lines, joint_state, write_bag
 from tests.rrd import entity_rows
 
@@ -42,35 +40,6 @@ def started(cmd: Sequence[str], new_session: bool = False) -> Iterator[tuple[sub
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=30)
-
-
-@contextmanager
-def headless_viewer() -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
-    """A real Rerun gRPC server (``rerun --serve-grpc``, no window) and its URL. The binary is
-    started itself, not the ``rerun`` Python wrapper, so killing it kills the server."""
-    port = free_port()
-    spec = importlib.util.find_spec("rerun_cli")  # rerun-sdk's viewer binary, beside its wrapper
-    assert spec is not None
-    assert spec.origin is not None
-    binary = Path(spec.origin).parent / "rerun"
-    proc = subprocess.Popen(
-        [str(binary), "--serve-grpc", "--port", str(port)],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )
-    try:
-        deadline = time.monotonic() + 30
-        while not listening(port):
-            assert time.monotonic() < deadline, "rerun --serve-grpc did not listen within 30 s"
-            time.sleep(0.1)
-        yield f"rerun+http://127.0.0.1:{port}/proxy", proc
-    finally:
-        proc.kill()
-        proc.wait(timeout=10)
-
-
-def listening(port: int) -> bool:
-    with socket.socket() as sock:
-        return sock.connect_ex(("127.0.0.1", port)) == 0
 
 
 def wait_for_file(path: Path, lines: Lines) -> None:
@@ -108,7 +77,7 @@ def assert_saved_everything(rrd: Path, stderr: str) -> None:
 
 def test_sigterm_with_a_viewer_ends_the_demo_cleanly(tmp_path: Path) -> None:
     rrd = tmp_path / "demo.rrd"
-    with headless_viewer() as (url, _), started(command(
+    with headless_viewer() as (url, _, _), started(command(
         "host_bridge.cli", "--demo", "--rerun-addr", url, "--save", str(rrd)
     )) as (host, lines):
         lines.wait_for("robot sim joined", timeout=STARTUP_S)
@@ -122,7 +91,7 @@ def test_sigterm_with_a_viewer_ends_the_demo_cleanly(tmp_path: Path) -> None:
 
 def test_viewer_gone_mid_run_is_named_and_the_file_completed(tmp_path: Path) -> None:
     rrd = tmp_path / "demo.rrd"
-    with headless_viewer() as (url, viewer), started(command(
+    with headless_viewer() as (url, _, viewer), started(command(
         "host_bridge.cli", "--demo", "--rerun-addr", url, "--save", str(rrd)
     )) as (host, lines):
         lines.wait_for("robot sim joined", timeout=STARTUP_S)
@@ -142,11 +111,12 @@ def test_viewer_gone_mid_run_is_named_and_the_file_completed(tmp_path: Path) -> 
     assert_saved_everything(rrd, lines.text)
 
 
+@pytest.mark.filterwarnings("ignore:RRD file has no footer")
 def test_frozen_viewer_is_left_behind_within_seconds(tmp_path: Path) -> None:
     """A viewer that stops answering (its machine froze, its network went silent) would hold
     Rerun's disconnect for ever."""
     rrd = tmp_path / "demo.rrd"
-    with headless_viewer() as (url, viewer), started(command(
+    with headless_viewer() as (url, _, viewer), started(command(
         "host_bridge.cli", "--demo", "--rerun-addr", url, "--save", str(rrd)
     )) as (host, lines):
         lines.wait_for("robot sim joined", timeout=STARTUP_S)
@@ -158,7 +128,7 @@ def test_frozen_viewer_is_left_behind_within_seconds(tmp_path: Path) -> None:
     assert took < DISCONNECT_TIMEOUT_S + STOP_WITHIN_S
     assert lines.lines[-1].strip() == (
         f"swanky-host: error: gave up closing {url} after {DISCONNECT_TIMEOUT_S:.0f} s: it "
-        f"stopped answering; {rrd} is not finished: it lacks its index footer"
+        f"stopped answering; {rrd} lacks its index footer (`rerun rrd optimize` adds one)"
     )
     assert "Traceback" not in lines.text
     assert_saved_everything(rrd, lines.text)  # every message, readable without the footer
@@ -166,7 +136,7 @@ def test_frozen_viewer_is_left_behind_within_seconds(tmp_path: Path) -> None:
 
 def test_second_signal_exits_at_once(tmp_path: Path) -> None:
     """While the host waits for a frozen viewer (above), a second signal ends it."""
-    with headless_viewer() as (url, viewer), started(command(
+    with headless_viewer() as (url, _, viewer), started(command(
         "host_bridge.cli", "--demo", "--rerun-addr", url, "--save", str(tmp_path / "demo.rrd")
     )) as (host, lines):
         lines.wait_for("robot sim joined", timeout=STARTUP_S)
