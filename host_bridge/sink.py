@@ -2,8 +2,8 @@
 the only place that calls ``log`` / ``send_columns``.
 
 Nothing here may wait for a viewer without bound: a viewer that is missing, dies or stops
-reading is found out (a TCP probe, flushes waited on in short steps) and named, so the host
-neither hangs nor ignores Ctrl-C, and a ``--save`` file is still completed."""
+reading is found out (an HTTP/2 probe, flushes waited on in short steps, a bounded close) and
+named, so the host neither hangs nor ignores Ctrl-C, and a ``--save`` file is still completed."""
 
 from __future__ import annotations
 
