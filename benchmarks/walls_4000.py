@@ -21,6 +21,7 @@ from rosbags.typesys import Stores, get_typestore
 from host_bridge.contract import ConvertContext, LogEntry
 from host_bridge.converters import walls
 from host_bridge.converters.occupancy import grid_from_msg
+from host_bridge.options import GridOptions
 from host_bridge.segments import grid_to_image
 
 SIZE = 4000
@@ -99,7 +100,7 @@ def main() -> None:
         return walls.wall_items(msg, context())
 
     segments = walls.wall_segments(
-        grid_from_msg(msg, context()), walls.WallOptions.from_options({}, RESOLUTION, "/map")
+        grid_from_msg(msg, context()), walls.WallOptions.from_options(GridOptions(), RESOLUTION, "/map")
     )
     raw = baseline()
     base_s = median_time(baseline)

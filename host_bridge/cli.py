@@ -366,7 +366,7 @@ def run_host(args: argparse.Namespace, signals: StopSignals, outputs: Outputs) -
     layout = outputs.layout = start_layout(args, sink)
     dispatcher = Dispatcher(
         sink, registry=registry, config=config, strict=args.strict,
-        robot_state={"resolver": meshes},
+        resolver=meshes,
         on_new_topic=None if layout is None else layout.topic_seen,
     )
     if args.record_mcap is not None:

@@ -3,7 +3,7 @@ whether it is shown, which alternative converter draws it, the converter's optio
 
 Precedence, lowest to highest, merged key by key (``options`` too, option by option):
 
-1. the built-in defaults of the topic's type (``default`` in ``schemas/host.schema.json``),
+1. the built-in defaults of the topic's type (its options record in ``host_bridge/options.py``),
 2. ``defaults``,
 3. matching ``types`` entries: type globs (``sensor_msgs/msg/*``) least specific first, then
    the exact type name,
@@ -33,6 +33,7 @@ import yaml
 from jsonschema import Draft202012Validator
 from jsonschema.exceptions import best_match
 
+from host_bridge.options import CONVERTER_OPTION, OPTIONS_BY_DEFINITION, fixed_defaults
 from robot_relay.configfile import (
     FORMAT_CHECKER,
     ConfigDocument,
@@ -104,7 +105,8 @@ class _TopicKey:
 
 @dataclass(frozen=True, slots=True)
 class _TypeRules:
-    """What the schema says one type takes: its alternative converters, options and defaults."""
+    """What one type takes: its alternative converters and options (the schema's), and the
+    defaults of its options record."""
 
     converters: tuple[str, ...]
     options: Mapping[str, Mapping[str, Any]]
@@ -223,10 +225,10 @@ class HostConfig:
         properties = self._schema["$defs"][name]["properties"]
         converter = properties.get("converter", {})
         options: Mapping[str, Mapping[str, Any]] = properties.get("options", {}).get("properties", {})
+        option_defaults = fixed_defaults(OPTIONS_BY_DEFINITION[name])
         defaults: dict[str, Any] = {}
-        if "default" in converter:
-            defaults["converter"] = converter["default"]
-        option_defaults = {option: spec["default"] for option, spec in options.items() if "default" in spec}
+        if CONVERTER_OPTION in option_defaults:
+            defaults["converter"] = option_defaults.pop(CONVERTER_OPTION)
         if option_defaults:
             defaults["options"] = option_defaults
         rules = self._rules[msgtype] = _TypeRules(tuple(converter.get("enum", ())), options, defaults)

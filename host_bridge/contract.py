@@ -18,6 +18,8 @@ import numpy.typing as npt
 import rerun as rr
 
 from host_bridge.errors import ConvertError, PartialConvertError
+from host_bridge.options import Options
+from host_bridge.state import RobotState, State, TopicState
 
 TIMELINE_ROS = "ros_time"
 TIMELINE_RECEIVE = "receive_time"
@@ -54,18 +56,27 @@ LogEntry = LogItem | ColumnsItem
 class ConvertContext:
     """What a converter may know beyond the message itself.
 
-    ``state`` is per-topic scratch the dispatcher keeps between messages (odometry trails,
-    the last map a grid update patches); ``robot_state`` is shared by all topics of one robot
-    (the URDF that /joint_states moves). They are the only things a converter may mutate.
+    ``topic_state`` is kept by the dispatcher for the topic between messages: its options (read
+    typed with :meth:`options`) and converter state records (:meth:`state`: odometry trails,
+    marker lifetimes). ``robot_state`` is shared by all topics of one robot (the model
+    /joint_states moves, the last map a grid update patches, the mesh resolver). The state
+    records and ``robot_state`` are the only things a converter may mutate.
     """
 
     robot: str
     topic: str
     entity_path: str
     times: Mapping[str, int]
-    options: Mapping[str, Any] = field(default_factory=dict)
-    state: dict[str, Any] = field(default_factory=dict)
-    robot_state: dict[str, Any] = field(default_factory=dict)
+    topic_state: TopicState = field(default_factory=TopicState)
+    robot_state: RobotState = field(default_factory=RobotState)
+
+    def options(self, kind: type[Options]) -> Options:
+        """The topic's options as ``kind`` (the converter family's record, see options.py)."""
+        return self.topic_state.options(kind, self.topic)
+
+    def state(self, kind: type[State]) -> State:
+        """The topic's record of class ``kind``, made with its defaults on first use."""
+        return self.topic_state.state(kind)
 
     def frame(self, frame_id: str) -> str | None:
         """Rerun frame name of a ROS frame: ``<robot>/<frame_id>``; None for an empty id."""

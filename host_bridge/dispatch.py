@@ -14,7 +14,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import rerun as rr
@@ -32,7 +32,9 @@ from host_bridge.decode import Decoder
 from host_bridge.errors import ConfigError, HostError, PartialConvertError
 from host_bridge.frames import RobotFrames
 from host_bridge.registry import Registry, default_registry, slow_converters
+from host_bridge.resources import ResourceResolver
 from host_bridge.sink import RerunSink
+from host_bridge.state import RobotState, TopicState
 from robot_relay.wire import RawMessage
 
 log = logging.getLogger("swanky.host")
@@ -60,13 +62,20 @@ class TopicCounters:
     convert_seconds: float = 0.0
 
 
-@dataclass(slots=True)
+@dataclass(frozen=True, slots=True)
 class _Topic:
     entity_path: str
-    options: Mapping[str, Any]
+    state: TopicState
     enabled: bool = True
     restamp: bool = False
-    state: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class _Robot:
+    """What the host keeps per robot: the state its converters share, and its frame tree."""
+
+    state: RobotState
+    frames: RobotFrames
 
 
 def sequence_gap(last: int | None, sequence: int) -> int:
@@ -107,7 +116,7 @@ class Dispatcher:
         decoder: Decoder | None = None,
         config: HostConfig | None = None,
         strict: bool = False,
-        robot_state: Mapping[str, Any] | None = None,
+        resolver: ResourceResolver | None = None,
         taps: Sequence[Tap] = (),
         on_new_topic: TopicListener | None = None,
     ) -> None:
@@ -120,31 +129,33 @@ class Dispatcher:
         self.strict = strict
         self.counters: dict[tuple[str, str], TopicCounters] = {}
         self._topics: dict[tuple[str, str], _Topic] = {}
-        self._robot_state: dict[str, dict[str, Any]] = {}
-        self._frames: dict[str, RobotFrames] = {}
-        self._frames_lock = threading.Lock()
-        # Host-wide defaults every robot's state starts with (the mesh resolver).
-        self._robot_state_defaults = dict(robot_state or {})
+        # Finds mesh files for every robot (each robot's own relay for what is missing here).
+        self._resolver = resolver or ResourceResolver.from_env()
+        self._robots: dict[str, _Robot] = {}
+        self._robots_lock = threading.Lock()
         self._warned: set[tuple[str, str, str]] = set()
         self._slow = _SlowWorker(self, slow_converters())
 
-    def robot_state(self, robot: str) -> dict[str, Any]:
-        state = self._robot_state.get(robot)
-        if state is None:
-            state = self._robot_state[robot] = dict(self._robot_state_defaults)
-        return state
+    def _robot(self, robot: str) -> _Robot:
+        # The slow converters' thread logs for robots too.
+        with self._robots_lock:
+            found = self._robots.get(robot)
+            if found is None:
+                state = RobotState(resolver=self._resolver.for_robot(robot))
+                found = self._robots[robot] = _Robot(state, RobotFrames(robot))
+            return found
+
+    def robot_state(self, robot: str) -> RobotState:
+        return self._robot(robot).state
 
     def frames(self, robot: str) -> RobotFrames:
-        with self._frames_lock:
-            frames = self._frames.get(robot)
-            if frames is None:
-                frames = self._frames[robot] = RobotFrames(robot)
-            return frames
+        return self._robot(robot).frames
 
     def log(self, robot: str, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
         """Log ``robot``'s entries, then what its frames need now (placements, target)."""
         self.sink.log(entries, times)
-        updates = self.frames(robot).observe(entries, self.robot_state(robot))
+        known = self._robot(robot)
+        updates = known.frames.observe(entries, known.state)
         if updates:
             self.sink.log(updates, times)
 
@@ -153,7 +164,9 @@ class Dispatcher:
         topic = self._topics.get(key)
         if topic is None:
             settings = self.config.resolve(raw.robot, raw.topic, raw.msgtype)
-            topic = _Topic(settings.entity_path, settings.options, settings.enabled, settings.restamp)
+            topic = _Topic(
+                settings.entity_path, TopicState(settings.options), settings.enabled, settings.restamp
+            )
             self._topics[key] = topic
             if topic.enabled and self.on_new_topic is not None:
                 self.on_new_topic(raw.robot, raw.topic, raw.msgtype, topic.entity_path)
@@ -235,8 +248,7 @@ class Dispatcher:
                 topic=raw.topic,
                 entity_path=topic.entity_path,
                 times=message_times(msg, raw, restamp=topic.restamp),
-                options=topic.options,
-                state=topic.state,
+                topic_state=topic.state,
                 robot_state=robot_state,
             )
             decoded.append((msg, ctx, raw))
@@ -289,10 +301,10 @@ class Dispatcher:
         """Let the slow worker finish what it holds (a saved .rrd then has the walls), and name
         the frames no transform ever placed."""
         self._slow.close(timeout)
-        with self._frames_lock:
-            robots = sorted(self._frames.items())
-        for robot, frames in robots:
-            unplaced = frames.unplaced()
+        with self._robots_lock:
+            robots = sorted(self._robots.items())
+        for robot, known in robots:
+            unplaced = known.frames.unplaced()
             if unplaced:
                 log.info(
                     "[%s] no transform places frames %s; they are drawn at the robot's root /%s",

@@ -26,15 +26,16 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import pyarrow as pa
 import rerun as rr
 
 from host_bridge.contract import ColumnsItem, LogEntry, LogItem
-from host_bridge.converters.joints import ROBOT_MODEL_KEY, RobotModel
+from host_bridge.converters.joints import RobotModel
 from host_bridge.converters.tf import static_transform_path
+from host_bridge.state import RobotState
 
 log = logging.getLogger("swanky.host")
 
@@ -126,12 +127,11 @@ class RobotFrames:
         self.target: str | None = None
         self._lock = threading.Lock()
 
-    def observe(self, entries: Sequence[LogEntry], robot_state: Mapping[str, Any]) -> list[LogItem]:
+    def observe(self, entries: Sequence[LogEntry], robot_state: RobotState) -> list[LogItem]:
         """Take note of the frames ``entries`` log; the items to log next: placements of frames
         that have no parent, and the view's target frame when it changed."""
         relations, frames = frames_logged(entries)
-        model = robot_state.get(ROBOT_MODEL_KEY)
-        model = model if isinstance(model, RobotModel) else None
+        model = robot_state.model
         with self._lock:
             known = len(self._named), len(self._parents)
             for child, parent in relations:
@@ -145,7 +145,7 @@ class RobotFrames:
             self._model = model
             return self._placements(robot_state) + self._target_item()
 
-    def _placements(self, robot_state: Mapping[str, Any]) -> list[LogItem]:
+    def _placements(self, robot_state: RobotState) -> list[LogItem]:
         unplaced = sorted(f for f in self._named - self._placed if f not in self._parents)
         if not unplaced:
             return []

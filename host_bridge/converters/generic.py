@@ -24,6 +24,7 @@ import rerun as rr
 from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import time_columns
 from host_bridge.errors import PartialConvertError
+from host_bridge.options import GenericOptions
 
 _TIME_TYPES = ("builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration")
 MAX_SEQUENCE_MESSAGES = 16
@@ -75,7 +76,7 @@ def _bar_chart(values: np.ndarray[Any, Any]) -> rr.BarChart:
 
 
 def convert_generic_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-    max_array = int(ctxs[0].options.get("max_array", 64))
+    max_array = ctxs[0].options(GenericOptions).max_array
     rows: dict[str, tuple[list[int], list[Leaf]]] = defaultdict(lambda: ([], []))
     items: list[LogEntry] = []
     truncated: set[str] = set()

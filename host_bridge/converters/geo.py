@@ -4,7 +4,7 @@ Fixes with ``status == STATUS_NO_FIX`` (-1) or a NaN latitude/longitude are drop
 publish them while searching for satellites, and a point at (0, 0) or NaN would send the map to
 the Gulf of Guinea. With a known covariance the point's radius is the 1-sigma horizontal error in
 metres (GeoPoints takes positive radii as metres, negative as UI points), so the dot shows how
-much to trust the fix; otherwise it is ``radius`` UI points (option, default 5).
+much to trust the fix; otherwise it is ``radius`` UI points (option).
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import rerun as rr
 from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry
 from host_bridge.converters._common import time_columns
 from host_bridge.converters.scalars import scalar_columns
+from host_bridge.options import NavSatFixOptions
 
 STATUS_NO_FIX = -1
 COVARIANCE_TYPE_UNKNOWN = 0
@@ -35,7 +36,7 @@ def convert_navsatfix_run(
     known = np.array([m.position_covariance_type for m in msgs]) != COVARIANCE_TYPE_UNKNOWN
     with np.errstate(invalid="ignore"):
         sigma = np.sqrt(np.maximum(covariance[:, 0], covariance[:, 4]))  # east, north variances
-    ui_radius = -abs(float(ctx0.options.get("radius", 5.0)))
+    ui_radius = -abs(ctx0.options(NavSatFixOptions).radius)
     radii = np.where(known & np.isfinite(sigma) & (sigma > 0.0), sigma, ui_radius)
     valid = (fixes[:, 3] != STATUS_NO_FIX) & np.isfinite(fixes[:, :2]).all(axis=1)
     rows = np.flatnonzero(valid).tolist()

@@ -6,16 +6,16 @@ naming a child frame would collide with /tf publishing the same frame. Everythin
 carries along (trail, covariance) is drawn in the *header* frame, so it stays put while the
 pose moves.
 
-Options: ``trail_length`` (points, default 500, 0 = off; a point is added once the pose moved
-more than 1 cm), ``axis_length`` (m, 0.3), ``arrow_length`` (PoseArray, m, 0.3), ``sigma``
-(covariance ellipsoid scale, default 1 = one standard deviation, as RViz's default).
+Options (:class:`~host_bridge.options.PoseOptions` and its kin): ``trail_length`` (points,
+0 = off; a point is added once the pose moved more than 1 cm), ``axis_length`` (m),
+``arrow_length`` (PoseArray, m), ``sigma`` (covariance ellipsoid scale in standard deviations).
 """
 
 from __future__ import annotations
 
 import operator
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -24,19 +24,13 @@ import rerun as rr
 
 from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import frame_components, time_columns
+from host_bridge.options import PoseArrayOptions, PoseCovarianceOptions, PoseOptions
 
 Float64Array = npt.NDArray[np.float64]
 RowIndex = npt.NDArray[np.intp]
 
-_TRAIL = "trail"
-_TRAIL_FRAME = "trail_frame"
 # Standing still must not grow the trail: a pose only counts as moved beyond sensor jitter.
 _TRAIL_MIN_STEP_M = 0.01
-_DEFAULT_TRAIL_LENGTH = 500
-_DEFAULT_AXIS_LENGTH_M = 0.3
-_DEFAULT_ARROW_LENGTH_M = 0.3
-# RViz's default covariance scale is 1 (a 1-sigma ellipsoid).
-_DEFAULT_SIGMA = 1.0
 _COMPONENTS = ("x", "y", "z")
 
 
@@ -93,26 +87,30 @@ def fixed_frame(ctx: ConvertContext, frame: str | None) -> str:
     return "tf#" + (parent.rsplit("/", 1)[0] or "/")
 
 
-def _option_float(ctx: ConvertContext, key: str, default: float) -> float:
-    return float(ctx.options.get(key, default))
-
-
 # --- stamped poses ------------------------------------------------------------------------------
 
 
+@dataclass(slots=True)
+class _Trail:
+    """Per pose topic: the points of its trail and the frame they are in."""
+
+    points: Float64Array = field(default_factory=lambda: np.empty((0, 3)))
+    frame: str | None = None
+
+
 def _advance_trail(
-    ctx: ConvertContext, positions: Float64Array, frames: Sequence[str | None],
+    ctx: ConvertContext, limit: int, positions: Float64Array, frames: Sequence[str | None],
 ) -> list[tuple[int, Float64Array]]:
-    """(row, trail after that row) for every row that moved the trail; keeps it in ctx.state.
+    """(row, trail after that row) for every row that moved the ``limit`` points long trail;
+    keeps it in the topic's state.
 
     Sequential by nature (each step compares with the last kept point), but per message, not
     per point. A frame change restarts the trail: old points are in another frame.
     """
-    limit = int(ctx.options.get("trail_length", _DEFAULT_TRAIL_LENGTH))
     if limit <= 0:
         return []
-    trail: Float64Array = ctx.state.get(_TRAIL, np.empty((0, 3)))
-    trail_frame = ctx.state.get(_TRAIL_FRAME)
+    kept = ctx.state(_Trail)
+    trail, trail_frame = kept.points, kept.frame
     grown: list[tuple[int, Float64Array]] = []
     for row, (position, frame) in enumerate(zip(positions, frames, strict=True)):
         if frame != trail_frame:
@@ -123,7 +121,7 @@ def _advance_trail(
             continue
         trail = np.concatenate([trail[max(0, len(trail) - limit + 1) :], position[None]])
         grown.append((row, trail))
-    ctx.state[_TRAIL], ctx.state[_TRAIL_FRAME] = trail, trail_frame
+    kept.points, kept.frame = trail, trail_frame
     return grown
 
 
@@ -136,12 +134,15 @@ def _group_rows(frames: Sequence[str | None]) -> list[tuple[str | None, RowIndex
 
 def pose_run(
     poses: Sequence[Any], headers: Sequence[Any], ctxs: Sequence[ConvertContext],
+    options: PoseOptions | None = None,
 ) -> list[LogEntry]:
-    """Pose transforms with axes, and the trail rows the run grew."""
+    """Pose transforms with axes, and the trail rows the run grew; ``options`` are the topic's
+    (a covariance topic's record holds more than PoseOptions)."""
     ctx = ctxs[0]
+    options = ctx.options(PoseOptions) if options is None else options
     frames = [ctx.frame(h.frame_id) for h in headers]
     positions, quats = pose_arrays(poses)
-    axis_length = _option_float(ctx, "axis_length", _DEFAULT_AXIS_LENGTH_M)
+    axis_length = options.axis_length
     entries: list[LogEntry] = []
     for frame, rows in _group_rows(frames):
         columns = [
@@ -154,7 +155,7 @@ def pose_run(
         ]
         times = time_columns([ctxs[i] for i in rows])
         entries.append(ColumnsItem(ctx.entity_path, columns, times))
-    grown = _advance_trail(ctx, positions, frames)
+    grown = _advance_trail(ctx, options.trail_length, positions, frames)
     if grown:
         columns = [
             *rr.LineStrips3D.columns(strips=[trail for _, trail in grown]),
@@ -222,13 +223,14 @@ def covariance_ellipsoids(
 
 
 def _pose_with_covariance(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    entries = pose_run([msg.pose.pose], [msg.header], [ctx])
+    options = ctx.options(PoseCovarianceOptions)
+    entries = pose_run([msg.pose.pose], [msg.header], [ctx], options)
     covariance = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)[:3, :3]
     # A non-finite covariance says nothing about the spread; the pose itself is still valid.
     if np.isfinite(covariance).all():
         position, _ = pose_arrays([msg.pose.pose])
         ellipsoid = covariance_ellipsoids(
-            position, covariance[None], _option_float(ctx, "sigma", _DEFAULT_SIGMA),
+            position, covariance[None], options.sigma,
         )
         frame = rr.CoordinateFrame(fixed_frame(ctx, ctx.frame(msg.header.frame_id)))
         entries.append(LogItem(ctx.child_path("covariance"), (ellipsoid, frame)))
@@ -237,8 +239,7 @@ def _pose_with_covariance(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
 
 def _pose_array(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     positions, quats = pose_arrays(msg.poses)
-    length = _option_float(ctx, "arrow_length", _DEFAULT_ARROW_LENGTH_M)
-    arrows = pose_arrows(positions, quats, length)
+    arrows = pose_arrows(positions, quats, ctx.options(PoseArrayOptions).arrow_length)
     return [LogItem(ctx.entity_path, (arrows, *frame_components(ctx.frame(msg.header.frame_id))))]
 
 

@@ -49,6 +49,7 @@ import rerun as rr
 from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters.video import CODEC_SPELLINGS, VideoFrame, video_codec, video_entries
 from host_bridge.errors import ConvertError
+from host_bridge.options import ImageOptions
 
 _MODES = ("auto", "depth", "color")
 
@@ -110,7 +111,7 @@ Pixels = npt.NDArray[Any]
 
 
 def _mode(ctx: ConvertContext) -> str:
-    mode = str(ctx.options.get("mode", "auto"))
+    mode = ctx.options(ImageOptions).mode
     if mode not in _MODES:
         msg = f"{ctx.topic}: image option mode={mode!r} is not one of {', '.join(_MODES)}"
         raise ConvertError(msg)
@@ -118,7 +119,7 @@ def _mode(ctx: ConvertContext) -> str:
 
 
 def _colormap(ctx: ConvertContext) -> rr.components.Colormap | None:
-    name = ctx.options.get("colormap")
+    name = ctx.options(ImageOptions).colormap
     if name is None:
         return None
     try:
@@ -130,8 +131,9 @@ def _colormap(ctx: ConvertContext) -> rr.components.Colormap | None:
 
 
 def _depth_meter(ctx: ConvertContext, dtype: np.dtype[Any]) -> float:
-    default = 1.0 if dtype.kind == "f" else 1000.0
-    meter = ctx.options.get("depth_meter", default)
+    meter = ctx.options(ImageOptions).depth_meter
+    if meter is None:
+        return 1.0 if dtype.kind == "f" else 1000.0  # REP 118: metres, else millimetres
     if isinstance(meter, bool) or not isinstance(meter, int | float) or meter <= 0:
         msg = f"{ctx.topic}: image option depth_meter={meter!r} must be a positive number"
         raise ConvertError(msg)
@@ -140,7 +142,7 @@ def _depth_meter(ctx: ConvertContext, dtype: np.dtype[Any]) -> float:
 
 def _depth_range(ctx: ConvertContext, meter: float) -> list[float] | None:
     """``depth_range`` is given in metres; Rerun wants it in the image's raw units."""
-    value = ctx.options.get("depth_range")
+    value = ctx.options(ImageOptions).depth_range
     if value is None:
         return None
     try:

@@ -10,14 +10,15 @@ drivers (the phidgets bag) send the all-zero quaternion instead. Both become the
 rotation, never a normalised NaN, so the arrows stay attached to the sensor frame and the
 scalars are unaffected. A MagneticField of three NaNs (no new sample) is skipped.
 
-Options: ``acceleration_scale`` (m of arrow per m/s^2, default 0.1), ``angular_velocity_scale``
-(m per rad/s, default 1.0), ``axis_length`` (m, default 0.2).
+Options (:class:`~host_bridge.options.ImuOptions`): ``acceleration_scale`` (m of arrow per
+m/s^2), ``angular_velocity_scale`` (m per rad/s), ``axis_length`` (m).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -33,6 +34,7 @@ from host_bridge.converters.scalars import (
     series_names_once,
     series_spec,
 )
+from host_bridge.options import ImuOptions
 
 XYZ = ("x", "y", "z")
 _VECTORS = ("linear_acceleration", "angular_velocity")
@@ -59,6 +61,13 @@ def _parent_frame(msg: Any, ctx: ConvertContext) -> str:
     return ctx.frame(msg.header.frame_id) or f"tf#{ctx.entity_path}"
 
 
+@dataclass(slots=True)
+class _ImuTopic:
+    """Per Imu topic: whether its orientation's axes (static) were logged."""
+
+    logged: bool = False
+
+
 def convert_imu_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
     ctx0 = ctxs[0]
     n = len(msgs)
@@ -75,12 +84,8 @@ def convert_imu_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list
         name: np.array([xyz(getattr(m, name)) for m in msgs], dtype=np.float64).reshape(n, 3)
         for name in _VECTORS
     }
-    scales = np.array(
-        [
-            float(ctx0.options.get("acceleration_scale", 0.1)),
-            float(ctx0.options.get("angular_velocity_scale", 1.0)),
-        ]
-    )
+    options = ctx0.options(ImuOptions)
+    scales = np.array([options.acceleration_scale, options.angular_velocity_scale])
     arrows = np.stack([vectors[name] for name in _VECTORS], axis=1) * scales[None, :, None]
     orientation_path = ctx0.child_path("orientation")
     transform = rr.Transform3D.columns(
@@ -93,10 +98,12 @@ def convert_imu_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list
         labels=_ARROW_LABELS * n,
     ).partition(np.full(n, len(_VECTORS)))
     items: list[LogEntry] = series_names_once(ctx0, _LEGENDS)
-    if not ctx0.state.get("axes_logged"):
-        ctx0.state["axes_logged"] = True
-        axes = rr.TransformAxes3D(float(ctx0.options.get("axis_length", 0.2)))
-        items.append(LogItem(orientation_path, (axes,), static=True))
+    axes = ctx0.state(_ImuTopic)
+    if not axes.logged:
+        axes.logged = True
+        items.append(
+            LogItem(orientation_path, (rr.TransformAxes3D(options.axis_length),), static=True)
+        )
     items.append(ColumnsItem(orientation_path, [*transform, *arrow_columns], times))
     items.extend(scalar_columns(ctx0.child_path(name), vectors[name], times) for name in _VECTORS)
     return items

@@ -1,6 +1,6 @@
 """JointState and JointTrajectory -> the link transforms of the robot model.
 
-The kinematic table (:class:`RobotModel`) is put into ``ctx.robot_state["urdf"]`` by the URDF
+The kinematic table (:class:`RobotModel`) is put into ``ctx.robot_state.model`` by the URDF
 converter; without it joint values mean nothing and messages are dropped with a ConvertError.
 Each movable joint (revolute, continuous, prismatic) becomes one ``Transform3D(parent_frame=
 <robot>/<parent link>, child_frame=<robot>/<child link>)`` at ``/<robot>/robot_model/joints/
@@ -15,7 +15,7 @@ the first temporal one, as /tf_static and /tf do), so the temporal rows logged h
 link from their first stamp on, on every timeline.
 
 /tf wins: Rerun refuses one frame relation logged on two temporal entities, so a joint whose
-child link already arrived as a TF child frame (``ctx.robot_state["tf_children"]``, filled by the
+child link already arrived as a TF child frame (``ctx.robot_state.tf_children``, filled by the
 TF converter, holding ROS ids or prefixed frame names) is left to /tf.
 
 JointTrajectory drives the model with its first point: a trajectory starts at the robot's
@@ -29,7 +29,7 @@ Joint names the model lacks are ignored; they are reported once per topic throug
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -38,10 +38,6 @@ import rerun as rr
 
 from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.errors import ConvertError, PartialConvertError
-
-ROBOT_MODEL_KEY = "urdf"
-TF_CHILDREN_KEY = "tf_children"
-_REPORTED_KEY = "reported_unknown_joints"
 
 MOVABLE_TYPES = frozenset({"revolute", "continuous", "prismatic"})
 
@@ -143,7 +139,7 @@ def link_frame(ctx: ConvertContext, link: str) -> str:
 
 
 def tf_carries(ctx: ConvertContext, link: str) -> bool:
-    children = ctx.robot_state.get(TF_CHILDREN_KEY) or ()
+    children = ctx.robot_state.tf_children
     return link in children or ctx.frame(link) in children
 
 
@@ -202,8 +198,8 @@ def zero_positions(model: RobotModel) -> dict[str, float]:
 
 
 def _require_model(ctx: ConvertContext) -> RobotModel:
-    model = ctx.robot_state.get(ROBOT_MODEL_KEY)
-    if not isinstance(model, RobotModel):
+    model = ctx.robot_state.model
+    if model is None:
         msg = (
             f"{ctx.topic}: robot {ctx.robot!r} has no robot model yet, so joint values cannot "
             "move its links; publish /robot_description (latched) or pass --urdf PATH"
@@ -240,10 +236,17 @@ def _joint_values(
     return published, unknown
 
 
+@dataclass(slots=True)
+class _ReportedJoints:
+    """Per topic: the joint names the model lacks that were already reported."""
+
+    names: set[str] = field(default_factory=set)
+
+
 def _report_unknown(
     ctx: ConvertContext, model: RobotModel, unknown: Iterable[str], items: list[LogEntry]
 ) -> list[LogEntry]:
-    reported: set[str] = ctx.state.setdefault(_REPORTED_KEY, set())
+    reported = ctx.state(_ReportedJoints).names
     new = sorted(set(unknown) - reported)
     if not new:
         return items

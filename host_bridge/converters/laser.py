@@ -18,6 +18,7 @@ from host_bridge.colormap import apply_colormap
 from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import frame_components, header_frame
 from host_bridge.errors import ConvertError
+from host_bridge.options import LaserScanOptions
 
 _MODES = ("points", "rays", "both")
 
@@ -38,28 +39,27 @@ def scan_points(msg: Any) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_
 
 
 def convert_scan(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    mode = ctx.options.get("mode", "points")
+    options = ctx.options(LaserScanOptions)
+    mode = options.mode
     if mode not in _MODES:
         msg_ = f"{ctx.topic}: laser option mode={mode!r} is not one of {', '.join(_MODES)}"
         raise ConvertError(msg_)
     points, valid = scan_points(msg)
     intensities = np.asarray(msg.intensities, dtype=np.float32)
-    by_intensity = ctx.options.get("color_by", "range") == "intensity"
+    by_intensity = options.color_by == "intensity"
     if by_intensity and intensities.size == valid.size:
-        colors = apply_colormap(intensities[valid], name=ctx.options.get("colormap", "turbo"))
+        colors = apply_colormap(intensities[valid], name=options.colormap)
     else:
         distance = np.hypot(points[:, 0], points[:, 1])
         colors = apply_colormap(
             distance, float(msg.range_min), float(msg.range_max),
-            name=ctx.options.get("colormap", "turbo"),
+            name=options.colormap,
         )
     frame = frame_components(header_frame(msg, ctx))
     items: list[LogEntry] = []
     if mode in ("points", "both"):
-        radius = float(ctx.options.get("radius", 0.02))
-        items.append(
-            LogItem(ctx.entity_path, (rr.Points3D(points, colors=colors, radii=radius), *frame))
-        )
+        points3d = rr.Points3D(points, colors=colors, radii=options.radius)
+        items.append(LogItem(ctx.entity_path, (points3d, *frame)))
     if mode in ("rays", "both"):
         strips = np.stack([np.zeros_like(points), points], axis=1)
         items.append(

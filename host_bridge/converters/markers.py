@@ -16,6 +16,10 @@ frame_locked is ignored: Rerun resolves the header frame through the transform t
 time, which is what frame_locked=true asks for; an unlocked marker in a moving frame follows the
 frame instead of staying where it was published.
 
+A mesh marker's ``mesh_resource`` (``package://``, ``file://``, a path) is read through the
+robot's resolver, the one that finds its model's meshes (``--package-path``, the ROS package
+paths, the robot's relay), once per topic and URI.
+
 A problem with one marker (unknown type, odd LINE_LIST, unreadable mesh) skips that marker
 only, so its siblings in a MarkerArray still show. The message raises ConvertError when nothing
 else was converted; otherwise each distinct problem is logged once per topic as a warning
@@ -25,11 +29,10 @@ else was converted; otherwise each distinct problem is logged once per topic as 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from operator import attrgetter
-from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
-from urllib.request import url2pathname
 
 import numpy as np
 import numpy.typing as npt
@@ -49,6 +52,20 @@ _ORIGIN = np.zeros((1, 3))
 _SOLID = rr.components.FillMode.Solid
 
 Archetypes = tuple[rr.AsComponents, ...]
+
+
+@dataclass(slots=True)
+class MarkerTopic:
+    """What one marker topic keeps between messages."""
+
+    # Live marker entity -> its marker type (an ADD of another type clears the old geometry).
+    types: dict[str, int] = field(default_factory=dict)
+    # Marker entity -> the times of the lifetime Clear still pending for it.
+    expiry: dict[str, dict[str, int]] = field(default_factory=dict)
+    # Mesh URI -> (file bytes, media type): meshes come again with every marker.
+    meshes: dict[str, tuple[bytes, Any]] = field(default_factory=dict)
+    # Problems already logged for this topic.
+    reported: set[str] = field(default_factory=set)
 
 
 def _points(marker: Any) -> npt.NDArray[np.float64]:
@@ -180,45 +197,16 @@ def _media_type(name: str) -> Any:
     return media_type
 
 
-def _read_uri(uri: str, ctx: ConvertContext) -> bytes:
-    """Bytes of a mesh URI: file:// and absolute paths locally, anything else (package://)
-    through ``ctx.robot_state["resolve_uri"]``, a callable returning a local path, the bytes,
-    or None when it cannot find the resource."""
-    parsed = urlparse(uri)
-    found: Path | str | bytes | None
-    if parsed.scheme == "file":
-        found = url2pathname(parsed.path)
-    elif not parsed.scheme and uri.startswith("/"):
-        found = uri
-    else:
-        resolver: Callable[[str], Path | str | bytes | None] | None = (
-            ctx.robot_state.get("resolve_uri"))
-        if resolver is None:
-            msg = (f"cannot load mesh {uri!r}: no resolver for {parsed.scheme or 'relative'} "
-                   "URIs on this host (give the robot's package paths or its relay's file server)")
-            raise ConvertError(msg)
-        found = resolver(uri)
-        if found is None:
-            msg = f"mesh {uri!r} was not found by the URI resolver"
-            raise ConvertError(msg)
-    if isinstance(found, bytes):
-        return found
-    try:
-        return Path(found).read_bytes()
-    except OSError as err:
-        msg = f"cannot read mesh {uri!r} at {found}: {err.strerror}"
-        raise ConvertError(msg) from err
-
-
 def _mesh(marker: Any, ctx: ConvertContext) -> Archetypes:
     uri = marker.mesh_resource
     mesh_file = getattr(marker, "mesh_file", None)  # embedded mesh, ROS 2 Humble and later only
     if uri:
         # Meshes are republished with every marker: read each file once per topic.
-        cache: dict[str, tuple[bytes, Any]] = ctx.state.setdefault("meshes", {})
+        cache = ctx.state(MarkerTopic).meshes
         if uri not in cache:
             media_type = _media_type(uri)
-            cache[uri] = (_read_uri(uri, ctx), media_type)
+            # package://, file:// and paths, as the robot model's meshes are found.
+            cache[uri] = (ctx.robot_state.resolver.read(uri), media_type)
         blob, media_type = cache[uri]
     elif mesh_file is not None and len(mesh_file.data):
         media_type = _media_type(mesh_file.filename)
@@ -267,7 +255,7 @@ def _pose(marker: Any, ctx: ConvertContext) -> rr.Transform3D:
 def _lifetime_items(path: str, archetypes: Archetypes, lifetime_ns: int,
                     ctx: ConvertContext) -> list[LogItem]:
     """The Clear that ends a marker's lifetime, and a re-log after a stale pending Clear."""
-    pending_by_path: dict[str, dict[str, int]] = ctx.state.setdefault("expiry", {})
+    pending_by_path = ctx.state(MarkerTopic).expiry
     now = ctx.times
     pending = pending_by_path.pop(path, None)
     if pending is not None and any(now[tl] >= t for tl, t in pending.items() if tl in now):
@@ -288,7 +276,7 @@ def _lifetime_items(path: str, archetypes: Archetypes, lifetime_ns: int,
 
 
 def _convert_one(marker: Any, ctx: ConvertContext) -> list[LogEntry]:
-    types: dict[str, int] = ctx.state.setdefault("markers", {})  # live marker entity -> type
+    types = ctx.state(MarkerTopic).types
     action = int(marker.action)
     if action == DELETEALL:
         types.clear()
@@ -325,7 +313,7 @@ def _convert_markers(markers: Sequence[Any], ctx: ConvertContext) -> list[LogEnt
             problems.append(f"{ctx.topic}: marker ns={marker.ns!r} id={marker.id}: {err}")
     if problems and not entries:
         raise ConvertError("; ".join(problems))
-    reported: set[str] = ctx.state.setdefault("reported", set())
+    reported = ctx.state(MarkerTopic).reported
     for problem in problems:
         if problem not in reported:
             reported.add(problem)

@@ -1,6 +1,7 @@
 """nav_msgs: planned paths and grid cells (costmap obstacles, frontiers) in their header frame.
 
-Path options: ``arrows`` (draw each pose's heading too, default False), ``arrow_length`` (m, 0.1).
+Path options (:class:`~host_bridge.options.PathOptions`): ``arrows`` (draw each pose's heading
+too), ``arrow_length`` (m).
 """
 
 from __future__ import annotations
@@ -13,8 +14,8 @@ import rerun as rr
 from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import frame_components
 from host_bridge.converters.geometry import points_array, pose_arrays, pose_arrows
+from host_bridge.options import PathOptions
 
-_DEFAULT_ARROW_LENGTH_M = 0.1
 # GridCells are flat squares in RViz; a box this thin reads as a tile without z-fighting the map.
 _CELL_THICKNESS_M = 0.01
 
@@ -26,11 +27,10 @@ def _path(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     # An empty path clears the previous plan instead of leaving it on screen.
     strips = [positions] if len(positions) else []
     entries: list[LogEntry] = [LogItem(ctx.entity_path, (rr.LineStrips3D(strips), *frame))]
-    if ctx.options.get("arrows", False):
-        length = float(ctx.options.get("arrow_length", _DEFAULT_ARROW_LENGTH_M))
-        entries.append(
-            LogItem(ctx.child_path("poses"), (pose_arrows(positions, quats, length), *frame)),
-        )
+    options = ctx.options(PathOptions)
+    if options.arrows:
+        arrows = pose_arrows(positions, quats, options.arrow_length)
+        entries.append(LogItem(ctx.child_path("poses"), (arrows, *frame)))
     return entries
 
 

@@ -23,7 +23,7 @@ the topic name contains "costmap", else "map"; "raw" shows the byte values as gr
 and 2 for local costmaps, so costmaps layer over the map), plus the wall options of
 ``walls.py``.
 
-State: the last grid of every topic lives in ``ctx.robot_state[GRIDS_KEY][topic]`` as an
+State: the last grid of every topic lives in ``ctx.robot_state.grids[topic]`` as an
 immutable :class:`Grid`, because its updates arrive on another topic (``/costmap_updates``
 patches ``/costmap``; option ``grid_topic`` overrides that naming rule). A patch builds a new
 Grid instead of writing into the old one, so a worker thread may read a grid while the receive
@@ -39,7 +39,6 @@ the same message (an update's walls read the grid this module patched).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -50,8 +49,8 @@ import rerun as rr
 from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import frame_components, xyz, xyzw
 from host_bridge.errors import ConvertError
+from host_bridge.options import GridOptions, GridUpdateOptions
 
-GRIDS_KEY = "occupancy_grids"
 UPDATES_SUFFIX = "_updates"
 
 _COLORMAPS: dict[str, rr.components.Colormap | None] = {
@@ -82,7 +81,7 @@ class Grid:
     resolution: float
     translation: npt.NDArray[np.float64]
     quaternion: npt.NDArray[np.float64]
-    options: Mapping[str, Any]
+    options: GridOptions
 
 
 def _unit_quaternion(orientation: Any, topic: str) -> npt.NDArray[np.float64]:
@@ -128,7 +127,7 @@ def _grid(
         resolution=resolution,
         translation=translation,
         quaternion=_unit_quaternion(info.origin.orientation, ctx.topic),
-        options=ctx.options,
+        options=ctx.options(GridOptions),
     )
 
 
@@ -138,15 +137,17 @@ def grid_from_msg(msg: Any, ctx: ConvertContext) -> Grid:
     return _grid(msg, msg.info, size, np.asarray(msg.data, dtype=np.int8), ctx)
 
 
-def _scheme(options: Mapping[str, Any], topic: str) -> str:
-    return str(options.get("color_scheme", "costmap" if "costmap" in topic else "map"))
+def _scheme(options: GridOptions, topic: str) -> str:
+    if options.color_scheme is None:
+        return "costmap" if "costmap" in topic else "map"
+    return options.color_scheme
 
 
 def color_scheme(grid: Grid) -> str:
     return _scheme(grid.options, grid.topic)
 
 
-def cost_cells(costs: Any, options: Mapping[str, Any], topic: str) -> npt.NDArray[np.int8]:
+def cost_cells(costs: Any, options: GridOptions, topic: str) -> npt.NDArray[np.int8]:
     """A nav2 costmap's 0..255 costs as grid cells: translated for the palettes, as they are
     for ``raw`` (the byte values are the costs)."""
     data = np.asarray(costs, dtype=np.uint8)
@@ -158,7 +159,7 @@ def cost_cells(costs: Any, options: Mapping[str, Any], topic: str) -> npt.NDArra
 def costmap_from_msg(msg: Any, ctx: ConvertContext) -> Grid:
     """Validated Grid of a nav2_msgs/Costmap."""
     meta = msg.metadata
-    cells = cost_cells(msg.data, ctx.options, ctx.topic)
+    cells = cost_cells(msg.data, ctx.options(GridOptions), ctx.topic)
     return _grid(msg, meta, (int(meta.size_x), int(meta.size_y)), cells, ctx)
 
 
@@ -171,6 +172,12 @@ def grid_map(grid: Grid) -> rr.GridMap:
         )
         raise ConvertError(text)
     costmap = "costmap" in grid.topic
+    opacity, draw_order = grid.options.opacity, grid.options.draw_order
+    if opacity is None:
+        opacity = 0.7 if costmap else 1.0
+    if draw_order is None:
+        # Costmaps over the map, the local one over the global one.
+        draw_order = (1.0 + ("local" in grid.topic)) if costmap else 0.0
     height, width = grid.cells.shape
     return rr.GridMap(
         # tobytes of the flipped view is the one copy; Rerun takes bytes ~5x faster than arrays.
@@ -181,10 +188,8 @@ def grid_map(grid: Grid) -> rr.GridMap:
         cell_size=grid.resolution,
         translation=grid.translation,
         quaternion=rr.Quaternion(xyzw=grid.quaternion),
-        opacity=float(grid.options.get("opacity", 0.7 if costmap else 1.0)),
-        draw_order=float(
-            grid.options.get("draw_order", (1.0 + ("local" in grid.topic)) if costmap else 0.0)
-        ),
+        opacity=opacity,
+        draw_order=draw_order,
         colormap=_COLORMAPS[scheme],
     )
 
@@ -197,7 +202,7 @@ def grid_items(grid: Grid) -> list[LogEntry]:
 
 
 def _store(ctx: ConvertContext, grid: Grid) -> None:
-    ctx.robot_state.setdefault(GRIDS_KEY, {})[grid.topic] = grid
+    ctx.robot_state.grids[grid.topic] = grid
 
 
 def convert_grid(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
@@ -208,7 +213,7 @@ def convert_grid(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
 
 def grid_for_update(ctx: ConvertContext, grid_type: str = "OccupancyGrid") -> Grid:
     """The stored grid an update on ``ctx.topic`` patches (``T_updates`` patches ``T``)."""
-    target = ctx.options.get("grid_topic")
+    target = ctx.options(GridUpdateOptions).grid_topic
     if target is None:
         if not ctx.topic.endswith(UPDATES_SUFFIX):
             text = (
@@ -217,7 +222,7 @@ def grid_for_update(ctx: ConvertContext, grid_type: str = "OccupancyGrid") -> Gr
             )
             raise ConvertError(text)
         target = ctx.topic[: -len(UPDATES_SUFFIX)]
-    grid: Grid | None = ctx.robot_state.get(GRIDS_KEY, {}).get(target)
+    grid = ctx.robot_state.grids.get(target)
     if grid is None:
         text = (
             f"{ctx.topic}: no {grid_type} received yet on {target}; updates patch the last "

@@ -18,6 +18,7 @@ from host_bridge.colormap import apply_colormap
 from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import frame_components
 from host_bridge.errors import ConvertError
+from host_bridge.options import PointCloudOptions
 
 # PointField.datatype -> numpy type code (byte order is added per cloud).
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -110,7 +111,8 @@ def _colors(
 ) -> npt.NDArray[np.uint8]:
     """Colours of the kept points: packed rgb(a), else r/g/b(/a) fields, else a colormap."""
     names = points.dtype.names or ()
-    requested = ctx.options.get("color_field")
+    options = ctx.options(PointCloudOptions)
+    requested = options.color_field
     if requested is None:
         packed = next((n for n in _PACKED_COLOR_FIELDS if n in names), None)
         if packed is not None and points.dtype[packed].kind == "u":
@@ -135,9 +137,9 @@ def _colors(
     try:
         return apply_colormap(
             _scalar_field(points, requested, keep, ctx.topic),
-            vmin=ctx.options.get("color_min"),
-            vmax=ctx.options.get("color_max"),
-            name=ctx.options.get("colormap", "turbo"),
+            vmin=options.color_min,
+            vmax=options.color_max,
+            name=options.colormap,
         )
     except ValueError as err:  # an unknown colormap name in the topic's options
         raise ConvertError(f"{ctx.topic}: {err}") from err
@@ -159,11 +161,8 @@ def convert_pointcloud2(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     ).astype(np.float32)
     finite = np.all(np.isfinite(positions), axis=1)
     keep: npt.NDArray[np.bool_] | slice = everything if bool(finite.all()) else finite
-    radius = ctx.options.get("radius")
     points = rr.Points3D(
-        positions[keep],
-        colors=_colors(view, keep, ctx),
-        radii=None if radius is None else float(radius),
+        positions[keep], colors=_colors(view, keep, ctx), radii=ctx.options(PointCloudOptions).radius
     )
     frame = frame_components(ctx.frame(msg.header.frame_id))
     return [LogItem(ctx.entity_path, (points, *frame))]

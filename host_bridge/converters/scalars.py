@@ -9,6 +9,7 @@ values per sub-entity) and both the per-message form (``rr.Scalars``) and the ru
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -26,13 +27,21 @@ Extractor = Callable[[Any, str], Mapping[SubPath, Values]]
 """(message, topic) -> values per sub-entity; several values make a multi-series plot."""
 
 
+@dataclass(slots=True)
+class _Legends:
+    """Per topic: whether its series names were sent."""
+
+    sent: bool = False
+
+
 def series_names_once(
     ctx: ConvertContext, names: Mapping[SubPath, Sequence[str]]
 ) -> list[LogEntry]:
     """Static ``SeriesLines`` legends (x, y, z, ...), sent with the first message of a topic."""
-    if not names or ctx.state.get("series_named"):
+    legends = ctx.state(_Legends)
+    if not names or legends.sent:
         return []
-    ctx.state["series_named"] = True
+    legends.sent = True
     return [
         LogItem(ctx.child_path(*sub), (rr.SeriesLines(names=list(labels)),), static=True)
         for sub, labels in names.items()

@@ -8,7 +8,7 @@ because a static entity keeps only its last value.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -16,22 +16,21 @@ import rerun as rr
 
 from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import stamp_ns, time_columns, xyz, xyzw
+from host_bridge.options import TfOptions
+from host_bridge.state import RobotState
 
 
 def _is_static(ctx: ConvertContext) -> bool:
-    return bool(ctx.options.get("static", ctx.topic.endswith("/tf_static")))
+    static = ctx.options(TfOptions).static
+    return ctx.topic.endswith("/tf_static") if static is None else static
 
 
 def _remember_children(ctx: ConvertContext, transforms: Sequence[Any]) -> None:
     # The joint-state kinematics leave frames alone that TF already drives (see joints.py).
-    children: set[str] = ctx.robot_state.setdefault("tf_children", set())
-    children.update(t.child_frame_id.strip("/") for t in transforms)
+    ctx.robot_state.tf_children.update(t.child_frame_id.strip("/") for t in transforms)
 
 
-STATIC_ROOT_KEY = "tf_static_entity"
-
-
-def static_transform_path(robot: str, robot_state: Mapping[str, Any], child_frame_id: str) -> str:
+def static_transform_path(robot: str, robot_state: RobotState, child_frame_id: str) -> str:
     """The one static entity holding the relation into ``child_frame_id``.
 
     Rerun wants each frame relation on a single entity. A URDF's fixed joints are usually also
@@ -39,13 +38,13 @@ def static_transform_path(robot: str, robot_state: Mapping[str, Any], child_fram
     two arrives last holds the value. The root is the robot's /tf_static entity (configurable),
     ``/<robot>/tf_static`` until a /tf_static message shows it.
     """
-    root = robot_state.get(STATIC_ROOT_KEY, f"/{robot}/tf_static")
+    root = robot_state.static_tf_root or f"/{robot}/tf_static"
     return f"{root}/{rr.escape_entity_path_part(child_frame_id.strip('/'))}"
 
 
 def _static_items(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     _remember_children(ctx, msg.transforms)
-    ctx.robot_state[STATIC_ROOT_KEY] = ctx.entity_path
+    ctx.robot_state.static_tf_root = ctx.entity_path
     items: list[LogEntry] = []
     for t in msg.transforms:
         child = ctx.frame(t.child_frame_id)

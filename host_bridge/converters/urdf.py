@@ -45,6 +45,7 @@ import io
 import logging
 import xml.etree.ElementTree as ET
 from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Any
 
@@ -57,7 +58,6 @@ import yourdfpy
 
 from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters.joints import (
-    ROBOT_MODEL_KEY,
     JointModel,
     MimicModel,
     RobotModel,
@@ -74,22 +74,25 @@ from host_bridge.resources import ResourceResolver
 
 log = logging.getLogger("swanky.host")
 
-RESOLVER_KEY = "resolver"
-# The --urdf file drawn for a robot; its /robot_description is then not drawn.
-MODEL_FILE_KEY = "urdf_file"
-_SAID_REPLACED_KEY = "said_replaced_by_urdf_file"
-
 VisualArchetype = rr.Mesh3D | rr.Boxes3D | rr.Cylinders3D | rr.Ellipsoids3D
 
 # glTF stores its base colour linear; trimesh's other loaders keep the colour as written.
 _LINEAR_COLOUR_TYPES = frozenset({"gltf", "glb"})
 
 
+@dataclass(slots=True)
+class _DescriptionTopic:
+    """Per /robot_description topic: whether it was said that the --urdf file replaces it."""
+
+    said_replaced: bool = False
+
+
 def convert(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    model_file = ctx.robot_state.get(MODEL_FILE_KEY)
+    model_file = ctx.robot_state.model_file
     if model_file is not None:
-        if not ctx.state.get(_SAID_REPLACED_KEY):
-            ctx.state[_SAID_REPLACED_KEY] = True
+        said = ctx.state(_DescriptionTopic)
+        if not said.said_replaced:
+            said.said_replaced = True
             log.info(
                 "[%s] %s: not drawn, the robot model is --urdf %s", ctx.robot, ctx.topic, model_file
             )
@@ -105,7 +108,7 @@ def model_items_from_file(path: Path, ctx: ConvertContext) -> list[LogEntry]:
     except (OSError, UnicodeDecodeError) as err:
         msg = f"cannot read URDF {path}: {err}; check the --urdf path"
         raise ConvertError(msg) from err
-    ctx.robot_state[MODEL_FILE_KEY] = path
+    ctx.robot_state.model_file = path
     return model_items(xml, ctx, source=str(path), base=Path(path).parent)
 
 
@@ -119,11 +122,8 @@ def model_items(xml: str, ctx: ConvertContext, source: str, base: Path | None = 
     """Log items of the whole model; also stores its kinematics for joints.py."""
     urdf = _parse(xml, source)
     model = _kinematics(urdf.robot, source)
-    ctx.robot_state[ROBOT_MODEL_KEY] = model
-    resolver = ctx.robot_state.get(RESOLVER_KEY)
-    if not isinstance(resolver, ResourceResolver):
-        resolver = ResourceResolver.from_env()
-    resolver = resolver.for_robot(ctx.robot)
+    ctx.robot_state.model = model
+    resolver = ctx.robot_state.resolver
     colors = {m.name: m.color.rgba for m in urdf.robot.materials if m.name and m.color}
 
     items: list[LogEntry] = []

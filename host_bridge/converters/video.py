@@ -186,12 +186,11 @@ class VideoTopicState:
     parameter_sets: Mapping[int, bytes] = field(default_factory=dict)  # NAL type -> latest unit
 
 
-_STATE_KEY = "video"
+@dataclass(slots=True)
+class VideoTopic:
+    """The topic's state record: the VideoTopicState of the last run that converted."""
 
-
-def _topic_state(ctx: ConvertContext) -> VideoTopicState:
-    state = ctx.state.get(_STATE_KEY)
-    return state if isinstance(state, VideoTopicState) else VideoTopicState()
+    committed: VideoTopicState = field(default_factory=VideoTopicState)
 
 
 @dataclass(frozen=True, slots=True)
@@ -292,8 +291,8 @@ def _sample_column(samples: Sequence[bytes | npt.NDArray[np.uint8]]) -> Any:
 def video_entries(frames: Sequence[VideoFrame], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
     """``VideoStream`` rows for a run of one topic's video messages (one row per picture)."""
     ctx0 = ctxs[0]
-    before = _topic_state(ctx0)
-    state = before
+    topic = ctx0.state(VideoTopic)
+    before = state = topic.committed
     samples: list[_Sample] = []
     rows: list[ConvertContext] = []
     stamps: list[int | None] = []
@@ -314,7 +313,7 @@ def video_entries(frames: Sequence[VideoFrame], ctxs: Sequence[ConvertContext]) 
         ros_ns = [s for s in stamps if s is not None]
         times = time_columns(rows, ros_ns if len(ros_ns) == len(rows) else None)
         entries.append(ColumnsItem(ctx0.entity_path, list(columns), times))
-    ctx0.state[_STATE_KEY] = state
+    topic.committed = state
     return entries
 
 
@@ -347,6 +346,7 @@ SPEC = ConverterSpec(convert_compressed_video, convert_compressed_video_run)
 __all__ = [
     "SPEC",
     "VideoFrame",
+    "VideoTopic",
     "VideoTopicState",
     "convert_compressed_video",
     "convert_compressed_video_run",

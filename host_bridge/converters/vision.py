@@ -17,6 +17,7 @@ Both vision_msgs layouts decode: 4.x (ROS 2 Humble: ``center.position.x``,
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -34,10 +35,17 @@ def _hypothesis(result: Any) -> tuple[str, float]:
     return str(hypothesis.id if class_id is None else class_id), float(hypothesis.score)
 
 
+@dataclass(slots=True)
+class _ClassNumbers:
+    """Per topic: the class id given to each class name that is not a number, in order seen."""
+
+    by_name: dict[str, int] = field(default_factory=dict)
+
+
 def _class_number(class_id: str, ctx: ConvertContext) -> int:
     if class_id.isdecimal() and int(class_id) <= _MAX_CLASS_ID:
         return int(class_id)
-    names: dict[str, int] = ctx.state.setdefault("class_numbers", {})
+    names = ctx.state(_ClassNumbers).by_name
     return names.setdefault(class_id, len(names))
 
 

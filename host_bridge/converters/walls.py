@@ -15,16 +15,18 @@ OccupancyGrid and OccupancyGridUpdate rows) for the dispatcher to run in a lates
 thread after ``occupancy`` has converted the same message (an update's walls are built from the grid
 ``occupancy`` just patched). A grid whose cells, geometry and wall options hash to what its wall
 entity already shows yields no items, so a re-published static map costs one hash
-(``robot_state[DIGESTS_KEY]``, keyed by wall entity: a grid and its updates draw the same
+(``robot_state.wall_digests``, keyed by wall entity: a grid and its updates draw the same
 walls). A grid without walls yields a ``Clear`` of the wall entity.
 
-Options (the grid topic's): ``walls`` (default: on for topics whose last name part is ``map``),
-``wall_height`` (m, 0.5), ``wall_thickness`` (m, one cell but at least 0.05), ``wall_color``
-(RGB(A)), ``occupied_threshold`` (cell value, 65 like map_server), ``merge_distance`` (m, 4.5
-cells but at least 0.1), ``merge_angle_deg`` (5), ``merge_gap`` (m, 0.35: bridges crossing
-walls and Hough dropouts, not doors), ``min_length`` (m, 0.3), ``join_reach`` (m, 4 cells but at
-least 0.15), ``hough_votes`` (8), ``hough_min_length`` (m, 4 cells), ``hough_max_gap`` (m, 2
-cells), ``canny_low`` / ``canny_high`` (150 / 250, L2 gradient after a 3x3 Gaussian blur).
+Options (the grid topic's :class:`~host_bridge.options.GridOptions`, which holds the fixed
+defaults; lengths in metres): ``walls`` (default: on for topics whose last name part is
+``map``), ``wall_height``, ``wall_thickness`` (default one cell but at least 0.05),
+``wall_color`` (RGB), ``occupied_threshold`` (cell value, map_server's 65),
+``merge_distance`` (default 4.5 cells but at least 0.1), ``merge_angle_deg``, ``merge_gap``
+(bridges crossing walls and Hough dropouts, not doors), ``min_length``, ``join_reach`` (default
+4 cells but at least 0.15), ``hough_votes``, ``hough_min_length`` (default 4 cells),
+``hough_max_gap`` (default 2 cells), ``canny_low`` / ``canny_high`` (L2 gradient after a 3x3
+Gaussian blur).
 Canny finds both sides of a wall, so ``merge_distance`` must exceed the distance between the
 two edges of one wall (its thickness plus one cell; the default covers walls up to three cells
 thick) and stay below the centre-to-centre distance of neighbouring parallel walls. Parallel
@@ -36,7 +38,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -47,6 +48,7 @@ from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogIte
 from host_bridge.converters._common import frame_components
 from host_bridge.converters.occupancy import Grid, grid_for_update, grid_from_msg
 from host_bridge.errors import ConvertError
+from host_bridge.options import GridOptions
 from host_bridge.segments import (
     Float64Array,
     detect_segments,
@@ -55,9 +57,9 @@ from host_bridge.segments import (
     merge_segments,
     segments_to_mesh,
 )
+from host_bridge.state import RobotState
 
 WALLS_CHILD = "walls"
-DIGESTS_KEY = "wall_digests"
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,33 +82,39 @@ class WallOptions:
     canny_high: float
 
     @classmethod
-    def from_options(cls, options: Mapping[str, Any], resolution: float, topic: str) -> WallOptions:
-        def length(name: str, default: float) -> float:
-            value = float(options.get(name, default))
+    def from_options(cls, options: GridOptions, resolution: float, topic: str) -> WallOptions:
+        """The grid topic's wall options; the lengths it leaves open follow the cell size."""
+
+        def length(name: str, value: float) -> float:
             if not (math.isfinite(value) and value > 0.0):
                 text = f"{topic}: option {name} is {value}; give a positive length in metres"
                 raise ConvertError(text)
-            return value
+            return float(value)
 
-        angle = float(options.get("merge_angle_deg", 5.0))
+        def given(value: float | None, derived: float) -> float:
+            return derived if value is None else value
+
+        angle = float(options.merge_angle_deg)
         if not 0.0 < angle < 90.0:
             text = f"{topic}: option merge_angle_deg is {angle}; give an angle in (0, 90) degrees"
             raise ConvertError(text)
         return cls(
-            height=length("wall_height", 0.5),
-            thickness=length("wall_thickness", max(resolution, 0.05)),
-            color=tuple(int(c) for c in options.get("wall_color", (170, 180, 200))),
-            occupied_threshold=int(options.get("occupied_threshold", 65)),
-            merge_distance=length("merge_distance", max(0.1, 4.5 * resolution)),
+            height=length("wall_height", options.wall_height),
+            thickness=length("wall_thickness", given(options.wall_thickness, max(resolution, 0.05))),
+            color=tuple(int(c) for c in options.wall_color),
+            occupied_threshold=int(options.occupied_threshold),
+            merge_distance=length(
+                "merge_distance", given(options.merge_distance, max(0.1, 4.5 * resolution))
+            ),
             merge_angle_deg=angle,
-            merge_gap=length("merge_gap", 0.35),
-            min_length=length("min_length", 0.3),
-            join_reach=length("join_reach", max(0.15, 4 * resolution)),
-            hough_votes=int(options.get("hough_votes", 8)),
-            hough_min_length=length("hough_min_length", 4 * resolution),
-            hough_max_gap=length("hough_max_gap", 2 * resolution),
-            canny_low=float(options.get("canny_low", 150.0)),
-            canny_high=float(options.get("canny_high", 250.0)),
+            merge_gap=length("merge_gap", options.merge_gap),
+            min_length=length("min_length", options.min_length),
+            join_reach=length("join_reach", given(options.join_reach, max(0.15, 4 * resolution))),
+            hough_votes=int(options.hough_votes),
+            hough_min_length=length("hough_min_length", given(options.hough_min_length, 4 * resolution)),
+            hough_max_gap=length("hough_max_gap", given(options.hough_max_gap, 2 * resolution)),
+            canny_low=float(options.canny_low),
+            canny_high=float(options.canny_high),
         )
 
 
@@ -135,7 +143,8 @@ def wall_segments(grid: Grid, options: WallOptions) -> Float64Array:
 
 
 def walls_enabled(grid: Grid) -> bool:
-    return bool(grid.options.get("walls", grid.topic.rstrip("/").rsplit("/", 1)[-1] == "map"))
+    walls = grid.options.walls
+    return grid.topic.rstrip("/").rsplit("/", 1)[-1] == "map" if walls is None else walls
 
 
 def _digest(grid: Grid, options: WallOptions) -> bytes:
@@ -149,13 +158,13 @@ def _digest(grid: Grid, options: WallOptions) -> bytes:
     return h.digest()
 
 
-def _grid_wall_items(grid: Grid, robot_state: dict[str, Any]) -> list[LogEntry]:
+def _grid_wall_items(grid: Grid, robot_state: RobotState) -> list[LogEntry]:
     if not walls_enabled(grid):
         return []
     options = WallOptions.from_options(grid.options, grid.resolution, grid.topic)
     path = f"{grid.entity_path}/{WALLS_CHILD}"
     # Keyed by wall entity, not per topic: a grid and its updates draw the same walls.
-    digests: dict[str, bytes] = robot_state.setdefault(DIGESTS_KEY, {})
+    digests = robot_state.wall_digests
     digest = _digest(grid, options)
     if digests.get(path) == digest:
         return []

@@ -1,9 +1,9 @@
-"""Helpers for the sensor converter tests: contexts, ROS 2 messages, and reading back the values
-Rerun would receive from archetypes and columns (as numpy, through their arrow arrays)."""
+"""Helpers for the converter tests: the one context factory, ROS 2 messages, and reading back the
+values Rerun would receive from archetypes and columns (as numpy, through their arrow arrays)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from itertools import pairwise
 from pathlib import Path
 from typing import Any
@@ -15,20 +15,35 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
+from host_bridge.state import RobotState, TopicState
 
 ROBOT = "r"
 TYPES = get_typestore(Stores.ROS2_HUMBLE).types
 
 
 def make_ctx(
-    topic: str, options: dict[str, Any] | None = None, stamp_ns: int = 1_000_000_000
+    topic: str,
+    options: Mapping[str, Any] | None = None,
+    stamp_ns: int = 1_000_000_000,
+    *,
+    robot: str = ROBOT,
+    times: Mapping[str, int] | None = None,
+    topic_state: TopicState | None = None,
+    robot_state: RobotState | None = None,
 ) -> ConvertContext:
+    """A context as the dispatcher makes one: entity ``/<robot><topic>``, ``ros_time`` stamp_ns
+    unless ``times`` says otherwise. Messages of one topic share a ``topic_state`` (which holds
+    the topic's options: give ``options`` or a state), topics of one robot a ``robot_state``."""
+    if topic_state is not None and options is not None:
+        msg = "the options are the topic state's; give one of them"
+        raise ValueError(msg)
     return ConvertContext(
-        robot=ROBOT,
+        robot=robot,
         topic=topic,
-        entity_path=f"/{ROBOT}{topic}",
-        times={"ros_time": stamp_ns},
-        options=options or {},
+        entity_path=f"/{robot}{topic}",
+        times={"ros_time": stamp_ns} if times is None else times,
+        topic_state=TopicState(options) if topic_state is None else topic_state,
+        robot_state=RobotState() if robot_state is None else robot_state,
     )
 
 

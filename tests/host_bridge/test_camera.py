@@ -15,7 +15,8 @@ import rerun as rr
 from host_bridge.contract import LogItem
 from host_bridge.converters.camera import convert_camera_info
 from host_bridge.errors import ConvertError
-from tests.host_bridge.test_images import ROBOT, T, first_message, header, make_ctx, pylist
+from tests.host_bridge.sensor_test_support import make_ctx
+from tests.host_bridge.test_images import ROBOT, T, first_message, header, pylist
 
 INFO_TOPIC = "/camera/camera_info"
 K_640 = np.array([525.0, 0.0, 319.5, 0.0, 526.0, 239.5, 0.0, 0.0, 1.0])
@@ -50,7 +51,7 @@ def camera_info(
 
 def pinhole_item(msg: Any, topic: str = INFO_TOPIC) -> tuple[str, rr.Pinhole, list[str]]:
     """(entity path, the Pinhole, the CoordinateFrame names logged with it)."""
-    (item,) = convert_camera_info(msg, make_ctx(topic))
+    (item,) = convert_camera_info(msg, make_ctx(topic, robot=ROBOT))
     assert isinstance(item, LogItem)
     assert not item.static
     pinholes = [a for a in item.archetypes if isinstance(a, rr.Pinhole)]
@@ -79,7 +80,7 @@ def test_pinhole_is_logged_at_the_camera_namespace_above_its_images() -> None:
     assert pylist(pinhole.camera_xyz) == pylist(rr.components.ViewCoordinatesBatch(rr.ViewCoordinates.RDF))
     assert frames == [f"{ROBOT}/camera_optical_frame"]
     for image_topic in ("/camera/image_raw", "/camera/image_raw/compressed", "/camera/image_rect"):
-        assert make_ctx(image_topic).entity_path.startswith(path + "/")
+        assert make_ctx(image_topic, robot=ROBOT).entity_path.startswith(path + "/")
 
 
 def test_ros1_field_names_are_read() -> None:
@@ -104,7 +105,7 @@ def test_ros1_field_names_are_read() -> None:
 
 def test_uncalibrated_camera_raises_one_clear_error() -> None:
     with pytest.raises(ConvertError, match=INFO_TOPIC) as info:
-        convert_camera_info(camera_info(np.zeros(9)), make_ctx(INFO_TOPIC))
+        convert_camera_info(camera_info(np.zeros(9)), make_ctx(INFO_TOPIC, robot=ROBOT))
     assert "not calibrated" in str(info.value)
 
 
@@ -140,5 +141,5 @@ def test_real_ros1_camera_info_matches_its_image(shared_data: Path) -> None:
     assert intrinsics(pinhole)[0, 0] == pytest.approx(1014.3431, rel=1e-6)
     assert pylist(pinhole.resolution) == [[1280.0, 960.0]]
     assert pylist(pinhole.parent_frame) == [f"{ROBOT}/raspicam"] == frames
-    image_entity = make_ctx("/raspicam_node/image/compressed").entity_path
+    image_entity = make_ctx("/raspicam_node/image/compressed", robot=ROBOT).entity_path
     assert image_entity.startswith(path + "/")

@@ -142,8 +142,7 @@ def test_costmap_raw_scheme_shows_the_costs_and_updates_patch_them() -> None:
                                         frame_id="map"),
         x=1, y=1, size_x=2, size_y=1, data=np.array([200, 254], dtype=np.uint8),
     )
-    update_ctx = make_ctx("/global_costmap/costmap_raw_updates")
-    update_ctx.robot_state.update(grid_ctx.robot_state)
+    update_ctx = make_ctx("/global_costmap/costmap_raw_updates", robot_state=grid_ctx.robot_state)
     entries = occupancy.convert_costmap_update(update, update_ctx)
     assert grid_bytes(entries, "/r/global_costmap/costmap_raw") == [0, 200, 254, 0, 0, 0]
 

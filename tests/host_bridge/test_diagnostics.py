@@ -6,10 +6,10 @@ from typing import Any
 
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, LogItem
+from host_bridge.contract import LogItem
 from host_bridge.converters.diagnostics import SPEC
 from tests.host_bridge.sensor_test_support import TYPES as T
-from tests.host_bridge.sensor_test_support import header
+from tests.host_bridge.sensor_test_support import header, make_ctx
 
 CONVERT = SPEC.convert
 
@@ -24,9 +24,7 @@ def _status(level: int, name: str, message: str, values: dict[str, str] | None =
 def _convert(*statuses: Any) -> dict[str, tuple[str, ...] | float]:
     """Entity path -> (text, level) for text logs, or the scalar value."""
     msg = T["diagnostic_msgs/msg/DiagnosticArray"](header=header(""), status=list(statuses))
-    ctx = ConvertContext(
-        robot="tb3", topic="/diagnostics", entity_path="/tb3/diagnostics", times={"ros_time": 3},
-    )
+    ctx = make_ctx("/diagnostics", stamp_ns=3, robot="tb3")
     out: dict[str, tuple[str, ...] | float] = {}
     for item in CONVERT(msg, ctx):
         assert isinstance(item, LogItem)

@@ -27,8 +27,9 @@ from host_bridge.converters.geometry import (
     VECTOR3,
     WRENCH,
 )
+from host_bridge.state import TopicState
 from tests.host_bridge.sensor_test_support import TYPES as T
-from tests.host_bridge.sensor_test_support import archetype, header, log_item
+from tests.host_bridge.sensor_test_support import archetype, header, log_item, make_ctx
 
 NS = 1_000_000_000
 
@@ -53,17 +54,10 @@ def _pose_stamped(position: Sequence[float], frame_id: str = "map", ns: int = 0)
 def _ctx(
     topic: str = "/goal",
     ns: int = 0,
-    state: dict[str, Any] | None = None,
+    state: TopicState | None = None,
     options: dict[str, Any] | None = None,
 ) -> ConvertContext:
-    return ConvertContext(
-        robot="tb3",
-        topic=topic,
-        entity_path=f"/tb3{topic}",
-        times={"ros_time": ns},
-        options=options or {},
-        state={} if state is None else state,
-    )
+    return make_ctx(topic, options, ns, robot="tb3", topic_state=state)
 
 
 def _at(entries: Sequence[LogEntry], path: str) -> list[LogEntry]:
@@ -133,7 +127,7 @@ def test_all_zero_quaternion_becomes_identity() -> None:
 
 
 def test_trail_grows_only_when_the_pose_moved_more_than_1cm() -> None:
-    state: dict[str, Any] = {}
+    state = TopicState()
     xs = [0.0, 0.005, 0.0105, 0.019, 0.5, 0.5]
     grown = [
         _trail_rows(POSE_STAMPED.convert(_pose_stamped((x, 0.0, 0.0)), _ctx(state=state)))
@@ -145,17 +139,12 @@ def test_trail_grows_only_when_the_pose_moved_more_than_1cm() -> None:
 
 
 def test_trail_keeps_the_last_trail_length_points_and_restarts_on_frame_change() -> None:
-    state: dict[str, Any] = {}
-    options = {"trail_length": 3}
+    state = TopicState({"trail_length": 3})
     for x in range(5):
-        entries = POSE_STAMPED.convert(
-            _pose_stamped((float(x), 0.0, 0.0)),
-            _ctx(state=state, options=options),
-        )
+        entries = POSE_STAMPED.convert(_pose_stamped((float(x), 0.0, 0.0)), _ctx(state=state))
     assert np.array(_trail_rows(entries)[0][0])[:, 0].tolist() == [2.0, 3.0, 4.0]
     entries = POSE_STAMPED.convert(
-        _pose_stamped((9.0, 0.0, 0.0), frame_id="odom"),
-        _ctx(state=state, options=options),
+        _pose_stamped((9.0, 0.0, 0.0), frame_id="odom"), _ctx(state=state)
     )
     (trail,) = _at(entries, "/tb3/goal/trail")
     assert _column(trail, "LineStrips3D:strips") == [[[[9.0, 0.0, 0.0]]]]
@@ -178,7 +167,7 @@ def test_pose_run_splits_rows_by_frame_and_stamps_trail_rows() -> None:
         _pose_stamped((1.001, 0.0, 0.0), ""),
         _pose_stamped((2.0, 0.0, 0.0), "map"),
     ]
-    state: dict[str, Any] = {}
+    state = TopicState()
     ctxs = [_ctx(ns=i * NS, state=state) for i in range(len(msgs))]
     entries = POSE_STAMPED.convert_run(msgs, ctxs)
     with_frame, without_frame = _at(entries, "/tb3/goal")
@@ -379,13 +368,12 @@ def amr_bag(shared_data: Path) -> dict[str, list[tuple[int, Any]]]:
 
 
 def _bag_ctxs(topic: str, rows: list[tuple[int, Any]]) -> list[ConvertContext]:
-    state: dict[str, Any] = {}
+    state = TopicState()
     return [
-        ConvertContext(
+        make_ctx(
+            topic,
             robot="tb3",
-            topic=topic,
-            entity_path=f"/tb3{topic}",
-            state=state,
+            topic_state=state,
             times={
                 "ros_time": int(m.header.stamp.sec) * NS + int(m.header.stamp.nanosec),
                 "log_time": log_ns,

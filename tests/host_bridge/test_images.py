@@ -16,13 +16,14 @@ import rerun as rr
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
+from host_bridge.contract import ColumnsItem, LogEntry, LogItem
 from host_bridge.converters.images import (
     convert_compressed_image,
     convert_compressed_image_run,
     convert_image,
 )
 from host_bridge.errors import ConvertError
+from tests.host_bridge.sensor_test_support import make_ctx
 
 TYPESTORE = get_typestore(Stores.ROS2_HUMBLE)
 T = TYPESTORE.types
@@ -30,10 +31,6 @@ ROBOT = "tb3"
 RNG_SEED = 7
 
 # --- helpers shared with test_camera -------------------------------------------------------------
-
-
-def make_ctx(topic: str, **options: Any) -> ConvertContext:
-    return ConvertContext(robot=ROBOT, topic=topic, entity_path=f"/{ROBOT}{topic}", times={}, options=options)
 
 
 def header(frame_id: str = "camera_optical_frame") -> Any:
@@ -81,7 +78,7 @@ def make_image(
 
 
 def convert_one(msg: Any, **options: Any) -> Any:
-    entries = convert_image(msg, make_ctx(IMAGE_TOPIC, **options))
+    entries = convert_image(msg, make_ctx(IMAGE_TOPIC, options, robot=ROBOT, times={}))
     return only_archetype(entries, f"/{ROBOT}{IMAGE_TOPIC}")
 
 
@@ -368,7 +365,8 @@ def test_big_endian_data_is_byteswapped(encoding: str, dtype: Any, shape: tuple[
 @pytest.mark.parametrize(("encoding", "dtype"), [("8UC2", np.uint8), ("32FC2", np.float32)])
 def test_two_channel_images_show_each_channel(encoding: str, dtype: Any) -> None:
     raw = random_pixels((H, W, 2), dtype)
-    entries = convert_image(make_image(encoding, raw, width=W, height=H), make_ctx(IMAGE_TOPIC))
+    image = make_image(encoding, raw, width=W, height=H)
+    entries = convert_image(image, make_ctx(IMAGE_TOPIC, robot=ROBOT, times={}))
     assert [e.path for e in entries] == [f"/{ROBOT}{IMAGE_TOPIC}/ch0", f"/{ROBOT}{IMAGE_TOPIC}/ch1"]
     for channel, entry in enumerate(entries):
         assert isinstance(entry, LogItem)
@@ -410,7 +408,7 @@ def test_bad_images_raise_convert_error_naming_the_topic(
         data=np.zeros(data_size, np.uint8),
     )
     with pytest.raises(ConvertError, match=IMAGE_TOPIC) as info:
-        convert_image(msg, make_ctx(IMAGE_TOPIC, **options))
+        convert_image(msg, make_ctx(IMAGE_TOPIC, options, robot=ROBOT, times={}))
     assert needle in str(info.value)
 
 
@@ -426,7 +424,7 @@ def make_compressed(fmt: str, data: bytes | npt.NDArray[np.uint8]) -> Any:
 
 
 def convert_compressed(msg: Any, **options: Any) -> Any:
-    entries = convert_compressed_image(msg, make_ctx(COMPRESSED_TOPIC, **options))
+    entries = convert_compressed_image(msg, make_ctx(COMPRESSED_TOPIC, options, robot=ROBOT, times={}))
     return only_archetype(entries, f"/{ROBOT}{COMPRESSED_TOPIC}")
 
 
@@ -464,10 +462,7 @@ def test_a_run_of_jpegs_keeps_each_message_on_its_own_times() -> None:
     carries its own: each JPEG of a run must stay on its own stamp."""
     payload = encode(".jpg", random_pixels((H, W, 3), np.uint8))
     msgs = [make_compressed("jpeg", payload) for _ in range(3)]
-    ctxs = [
-        ConvertContext(ROBOT, COMPRESSED_TOPIC, f"/{ROBOT}{COMPRESSED_TOPIC}", {"ros_time": ns})
-        for ns in (10, 20, 30)
-    ]
+    ctxs = [make_ctx(COMPRESSED_TOPIC, stamp_ns=ns, robot=ROBOT) for ns in (10, 20, 30)]
     entries = convert_compressed_image_run(msgs, ctxs)
     assert [e.times for e in entries] == [{"ros_time": 10}, {"ros_time": 20}, {"ros_time": 30}]
     assert all(isinstance(e, LogItem) and isinstance(e.archetypes[0], rr.EncodedImage) for e in entries)
@@ -505,7 +500,8 @@ def test_compressed_images_carrying_video_become_video_stream_samples(
     """Any spelling of a video codec turns the topic into a VideoStream (tests/host_bridge/
     test_video.py checks real encoded streams); JPEG and PNG stay EncodedImages above."""
     payload = VIDEO_PAYLOADS[codec]
-    entries = convert_compressed_image(make_compressed(fmt, payload), make_ctx(COMPRESSED_TOPIC))
+    ctx = make_ctx(COMPRESSED_TOPIC, robot=ROBOT, times={})
+    entries = convert_compressed_image(make_compressed(fmt, payload), ctx)
     static, rows = entries
     assert isinstance(static, LogItem)
     assert static.static

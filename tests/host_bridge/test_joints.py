@@ -20,6 +20,8 @@ from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
 from host_bridge.converters import joints, urdf
 from host_bridge.errors import ConvertError, PartialConvertError
 from host_bridge.resources import ResourceResolver
+from host_bridge.state import RobotState
+from tests.host_bridge.sensor_test_support import make_ctx
 
 
 @pytest.fixture
@@ -27,15 +29,13 @@ def burger_file(shared_data: Path) -> Path:
     return shared_data / "turtlebot3_description/turtlebot3_description/urdf/turtlebot3_burger.urdf"
 
 
-def make_ctx(robot: str, xml: str, topic: str = "/joint_states", stamp: int = 0) -> ConvertContext:
+def joints_ctx(robot: str, xml: str, topic: str = "/joint_states", stamp: int = 0) -> ConvertContext:
     """A JointState topic context of a robot whose model is loaded from ``xml`` (no meshes)."""
-    state: dict[str, Any] = {"resolver": ResourceResolver()}
-    model_ctx = ConvertContext(
-        robot, "/robot_description", f"/{robot}/robot_description", {}, robot_state=state
-    )
+    state = RobotState(ResourceResolver())
+    model_ctx = make_ctx("/robot_description", robot=robot, times={}, robot_state=state)
     with contextlib.suppress(PartialConvertError):  # the meshes are not needed for kinematics
         urdf.convert(SimpleNamespace(data=xml), model_ctx)
-    return ConvertContext(robot, topic, f"/{robot}{topic}", {"ros_time": stamp}, robot_state=state)
+    return make_ctx(topic, stamp_ns=stamp, robot=robot, robot_state=state)
 
 
 def joint_state(names: list[str], positions: list[float]) -> SimpleNamespace:
@@ -71,7 +71,7 @@ def frames(item: LogItem) -> tuple[str, str]:
 
 
 def test_wheel_angle_matches_yourdfpy_and_rerun(burger_file: Path) -> None:
-    ctx = make_ctx("tb1", burger_file.read_text())
+    ctx = joints_ctx("tb1", burger_file.read_text())
     items = by_path(
         joints.convert_joint_state(joint_state(["wheel_left_joint", "wheel_right_joint"], [0.7, -0.3]), ctx)
     )
@@ -141,7 +141,7 @@ def rotation_about(angle: float, axis: list[float], translation: list[float]) ->
 
 
 def test_prismatic_and_mimic_match_yourdfpy() -> None:
-    ctx = make_ctx("arm1", ARM)
+    ctx = joints_ctx("arm1", ARM)
     items = by_path(joints.convert_joint_state(joint_state(["shoulder", "lift"], [0.4, 0.05]), ctx))
     assert len(items) == 4
     reference = yourdfpy.URDF.load(io.StringIO(ARM), load_meshes=False)
@@ -170,8 +170,8 @@ def test_prismatic_and_mimic_match_yourdfpy() -> None:
 def test_model_stands_at_zero_with_mimic_chains_at_their_offsets() -> None:
     """No /joint_states yet: every joint at 0 as RViz shows it, static on the child's /tf_static
     entity (the joint states' temporal rows win from their first stamp on)."""
-    state: dict[str, Any] = {"resolver": ResourceResolver()}
-    ctx = ConvertContext("arm1", "/robot_description", "/arm1/robot_description", {}, robot_state=state)
+    state = RobotState(ResourceResolver())
+    ctx = make_ctx("/robot_description", robot="arm1", times={}, robot_state=state)
     items = by_path(urdf.convert(SimpleNamespace(data=ARM), ctx))
     assert sorted(items) == [f"/arm1/tf_static/{link}" for link in ("arm", "finger", "slider", "tip")]
     assert all(item.static for item in items.values())
@@ -186,20 +186,21 @@ def test_model_stands_at_zero_with_mimic_chains_at_their_offsets() -> None:
                                rotation_about(0.1, [1, 0, 0], [0.3, 0, 0]), atol=1e-6)
     np.testing.assert_allclose(transform_matrix(items["/arm1/tf_static/tip"]),
                                rotation_about(0.05, [0, 0, 1], [0.05, 0, 0]), atol=1e-6)
-    model = state["urdf"]
+    model = state.model
+    assert model is not None
     assert joints.zero_positions(model) == {"lift": 0.0, "shoulder": 0.0, "grip": 0.1, "tip_joint": 0.05}
     assert model.root == "base"
 
 
 def test_published_mimic_value_is_overridden_by_its_driver() -> None:
-    ctx = make_ctx("arm1", ARM)
+    ctx = joints_ctx("arm1", ARM)
     items = by_path(joints.convert_joint_state(joint_state(["shoulder", "grip"], [0.4, 2.0]), ctx))
     grip = transform_matrix(items["/arm1/robot_model/joints/grip"])
     np.testing.assert_allclose(grip, rotation_about(-0.7, [1, 0, 0], [0.3, 0, 0]), atol=1e-6)
 
 
 def test_unknown_joints_reported_once_known_ones_still_logged(burger_file: Path) -> None:
-    ctx = make_ctx("tb1", burger_file.read_text())
+    ctx = joints_ctx("tb1", burger_file.read_text())
     message = joint_state(["wheel_left_joint", "gripper_joint"], [0.1, 0.2])
     with pytest.raises(PartialConvertError, match=r"\['gripper_joint'\]") as caught:
         joints.convert_joint_state(message, ctx)
@@ -210,21 +211,21 @@ def test_unknown_joints_reported_once_known_ones_still_logged(burger_file: Path)
 
 
 def test_joints_on_tf_are_left_to_tf(burger_file: Path) -> None:
-    ctx = make_ctx("tb1", burger_file.read_text())
+    ctx = joints_ctx("tb1", burger_file.read_text())
     message = joint_state(["wheel_left_joint", "wheel_right_joint"], [0.1, 0.2])
-    ctx.robot_state["tf_children"] = {"wheel_left_link"}
+    ctx.robot_state.tf_children = {"wheel_left_link"}
     assert sorted(by_path(joints.convert_joint_state(message, ctx))) == [
         "/tb1/robot_model/joints/wheel_right_joint"
     ]
-    ctx.robot_state["tf_children"] = {"tb1/wheel_left_link", "tb1/wheel_right_link"}
+    ctx.robot_state.tf_children = {"tb1/wheel_left_link", "tb1/wheel_right_link"}
     assert joints.convert_joint_state(message, ctx) == []
 
 
 def test_two_robots_same_urdf_are_prefixed(burger_file: Path) -> None:
     xml = burger_file.read_text()
     message = joint_state(["wheel_left_joint"], [0.7])
-    first = by_path(joints.convert_joint_state(message, make_ctx("tb1", xml)))
-    second = by_path(joints.convert_joint_state(message, make_ctx("tb2", xml)))
+    first = by_path(joints.convert_joint_state(message, joints_ctx("tb1", xml)))
+    second = by_path(joints.convert_joint_state(message, joints_ctx("tb2", xml)))
     assert frames(first["/tb1/robot_model/joints/wheel_left_joint"]) == (
         "tb1/base_link",
         "tb1/wheel_left_link",
@@ -240,13 +241,13 @@ def test_two_robots_same_urdf_are_prefixed(burger_file: Path) -> None:
 
 
 def test_without_a_model_messages_are_refused() -> None:
-    ctx = ConvertContext("tb1", "/joint_states", "/tb1/joint_states", {})
+    ctx = make_ctx("/joint_states", robot="tb1", times={})
     with pytest.raises(ConvertError, match="no robot model"):
         joints.convert_joint_state(joint_state(["a"], [0.0]), ctx)
 
 
 def test_position_count_must_match_names() -> None:
-    ctx = make_ctx("arm1", ARM)
+    ctx = joints_ctx("arm1", ARM)
     with pytest.raises(ConvertError, match="2 values for 1 joint names"):
         joints.convert_joint_state(joint_state(["shoulder"], [0.1, 0.2]), ctx)
     # Velocity-only states and NaN positions move nothing.
@@ -260,7 +261,7 @@ def test_run_form_matches_single_messages() -> None:
         joint_state(["lift"], [0.02]),
         joint_state(["shoulder", "lift"], [0.3, 0.03]),
     ]
-    ctxs = [make_ctx("arm1", ARM, stamp=stamp) for stamp in (100, 200, 300)]
+    ctxs = [joints_ctx("arm1", ARM, stamp=stamp) for stamp in (100, 200, 300)]
     items = {item.path: item for item in joints.convert_joint_state_run(messages, ctxs)}
     assert all(isinstance(item, ColumnsItem) for item in items.values())
     shoulder = items["/arm1/robot_model/joints/shoulder"]
@@ -284,7 +285,7 @@ def test_trajectory_uses_its_first_point() -> None:
     point = SimpleNamespace(positions=np.array([0.4]))
     later = SimpleNamespace(positions=np.array([1.0]))
     trajectory = SimpleNamespace(joint_names=["shoulder"], points=[point, later])
-    ctx = make_ctx("arm1", ARM, topic="/arm_controller/joint_trajectory")
+    ctx = joints_ctx("arm1", ARM, topic="/arm_controller/joint_trajectory")
     items = by_path(joints.convert_joint_trajectory(trajectory, ctx))
     state = by_path(joints.convert_joint_state(joint_state(["shoulder"], [0.4]), ctx))
     assert (

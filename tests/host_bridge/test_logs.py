@@ -11,19 +11,14 @@ from rosbags.typesys import Stores, get_typestore
 from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry
 from host_bridge.converters.logs import ROS1_LOG, ROS2_LOG, STRING
 from tests.host_bridge.sensor_test_support import TYPES as ROS2
-from tests.host_bridge.sensor_test_support import read_topic
+from tests.host_bridge.sensor_test_support import make_ctx, read_topic
 
 ROS1 = get_typestore(Stores.ROS1_NOETIC).types
 NS = 1_000_000_000
 
 
 def _ctx(topic: str = "/rosout", ns: int = 0) -> ConvertContext:
-    return ConvertContext(
-        robot="tb3",
-        topic=topic,
-        entity_path=f"/tb3{topic}",
-        times={"ros_time": ns, "receive_time": ns + 1},
-    )
+    return make_ctx(topic, robot="tb3", times={"ros_time": ns, "receive_time": ns + 1})
 
 
 def _rows(item: LogEntry) -> dict[str, list[Any]]:

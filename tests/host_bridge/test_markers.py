@@ -13,6 +13,8 @@ import rerun as rr
 from host_bridge.contract import ConvertContext, LogEntry, LogItem
 from host_bridge.converters import markers
 from host_bridge.errors import ConvertError
+from host_bridge.resources import ResourceResolver
+from host_bridge.state import RobotState, TopicState
 from tests.host_bridge.sensor_test_support import ROBOT, archetype, header, log_item, make_ctx, msg
 
 TOPIC = "/viz"
@@ -274,10 +276,8 @@ def test_mesh_resource_from_local_stl(shared_data: Path) -> None:
 
 def test_package_uri_goes_through_the_robot_resolver(shared_data: Path) -> None:
     uri = "package://turtlebot3_description/meshes/sensors/lds.stl"
-    ctx = make_ctx(TOPIC)
-    ctx.robot_state["resolve_uri"] = lambda u: (
-        shared_data / "turtlebot3_description" / (u.removeprefix("package://"))
-    )
+    resolver = ResourceResolver(search_paths=[shared_data / "turtlebot3_description"])
+    ctx = make_ctx(TOPIC, robot_state=RobotState(resolver))
     asset = archetype(
         log_item(
             convert(marker(markers.MESH_RESOURCE, mesh_resource=uri, embedded=True), ctx),
@@ -312,19 +312,19 @@ def test_delete_clears_only_that_marker() -> None:
     entries = markers.convert_marker(marker(marker_id=3, action=markers.DELETE), ctx)
     clear = archetype(log_item(entries, f"{BASE}/ns/3"), rr.Clear)
     assert values(clear.is_recursive) == [False]
-    assert ctx.state["markers"] == {}
+    assert ctx.state(markers.MarkerTopic).types == {}
 
 
 def test_deleteall_clears_the_topic_then_later_markers_show() -> None:
     ctx = make_ctx(TOPIC)
     markers.convert_marker_array(array(marker(ns="a", marker_id=1), marker(ns="b")), ctx)
-    assert set(ctx.state["markers"]) == {f"{BASE}/a/1", f"{BASE}/b/0"}
+    assert set(ctx.state(markers.MarkerTopic).types) == {f"{BASE}/a/1", f"{BASE}/b/0"}
     entries = markers.convert_marker_array(
         array(marker(action=markers.DELETEALL), marker(ns="c", marker_id=5)), ctx
     )
     assert [e.path for e in entries if isinstance(e, LogItem)] == [BASE, f"{BASE}/c/5"]
     assert values(archetype(log_item(entries, BASE), rr.Clear).is_recursive) == [True]
-    assert set(ctx.state["markers"]) == {f"{BASE}/c/5"}
+    assert set(ctx.state(markers.MarkerTopic).types) == {f"{BASE}/c/5"}
 
 
 def test_type_change_clears_the_old_geometry_first() -> None:
@@ -344,14 +344,8 @@ def test_namespace_is_escaped_and_empty_frame_has_no_parent() -> None:
     assert log_item(convert(marker(ns="")), f"{BASE}/_/0") is not None
 
 
-def _timed_ctx(t_ns: int, state: dict[str, Any]) -> ConvertContext:
-    return ConvertContext(
-        robot=ROBOT,
-        topic=TOPIC,
-        entity_path=BASE,
-        state=state,
-        times={"ros_time": t_ns, "receive_time": t_ns + 5_000},
-    )
+def _timed_ctx(t_ns: int, state: TopicState) -> ConvertContext:
+    return make_ctx(TOPIC, topic_state=state, times={"ros_time": t_ns, "receive_time": t_ns + 5_000})
 
 
 def _clears(entries: list[LogEntry], path: str) -> list[LogItem]:
@@ -365,7 +359,7 @@ def _clears(entries: list[LogEntry], path: str) -> list[LogItem]:
 
 
 def test_lifetime_adds_a_clear_at_stamp_plus_lifetime_on_every_timeline() -> None:
-    ctx = _timed_ctx(10_000_000_000, {})
+    ctx = _timed_ctx(10_000_000_000, TopicState())
     entries = markers.convert_marker(marker(lifetime_ns=1_500_000_000), ctx)
     (clear,) = _clears(entries, f"{BASE}/ns/0")
     assert clear.times == {"ros_time": 11_500_000_000, "receive_time": 11_500_005_000}
@@ -373,7 +367,7 @@ def test_lifetime_adds_a_clear_at_stamp_plus_lifetime_on_every_timeline() -> Non
 
 
 def test_republished_marker_is_relogged_after_the_stale_clear() -> None:
-    state: dict[str, Any] = {}
+    state = TopicState()
     markers.convert_marker(marker(lifetime_ns=1_000_000_000), _timed_ctx(0, state))
     entries = markers.convert_marker(
         marker(lifetime_ns=1_000_000_000), _timed_ctx(500_000_000, state)

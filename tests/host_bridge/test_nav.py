@@ -9,16 +9,15 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from host_bridge.contract import ConvertContext
 from host_bridge.converters.nav import GRID_CELLS, PATH
-from tests.host_bridge.sensor_test_support import TYPES, archetype, header, log_item, read_topic
-
-
-def _ctx(topic: str, options: dict[str, Any] | None = None) -> ConvertContext:
-    return ConvertContext(
-        robot="tb3", topic=topic, entity_path=f"/tb3{topic}", times={"ros_time": 0},
-        options=options or {},
-    )
+from tests.host_bridge.sensor_test_support import (
+    TYPES,
+    archetype,
+    header,
+    log_item,
+    make_ctx,
+    read_topic,
+)
 
 
 def _pylist(batch: Any) -> list[Any]:
@@ -50,7 +49,7 @@ def test_real_plans_become_one_strip_through_every_pose(
     assert len(plans) == count
     lengths = []
     for plan in plans:
-        item = log_item(PATH.convert(plan, _ctx(topic)), f"/tb3{topic}")
+        item = log_item(PATH.convert(plan, make_ctx(topic, robot="tb3")), f"/tb3{topic}")
         strips = _pylist(archetype(item, rr.LineStrips3D).strips)
         expected = np.array(
             [(p.pose.position.x, p.pose.position.y, p.pose.position.z) for p in plan.poses],
@@ -68,8 +67,8 @@ def test_path_arrows_are_optional() -> None:
     msg = TYPES["nav_msgs/msg/Path"](
         header=header("odom"), poses=[_stamped_pose(0.0, 0.0), _stamped_pose(1.0, 0.0, 1)],
     )
-    assert [e.path for e in PATH.convert(msg, _ctx("/local_plan"))] == ["/tb3/local_plan"]
-    entries = PATH.convert(msg, _ctx("/local_plan", {"arrows": True, "arrow_length": 0.5}))
+    assert [e.path for e in PATH.convert(msg, make_ctx("/local_plan", robot="tb3"))] == ["/tb3/local_plan"]
+    entries = PATH.convert(msg, make_ctx("/local_plan", {"arrows": True, "arrow_length": 0.5}, robot="tb3"))
     assert [e.path for e in entries] == ["/tb3/local_plan", "/tb3/local_plan/poses"]
     line, arrows = log_item(entries, "/tb3/local_plan"), log_item(entries, "/tb3/local_plan/poses")
     drawn = archetype(arrows, rr.Arrows3D)
@@ -84,7 +83,7 @@ def test_grid_cells_are_thin_boxes_of_the_cell_size() -> None:
         header=header("map"), cell_width=0.05, cell_height=0.1,
         cells=[_point(1.0, 2.0), _point(1.05, 2.0), _point(-3.0, 0.5, 0.2)],
     )
-    item = log_item(GRID_CELLS.convert(msg, _ctx("/obstacles")), "/tb3/obstacles")
+    item = log_item(GRID_CELLS.convert(msg, make_ctx("/obstacles", robot="tb3")), "/tb3/obstacles")
     boxes = archetype(item, rr.Boxes3D)
     np.testing.assert_allclose(
         _pylist(boxes.centers), [[1.0, 2.0, 0.0], [1.05, 2.0, 0.0], [-3.0, 0.5, 0.2]], rtol=1e-6,
@@ -93,6 +92,6 @@ def test_grid_cells_are_thin_boxes_of_the_cell_size() -> None:
     np.testing.assert_allclose(half_size, [0.025, 0.05, 0.005], rtol=1e-6)
     assert _pylist(archetype(item, rr.CoordinateFrame).frame) == ["tb3/map"]
     empty = TYPES["nav_msgs/msg/GridCells"](header=header(""), cell_width=1, cell_height=1, cells=[])
-    item = log_item(GRID_CELLS.convert(empty, _ctx("/obstacles")), "/tb3/obstacles")
+    item = log_item(GRID_CELLS.convert(empty, make_ctx("/obstacles", robot="tb3")), "/tb3/obstacles")
     assert _pylist(archetype(item, rr.Boxes3D).centers) == []
     assert len(item.archetypes) == 1  # empty frame_id: no CoordinateFrame

@@ -113,7 +113,7 @@ def test_grid_map_sits_at_the_origin_pose_with_the_cell_size() -> None:
     np.testing.assert_allclose(flat(grid_map.cell_size), [0.05], rtol=1e-6)
     fmt = image_format(grid_map)
     assert (fmt["width"], fmt["height"]) == (6, 4)
-    stored = ctx.robot_state[occupancy.GRIDS_KEY]["/map"]
+    stored = ctx.robot_state.grids["/map"]
     assert stored.cells.shape == (4, 6)
     assert not stored.cells.flags.writeable
 
@@ -214,22 +214,14 @@ def shared_contexts(
 ) -> tuple[ConvertContext, ConvertContext]:
     """Contexts of a grid topic and its update topic on one robot (shared robot_state)."""
     grid_ctx = make_ctx(grid_topic, {"color_scheme": "costmap", "opacity": 0.5})
-    update_ctx = make_ctx(update_topic, update_options)
-    return grid_ctx, ConvertContext(
-        robot=update_ctx.robot,
-        topic=update_ctx.topic,
-        entity_path=update_ctx.entity_path,
-        times=update_ctx.times,
-        options=update_ctx.options,
-        robot_state=grid_ctx.robot_state,
-    )
+    return grid_ctx, make_ctx(update_topic, update_options, robot_state=grid_ctx.robot_state)
 
 
 def test_update_patches_the_cells_of_the_grid_topic() -> None:
     grid_ctx, update_ctx = shared_contexts("/costmap", "/costmap_updates")
     cells = np.zeros((4, 5), dtype=np.int8)
     occupancy.convert_grid(grid_msg(cells, origin=(1.0, 2.0, 0.0)), grid_ctx)
-    before = update_ctx.robot_state[occupancy.GRIDS_KEY]["/costmap"].cells
+    before = update_ctx.robot_state.grids["/costmap"].cells
 
     patch = np.array([[100, 50, -1]], dtype=np.int8)
     entries = occupancy.convert_update(update_msg(1, 2, patch), update_ctx)
@@ -243,7 +235,7 @@ def test_update_patches_the_cells_of_the_grid_topic() -> None:
     np.testing.assert_allclose(flat(grid_map.opacity), [0.5])
     np.testing.assert_allclose(flat(grid_map.translation, 3), [[1.0, 2.0, 0.0]])
     np.testing.assert_array_equal(
-        update_ctx.robot_state[occupancy.GRIDS_KEY]["/costmap"].cells, expected
+        update_ctx.robot_state.grids["/costmap"].cells, expected
     )
     # Copy on write: the grid a wall worker may still hold is untouched.
     np.testing.assert_array_equal(before, np.zeros((4, 5), dtype=np.int8))

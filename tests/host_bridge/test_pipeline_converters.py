@@ -15,15 +15,13 @@ from host_bridge.converters.laser import convert_scan
 from host_bridge.converters.odometry import convert_odometry_run
 from host_bridge.converters.tf import convert_tf, convert_tf_run
 from host_bridge.registry import Row, default_registry
+from tests.host_bridge.sensor_test_support import make_ctx
 
 T = get_typestore(Stores.ROS2_HUMBLE).types
 
 
 def ctx(topic: str, robot: str = "tb3", **options: Any) -> ConvertContext:
-    return ConvertContext(
-        robot=robot, topic=topic, entity_path=f"/{robot}{topic}",
-        times={"ros_time": 5, "log_time": 6}, options=options,
-    )
+    return make_ctx(topic, options, robot=robot, times={"ros_time": 5, "log_time": 6})
 
 
 def header(frame: str, ns: int = 0) -> Any:
@@ -97,7 +95,7 @@ def test_static_tf_is_static_one_entity_per_child_frame() -> None:
     items = convert_tf(msg, state)
     assert [i.path for i in items] == ["/tb3/tf_static/laser", "/tb3/tf_static/imu"]
     assert all(isinstance(i, LogItem) and i.static for i in items)
-    assert state.robot_state["tf_children"] == {"laser", "imu"}
+    assert state.robot_state.tf_children == {"laser", "imu"}
 
 
 def test_laser_points_drop_invalid_returns_and_sit_in_the_scan_frame() -> None:

@@ -16,7 +16,7 @@ from host_bridge.errors import ConvertError, PartialConvertError
 from host_bridge.resources import ResourceResolver
 from host_bridge.robot_files import RobotFiles
 from robot_relay.files import serve_files
-from tests.host_bridge.test_urdf import archetype, by_path, convert, make_ctx, mesh_urdf, values
+from tests.host_bridge.test_urdf import archetype, by_path, convert, description_ctx, mesh_urdf, values
 
 BOX = trimesh.creation.box(extents=[1.0, 2.0, 4.0]).export(file_type="stl")
 
@@ -71,7 +71,7 @@ def test_the_model_gets_each_robots_meshes_and_names_refusals(session: zenoh.Ses
     xml = mesh_urdf(("package://pkg/meshes/box.stl", "1 1 1"), ("package://pkg/meshes/gone.stl", "1 1 1"))
     try:
         with pytest.raises(PartialConvertError) as caught:
-            convert(xml, make_ctx("tb1", resolver))
+            convert(xml, description_ctx("tb1", resolver))
     finally:
         service.close()
     message = str(caught.value)

@@ -19,6 +19,8 @@ from host_bridge.converters import urdf
 from host_bridge.converters.joints import RobotModel
 from host_bridge.errors import ConfigError, ConvertError, PartialConvertError
 from host_bridge.resources import ResourceResolver, parse_package_path
+from host_bridge.state import RobotState
+from tests.host_bridge.sensor_test_support import make_ctx
 from tests.host_bridge.user_robot import (
     ARM_DARK,
     ARM_RED,
@@ -63,16 +65,11 @@ def urdf_text(tb3: Path, model: str) -> str:
     return (tb3 / PACKAGE / "urdf" / f"turtlebot3_{model}.urdf").read_text()
 
 
-def make_ctx(robot: str, resolver: ResourceResolver | None = None) -> ConvertContext:
-    ctx = ConvertContext(
-        robot=robot,
-        topic="/robot_description",
-        entity_path=f"/{robot}/robot_description",
-        times={"ros_time": 0},
-    )
-    if resolver is not None:
-        ctx.robot_state["resolver"] = resolver
-    return ctx
+def description_ctx(robot: str, resolver: ResourceResolver | None = None) -> ConvertContext:
+    """/robot_description of ``robot``, its meshes found by ``resolver`` (else ROS's paths)
+    bound to the robot, as the dispatcher binds it."""
+    state = RobotState() if resolver is None else RobotState(resolver.for_robot(robot))
+    return make_ctx("/robot_description", stamp_ns=0, robot=robot, robot_state=state)
 
 
 def convert(xml: str, ctx: ConvertContext) -> list[LogEntry]:
@@ -111,7 +108,8 @@ def load_mesh(path: Path) -> trimesh.Trimesh:
 
 @pytest.mark.parametrize("model", ["burger", "waffle_pi"])
 def test_turtlebot_meshes_match_trimesh_in_metres(tb3: Path, model: str) -> None:
-    items = by_path(convert(urdf_text(tb3, model), make_ctx("tb1", ResourceResolver(search_paths=[tb3]))))
+    ctx = description_ctx("tb1", ResourceResolver(search_paths=[tb3]))
+    items = by_path(convert(urdf_text(tb3, model), ctx))
     meshes = {path: item for path, item in items.items() if "/tf_static/" not in path}
     assert sorted(meshes) == sorted(f"/tb1/robot_model/{link}/visual_0" for link in MESHES[model])
     for link, relpath in MESHES[model].items():
@@ -135,7 +133,8 @@ def test_turtlebot_meshes_match_trimesh_in_metres(tb3: Path, model: str) -> None
 
 
 def test_visual_origin_and_material_colour(tb3: Path) -> None:
-    items = by_path(convert(urdf_text(tb3, "burger"), make_ctx("tb1", ResourceResolver(search_paths=[tb3]))))
+    ctx = description_ctx("tb1", ResourceResolver(search_paths=[tb3]))
+    items = by_path(convert(urdf_text(tb3, "burger"), ctx))
     base = items["/tb1/robot_model/base_link/visual_0"]
     pose = archetype(base, rr.InstancePoses3D)
     np.testing.assert_allclose(values(pose.translations), [[-0.032, 0.0, 0.0]], atol=1e-7)
@@ -149,7 +148,7 @@ def test_visual_origin_and_material_colour(tb3: Path) -> None:
 
 
 def test_every_joint_is_static_with_the_wheels_at_zero(tb3: Path) -> None:
-    ctx = make_ctx("tb1", ResourceResolver(search_paths=[tb3]))
+    ctx = description_ctx("tb1", ResourceResolver(search_paths=[tb3]))
     items = by_path(convert(urdf_text(tb3, "burger"), ctx))
     # On the entity /tf_static uses for the child frame: one entity per relation (see tf.py).
     joints = sorted(path for path in items if "/tf_static/" in path)
@@ -172,14 +171,14 @@ def test_every_joint_is_static_with_the_wheels_at_zero(tb3: Path) -> None:
     assert values(transform.parent_frame).tolist() == ["tb1/base_link"]
     assert values(transform.child_frame).tolist() == ["tb1/base_scan"]
     np.testing.assert_allclose(values(transform.translation), [[-0.032, 0.0, 0.172]], atol=1e-7)
-    model = ctx.robot_state["urdf"]
+    model = ctx.robot_state.model
     assert isinstance(model, RobotModel)
     assert model.joints["wheel_left_joint"].type == "continuous"
 
 
 def test_fixed_joint_already_on_tf_is_left_to_tf(tb3: Path) -> None:
-    ctx = make_ctx("tb1", ResourceResolver(search_paths=[tb3]))
-    ctx.robot_state["tf_children"] = {"base_scan", "tb1/imu_link"}
+    ctx = description_ctx("tb1", ResourceResolver(search_paths=[tb3]))
+    ctx.robot_state.tf_children.update({"base_scan", "tb1/imu_link"})
     joints = sorted(path for path in by_path(convert(urdf_text(tb3, "burger"), ctx)) if "/tf_static/" in path)
     assert joints == [
         "/tb1/tf_static/base_link", "/tb1/tf_static/caster_back_link",
@@ -191,7 +190,7 @@ def test_missing_mesh_one_error_rest_logged(tb3: Path) -> None:
     missing = f"package://{PACKAGE}/meshes/sensors/no_such_lidar.stl"
     xml = urdf_text(tb3, "burger").replace(f"package://{PACKAGE}/meshes/sensors/lds.stl", missing)
     with pytest.raises(PartialConvertError) as caught:
-        convert(xml, make_ctx("tb1", ResourceResolver(search_paths=[tb3])))
+        convert(xml, description_ctx("tb1", ResourceResolver(search_paths=[tb3])))
     message = str(caught.value)
     assert missing in message
     assert "'base_scan'" in message
@@ -208,7 +207,7 @@ def test_missing_mesh_one_error_rest_logged(tb3: Path) -> None:
 def test_two_robots_never_share_paths_or_frames(tb3: Path) -> None:
     resolver = ResourceResolver(search_paths=[tb3])
     xml = urdf_text(tb3, "burger")
-    tb1, tb2 = make_ctx("tb1", resolver), make_ctx("tb2", resolver)
+    tb1, tb2 = description_ctx("tb1", resolver), description_ctx("tb2", resolver)
     first, second = by_path(convert(xml, tb1)), by_path(convert(xml, tb2))
     assert all(path.startswith(("/tb1/robot_model/", "/tb1/tf_static/")) for path in first)
     assert all(path.startswith(("/tb2/robot_model/", "/tb2/tf_static/")) for path in second)
@@ -217,7 +216,7 @@ def test_two_robots_never_share_paths_or_frames(tb3: Path) -> None:
     assert values(frame.frame).tolist() == ["tb2/base_scan"]
     scan = archetype(second["/tb2/tf_static/base_scan"], rr.Transform3D)
     assert values(scan.parent_frame).tolist() == ["tb2/base_link"]
-    assert tb1.robot_state["urdf"] is not tb2.robot_state["urdf"]
+    assert tb1.robot_state.model is not tb2.robot_state.model
 
 
 PRIMITIVES = """<?xml version="1.0" encoding="utf-8"?>
@@ -245,7 +244,7 @@ PRIMITIVES = """<?xml version="1.0" encoding="utf-8"?>
 
 
 def test_primitives_colours_and_origins() -> None:
-    items = by_path(convert(PRIMITIVES, make_ctx("bot", ResourceResolver())))
+    items = by_path(convert(PRIMITIVES, description_ctx("bot", ResourceResolver())))
     box_item = items["/bot/robot_model/base/visual_0"]
     box = archetype(box_item, rr.Boxes3D)
     np.testing.assert_allclose(values(box.half_sizes), [[0.1, 0.2, 0.3]], atol=1e-7)
@@ -297,7 +296,7 @@ def test_file_form_relative_file_uri_and_formats(tmp_path: Path) -> None:
             (f"file://{tmp_path}/elsewhere/box.dae", "-1 1 1"),
         )
     )
-    items = by_path(urdf.model_items_from_file(description, make_ctx("r", ResourceResolver())))
+    items = by_path(urdf.model_items_from_file(description, description_ctx("r", ResourceResolver())))
     stl = mesh_of(items, "l0")
     assert np.ptp(values(stl.vertex_positions), axis=0) == pytest.approx([0.5, 1.0, 2.0])
     for link, name in (("l1", "meshes/box.obj"), ("l2", "elsewhere/box.dae")):
@@ -312,7 +311,7 @@ def test_file_form_relative_file_uri_and_formats(tmp_path: Path) -> None:
 
 def test_unreadable_urdf_file_is_a_convert_error(tmp_path: Path) -> None:
     with pytest.raises(ConvertError, match="--urdf"):
-        urdf.model_items_from_file(tmp_path / "absent.urdf", make_ctx("r"))
+        urdf.model_items_from_file(tmp_path / "absent.urdf", description_ctx("r"))
 
 
 @pytest.mark.parametrize(
@@ -329,7 +328,7 @@ def test_unreadable_urdf_file_is_a_convert_error(tmp_path: Path) -> None:
 )
 def test_bad_descriptions_are_convert_errors(xml: str, match: str) -> None:
     with pytest.raises(ConvertError, match=match):
-        convert(xml, make_ctx("r", ResourceResolver()))
+        convert(xml, description_ctx("r", ResourceResolver()))
 
 
 def test_package_path_beats_search_paths_and_fetch_is_the_fallback(tmp_path: Path) -> None:
@@ -349,7 +348,7 @@ def test_package_path_beats_search_paths_and_fetch_is_the_fallback(tmp_path: Pat
     )
     assert resolver.locate("package://pkg/meshes/a.stl") == tmp_path / "explicit" / "meshes" / "a.stl"
     xml = mesh_urdf(("package://pkg/meshes/a.stl", "1 1 1"), ("package://remote_pkg/meshes/b.stl", "1 1 1"))
-    items = by_path(convert(xml, make_ctx("r", resolver)))
+    items = by_path(convert(xml, description_ctx("r", resolver)))
     assert np.ptp(values(mesh_of(items, "l0").vertex_positions), axis=0) == pytest.approx([1, 2, 4])
     assert np.ptp(values(mesh_of(items, "l1").vertex_positions), axis=0) == pytest.approx([1, 1, 1])
     assert asked == ["package://remote_pkg/meshes/b.stl"]
@@ -359,14 +358,14 @@ def test_robot_share_paths_resolve_as_packages(tb3: Path) -> None:
     xml = urdf_text(tb3, "burger").replace(
         f"package://{PACKAGE}/", f"file:///opt/ros/humble/share/{PACKAGE}/"
     )
-    items = by_path(convert(xml, make_ctx("tb1", ResourceResolver(search_paths=[tb3]))))
+    items = by_path(convert(xml, description_ctx("tb1", ResourceResolver(search_paths=[tb3]))))
     assert len([path for path in items if "/visual_" in path]) == 4
 
 
 def test_environment_is_the_default_resolver(tb3: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("ROS_PACKAGE_PATH", str(tb3))
     monkeypatch.delenv("AMENT_PREFIX_PATH", raising=False)
-    items = by_path(convert(urdf_text(tb3, "burger"), make_ctx("tb1")))
+    items = by_path(convert(urdf_text(tb3, "burger"), description_ctx("tb1")))
     assert len([path for path in items if "/visual_" in path]) == 4
 
 
@@ -417,7 +416,7 @@ def test_obj_materials_and_textures_come_through_the_resolver(tmp_path: Path) ->
     }
     resolver = ResourceResolver(fetch=served.get)
     xml = mesh_urdf(("package://remote/m/red.obj", "1 1 1"), ("package://remote/m/tex.obj", "1 1 1"))
-    items = by_path(convert(xml, make_ctx("r", resolver)))
+    items = by_path(convert(xml, description_ctx("r", resolver)))
     red = mesh_of(items, "l0")
     assert values(red.albedo_factor).tolist() == [packed([255, 0, 0, 255])]
     assert red.albedo_texture_buffer is None
@@ -432,7 +431,7 @@ def test_obj_materials_and_textures_come_through_the_resolver(tmp_path: Path) ->
 
 
 def user_model(tmp_path: Path) -> tuple[dict[str, LogItem], ConvertContext]:
-    ctx = make_ctx("r", ResourceResolver())
+    ctx = description_ctx("r", ResourceResolver())
     return by_path(urdf.model_items_from_file(write_user_robot(tmp_path), ctx)), ctx
 
 
@@ -447,7 +446,8 @@ def test_user_model_stands_at_zero_with_the_mimic_finger_at_its_offset(tmp_path:
     assert sorted(joints) == ["base_link", "finger_left", "finger_right", "upper_arm", "wheel"]
     assert {values(t.parent_frame)[0] for t in joints.values()} == {
         "r/base_footprint", "r/base_link", "r/upper_arm"}
-    assert ctx.robot_state["urdf"].root == "base_footprint"
+    assert ctx.robot_state.model is not None
+    assert ctx.robot_state.model.root == "base_footprint"
     np.testing.assert_allclose(values(joints["finger_left"].translation), [FINGER_LEFT_XYZ], atol=1e-7)
     # finger_right mimics finger_left at 0: -1 * 0 + 0.01 along its y axis.
     right = np.add(FINGER_RIGHT_XYZ, [0.0, MIMIC_OFFSET, 0.0])
@@ -478,7 +478,7 @@ def colours_by_triangle(mesh: Any) -> list[list[int]]:
 def dae_mesh(tmp_path: Path, materials: list[Flat | Textured]) -> Any:
     (tmp_path / "part.dae").write_text(collada(materials))
     xml = mesh_urdf((f"file://{tmp_path}/part.dae", "1 1 1"))
-    return mesh_of(by_path(convert(xml, make_ctx("r", ResourceResolver()))), "l0")
+    return mesh_of(by_path(convert(xml, description_ctx("r", ResourceResolver()))), "l0")
 
 
 def test_multi_material_collada_keeps_each_diffuse_colour(tmp_path: Path) -> None:
@@ -512,7 +512,7 @@ def test_gltf_base_colour_is_linear_and_made_srgb(tmp_path: Path) -> None:
     trimesh.Scene(parts).export(tmp_path / "two.glb")  # type: ignore[no-untyped-call]
     parts[0].export(tmp_path / "one.glb")
     xml = mesh_urdf((f"file://{tmp_path}/one.glb", "1 1 1"), (f"file://{tmp_path}/two.glb", "1 1 1"))
-    items = by_path(convert(xml, make_ctx("r", ResourceResolver())))
+    items = by_path(convert(xml, description_ctx("r", ResourceResolver())))
     assert values(mesh_of(items, "l0").albedo_factor).tolist() == [packed([128, 128, 128, 255])]
     two = colours_by_triangle(mesh_of(items, "l1"))
     assert sorted({tuple(c) for c in two}) == [(128, 128, 128, 255), (255, 0, 0, 255)]
@@ -531,7 +531,7 @@ def test_missing_meshes_name_each_file_where_and_what_to_pass_once(tmp_path: Pat
     )
     search = [tmp_path / "ws_a", tmp_path / "ws_b"]
     with pytest.raises(PartialConvertError) as caught:
-        convert(xml, make_ctx("r", ResourceResolver(search_paths=search)))
+        convert(xml, description_ctx("r", ResourceResolver(search_paths=search)))
     message = str(caught.value)
     assert message == (
         "/robot_description: robot model 'meshes': 4 of 5 visuals not drawn: mesh files not "
@@ -549,14 +549,14 @@ def test_urdf_file_replaces_the_robot_description(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     path = write_user_robot(tmp_path)
-    ctx = make_ctx("r", ResourceResolver())
+    ctx = description_ctx("r", ResourceResolver())
     from_file = urdf.model_items_from_file(path, ctx)
-    model = ctx.robot_state["urdf"]
+    model = ctx.robot_state.model
     caplog.set_level("INFO", logger="swanky.host")
     other = user_urdf(tmp_path / "meshes", name="bag_bot", prefix="bag_")
     assert convert(other, ctx) == []
     assert convert(other, ctx) == []
-    assert ctx.robot_state["urdf"] is model  # /joint_states keeps moving the file's model
+    assert ctx.robot_state.model is model  # /joint_states keeps moving the file's model
     assert [r.getMessage() for r in caplog.records] == [
         f"[r] /robot_description: not drawn, the robot model is --urdf {path}"]
     assert len(from_file) == 10

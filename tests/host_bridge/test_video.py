@@ -32,6 +32,7 @@ from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
 from host_bridge.converters.images import convert_compressed_image, convert_compressed_image_run
 from host_bridge.converters.video import (
     COMPRESSED_VIDEO,
+    VideoTopic,
     VideoTopicState,
     convert_compressed_video,
     convert_compressed_video_run,
@@ -42,8 +43,9 @@ from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import ConvertError
 from host_bridge.registry import default_registry
 from host_bridge.sink import RerunSink, SinkOptions
+from host_bridge.state import TopicState
 from robot_relay.wire import RawMessage
-from tests.host_bridge.sensor_test_support import flat
+from tests.host_bridge.sensor_test_support import flat, make_ctx
 from tests.rrd import entity_rows
 
 STORE = base_typestore()  # ROS 2 Humble plus the bundled foxglove_msgs definition
@@ -135,12 +137,11 @@ def compressed_video(fmt: str, data: bytes, ns: int) -> Any:
 def contexts(topic: str, stamps: Sequence[int], *, header: bool = True) -> list[ConvertContext]:
     """One context per message of one topic, sharing the topic's state as the dispatcher does;
     ros_time comes from the header (a CompressedVideo has none: the converter supplies it)."""
-    state: dict[str, Any] = {}
+    state = TopicState()
     return [
-        ConvertContext(
-            robot=ROBOT, topic=topic, entity_path=f"/{ROBOT}{topic}",
+        make_ctx(
+            topic, robot=ROBOT, topic_state=state,
             times={"ros_time": ns, "log_time": ns + 5} if header else {"log_time": ns + 5},
-            state=state,
         )
         for ns in stamps
     ]
@@ -232,7 +233,7 @@ def test_restamped_video_keeps_the_receive_based_ros_time() -> None:
     """``restamp: true`` puts ros_time into the context; it wins over the message's timestamp."""
     stream = encode(H264)
     ctx = contexts("/camera/video", [1], header=False)[0]
-    restamped = ConvertContext(ROBOT, ctx.topic, ctx.entity_path, {"ros_time": 42}, state={})
+    restamped = make_ctx(ctx.topic, stamp_ns=42, robot=ROBOT)
     entries = convert_compressed_video(compressed_video("h264", stream.packets[0], T0_NS), restamped)
     assert logged(entries, ctx.entity_path).times == {"ros_time": [42]}
 
@@ -312,7 +313,7 @@ def test_length_prefixed_avcc_samples_are_refused_naming_the_topic() -> None:
         "code (00 00 01); Rerun needs Annex B, not the length-prefixed AVCC/HVCC form of MP4 "
         "files: configure the encoder or transport for Annex B"
     )
-    assert "video" not in ctx.state
+    assert ctx.state(VideoTopic).committed == VideoTopicState()  # as the topic started
 
 
 def test_a_codec_change_is_refused_and_a_failed_run_leaves_the_topic_state_as_it_was() -> None:
@@ -321,7 +322,8 @@ def test_a_codec_change_is_refused_and_a_failed_run_leaves_the_topic_state_as_it
     ctxs = contexts("/camera/video", STAMPS[:2], header=False)
     with pytest.raises(ConvertError):
         convert_compressed_video_run(messages, ctxs)
-    assert "video" not in ctxs[0].state  # the dispatcher retries message by message from here
+    # The dispatcher retries message by message from here: the state is as the topic started.
+    assert ctxs[0].state(VideoTopic).committed == VideoTopicState()
     first = logged(convert_compressed_video(messages[0], ctxs[0]), "/bot/camera/video")
     assert (first.codecs, first.samples) == ([H264.value], [h264])
     with pytest.raises(ConvertError) as caught:
@@ -330,9 +332,7 @@ def test_a_codec_change_is_refused_and_a_failed_run_leaves_the_topic_state_as_it
         "/camera/video: video codec changed from H264 to H265; Rerun decodes one codec per "
         "entity, so the H265 samples are dropped (publish the new stream on its own topic)"
     )
-    state = ctxs[1].state["video"]
-    assert isinstance(state, VideoTopicState)
-    assert state.codec == H264
+    assert ctxs[1].state(VideoTopic).committed.codec == H264
 
 
 @pytest.mark.parametrize("codec", [H264, rr.VideoCodec.VP9], ids=lambda c: c.name)

@@ -25,6 +25,7 @@ from host_bridge.cli import main as host_main
 from host_bridge.contract import LogItem
 from host_bridge.converters.joints import robot_model
 from host_bridge.frames import RobotFrames
+from host_bridge.state import RobotState
 from tests.host_bridge.user_robot import (
     FINGER_RIGHT_XYZ,
     MIMIC_MULTIPLIER,
@@ -289,7 +290,7 @@ def logged(items: list[LogItem]) -> list[tuple[str, str, str]]:
 
 def test_unplaced_frames_go_to_the_robot_root_and_the_target_prefers_map() -> None:
     frames = RobotFrames("r")
-    state: dict[str, Any] = {}
+    state = RobotState()
     assert logged(frames.observe([drawn_in("/r/scan", "r/laser")], state)) == [
         ("/r/tf_static/laser", "tf#/r", "r/laser")]
     assert frames.observe([drawn_in("/r/scan", "r/laser")], state) == []  # nothing new
@@ -308,9 +309,10 @@ def test_an_entity_hung_from_a_frame_places_that_frame_and_the_model_root_is_a_t
     frames = RobotFrames("r")
     # The IMU's orientation: a transform with a parent frame and the entity's own as child.
     orientation = LogItem("/r/imu/orientation", (rr.Transform3D(parent_frame="r/imu_link"),))
-    assert logged(frames.observe([orientation], {})) == [
+    state = RobotState()
+    assert logged(frames.observe([orientation], state)) == [
         ("/r/tf_static/imu_link", "tf#/r", "r/imu_link")]
-    model = robot_model("m", [], root="base_footprint")
-    assert logged(frames.observe([], {"urdf": model})) == [("/r", "frame", "r/base_footprint")]
+    state.model = robot_model("m", [], root="base_footprint")
+    assert logged(frames.observe([], state)) == [("/r", "frame", "r/base_footprint")]
     # Another robot's frames are its own business.
-    assert frames.observe([drawn_in("/r/x", "r2/laser"), drawn_in("/r/y", "tf#/r/y")], {}) == []
+    assert frames.observe([drawn_in("/r/x", "r2/laser"), drawn_in("/r/y", "tf#/r/y")], state) == []

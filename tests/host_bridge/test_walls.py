@@ -14,6 +14,7 @@ import rerun as rr
 
 from host_bridge.contract import LogItem
 from host_bridge.converters import occupancy, walls
+from host_bridge.options import GridOptions
 from tests.host_bridge.sensor_test_support import archetype, flat, log_item, make_ctx
 from tests.host_bridge.test_occupancy import grid_msg, shared_contexts, update_msg
 
@@ -48,7 +49,7 @@ def floor_plan(names: tuple[str, ...] = tuple(TRUTH_CELLS)) -> npt.NDArray[np.in
 
 
 def default_options() -> walls.WallOptions:
-    return walls.WallOptions.from_options({}, RES, "/map")
+    return walls.WallOptions.from_options(GridOptions(), RES, "/map")
 
 
 def as_grid(cells: npt.NDArray[np.int8]) -> occupancy.Grid:

@@ -1,0 +1,81 @@
+"""What converters keep between messages: per robot, named fields all its topics share; per
+topic, the topic's options and one record per converter that keeps something, found by class.
+
+Named fields and classes rather than string-keyed dicts: a misspelt key was a bug mypy could not
+see (markers read ``"resolve_uri"`` while the host set ``"resolver"``, so no ``package://``
+marker mesh ever loaded on a real host).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeVar, cast
+
+from host_bridge.errors import ConvertError
+from host_bridge.options import Options, options_from
+from host_bridge.resources import ResourceResolver
+
+if TYPE_CHECKING:
+    from host_bridge.converters.joints import RobotModel
+    from host_bridge.converters.occupancy import Grid
+
+State = TypeVar("State")
+
+
+@dataclass(slots=True)
+class RobotState:
+    """Shared by every topic of one robot; the dispatcher makes one per robot.
+
+    Converters of one robot run on its thread, the wall worker on another: a field is replaced
+    by a new value, never mutated in place, where that worker reads it (``grids``' Grid values).
+    """
+
+    # Finds the files a model or marker names: --package-path, ROS paths, this robot's relay.
+    resolver: ResourceResolver = field(default_factory=ResourceResolver.from_env)
+    # The kinematics of the robot's model (/robot_description or --urdf); joint states move it.
+    model: RobotModel | None = None
+    # The --urdf file drawn for the robot: its /robot_description is then not drawn.
+    model_file: Path | None = None
+    # Frames /tf or /tf_static drive (ROS ids): joint states leave them to TF.
+    tf_children: set[str] = field(default_factory=set)
+    # The robot's /tf_static entity once a /tf_static message showed it.
+    static_tf_root: str | None = None
+    # The last grid of each grid topic, which its update topic patches.
+    grids: dict[str, Grid] = field(default_factory=dict)
+    # Hash of what each wall entity shows, so an unchanged map is not meshed again.
+    wall_digests: dict[str, bytes] = field(default_factory=dict)
+
+
+class TopicState:
+    """One topic of one robot: its option values (from the host configuration, made a typed
+    record on first use) and the state records of its converters, one per class, made on first
+    use. Two converters of one topic (JointState: kinematics and plots) keep separate records."""
+
+    __slots__ = ("_options", "_records", "_values")
+
+    def __init__(self, options: Mapping[str, Any] | None = None) -> None:
+        self._values: Mapping[str, Any] = dict(options or {})
+        self._options: dict[type[Any], Any] = {}
+        self._records: dict[type[Any], Any] = {}
+
+    @property
+    def values(self) -> Mapping[str, Any]:
+        """The option values as configured, before they are typed."""
+        return self._values
+
+    def options(self, kind: type[Options], topic: str) -> Options:
+        found = self._options.get(kind)
+        if found is None:
+            try:
+                found = self._options[kind] = options_from(kind, self._values)
+            except ValueError as err:
+                raise ConvertError(f"{topic}: {err}") from None
+        return cast(Options, found)
+
+    def state(self, kind: type[State]) -> State:
+        found = self._records.get(kind)
+        if found is None:
+            found = self._records[kind] = kind()
+        return cast(State, found)
