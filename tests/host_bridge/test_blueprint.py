@@ -16,12 +16,12 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from host_bridge.blueprint import BlueprintFollower, TopicEntry, build_blueprint
 from host_bridge.cli import main as host_main
-from host_bridge.contract import ConvertContext
 from host_bridge.demo.bag import write_demo_bag
 from host_bridge.dispatch import Dispatcher
 from host_bridge.registry import default_registry
 from host_bridge.sink import APPLICATION_ID, RerunSink, SinkOptions
 from robot_relay.wire import RawMessage
+from tests.host_bridge.sensor_test_support import make_ctx
 from tests.host_bridge.test_dispatch import float_cdr, string_cdr
 
 ROBOT_TOPICS = {
@@ -138,7 +138,7 @@ def test_custom_types_long_arrays_land_in_the_bar_chart_view() -> None:
         speed=1.5, histogram=np.arange(100, dtype=np.float32)
     )
     table = default_registry()
-    context = ConvertContext(robot="tb3", topic="/hist", entity_path="/tb3/hist", times={})
+    context = make_ctx("/hist", robot="tb3", times={})
     logged = {
         entry.path: entry for entry in table.get("acme_msgs/msg/Histogram").convert(message, context)
     }
