@@ -19,14 +19,10 @@ import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, TypeVar
 
-if TYPE_CHECKING:
-    from _typeshed import DataclassInstance
-
-    Options = TypeVar("Options", bound=DataclassInstance)
-else:
-    Options = TypeVar("Options")
+Options = TypeVar("Options")
+"""A converter family's options record (one of the dataclasses below)."""
 
 CONVERTER_OPTION = "mode"
 """The field holding the ``converter`` choice (points/rays/both, auto/depth/color)."""

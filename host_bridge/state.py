@@ -28,8 +28,8 @@ State = TypeVar("State")
 class RobotState:
     """Shared by every topic of one robot; the dispatcher makes one per robot.
 
-    Converters of one robot run on its thread, the wall worker on another: a field is replaced
-    by a new value, never mutated in place, where that worker reads it (``grids``' Grid values).
+    Converters of one robot run on its thread; the wall worker reads ``grids`` and writes
+    ``wall_digests`` on its own, so a Grid is replaced by a new one, never changed in place.
     """
 
     # Finds the files a model or marker names: --package-path, ROS paths, this robot's relay.
@@ -59,11 +59,6 @@ class TopicState:
         self._values: Mapping[str, Any] = dict(options or {})
         self._options: dict[type[Any], Any] = {}
         self._records: dict[type[Any], Any] = {}
-
-    @property
-    def values(self) -> Mapping[str, Any]:
-        """The option values as configured, before they are typed."""
-        return self._values
 
     def options(self, kind: type[Options], topic: str) -> Options:
         found = self._options.get(kind)
