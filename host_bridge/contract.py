@@ -93,8 +93,34 @@ RunConverter = Callable[[Sequence[Any], Sequence[ConvertContext]], list[LogEntry
 
 @dataclass(frozen=True, slots=True)
 class ConverterSpec:
-    convert: Converter
-    convert_run: RunConverter | None = None
+    """A converter, batch-first: ``convert_run`` takes a run of one topic's messages (with one
+    context each) and returns log items or columns for ``rr.send_columns``; one message is the
+    special case (:meth:`convert`).
+
+    ``single`` is the converter's own one-message form where it has one (cheaper than a run of
+    one, or logging rows where the run logs columns). ``message_by_message`` marks a run that is
+    only a loop over ``single`` (:func:`per_message`): the dispatcher then converts message by
+    message, so a bad message costs only itself and no message's state is applied twice.
+    """
+
+    convert_run: RunConverter
+    single: Converter | None = None
+    message_by_message: bool = False
+
+    def convert(self, msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+        if self.single is not None:
+            return self.single(msg, ctx)
+        return self.convert_run((msg,), (ctx,))
+
+
+def per_message(convert: Converter) -> ConverterSpec:
+    """The spec of a converter written for one message at a time (maps, meshes, markers): its
+    run is a loop until a columnar form is worth writing."""
+
+    def convert_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
+        return [entry for msg, ctx in zip(msgs, ctxs, strict=True) for entry in convert(msg, ctx)]
+
+    return ConverterSpec(convert_run, single=convert, message_by_message=True)
 
 
 def combine(*specs: ConverterSpec) -> ConverterSpec:
@@ -120,11 +146,8 @@ def combine(*specs: ConverterSpec) -> ConverterSpec:
         return gather([lambda s=s: s.convert(msg, ctx) for s in specs])  # type: ignore[misc]
 
     def convert_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-        def run_of(spec: ConverterSpec) -> list[LogEntry]:
-            if spec.convert_run is not None:
-                return spec.convert_run(msgs, ctxs)
-            return [e for m, c in zip(msgs, ctxs, strict=True) for e in spec.convert(m, c)]
+        return gather([lambda s=s: s.convert_run(msgs, ctxs) for s in specs])  # type: ignore[misc]
 
-        return gather([lambda s=s: run_of(s) for s in specs])  # type: ignore[misc]
-
-    return ConverterSpec(convert, convert_run)
+    return ConverterSpec(
+        convert_run, single=convert, message_by_message=all(s.message_by_message for s in specs)
+    )

@@ -263,7 +263,7 @@ class Dispatcher:
         # The newest message its fast converter took; the slow converters (walls) get only that
         # one, so a message the fast path rejected is neither re-warned nor drawn as walls.
         accepted: tuple[Any, ConvertContext, RawMessage] | None = None
-        if spec.convert_run is not None and len(decoded) > 1:
+        if not spec.message_by_message and len(decoded) > 1:
             try:
                 entries = spec.convert_run([d[0] for d in decoded], [d[1] for d in decoded])
                 self.log(decoded[0][2].robot, entries, decoded[0][1].times)

@@ -34,7 +34,7 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components, header_frame
 from host_bridge.errors import ConvertError
 
@@ -84,4 +84,4 @@ def convert_camera_info(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return [LogItem(pinhole_path(ctx), (pinhole, *frame_components(frame)))]
 
 
-SPEC = ConverterSpec(convert=convert_camera_info)
+SPEC = per_message(convert_camera_info)

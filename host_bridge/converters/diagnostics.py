@@ -14,7 +14,7 @@ from typing import Any
 
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 
 _OK, _WARN, _ERROR = 0, 1, 2
 _LEVELS = {
@@ -53,4 +53,4 @@ def _diagnostic_array(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return entries
 
 
-SPEC = ConverterSpec(convert=_diagnostic_array)
+SPEC = per_message(_diagnostic_array)

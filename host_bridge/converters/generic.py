@@ -115,4 +115,4 @@ def convert_generic(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return convert_generic_run([msg], [ctx])
 
 
-SPEC = ConverterSpec(convert_generic, convert_generic_run)
+SPEC = ConverterSpec(convert_generic_run, single=convert_generic)

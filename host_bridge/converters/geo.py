@@ -56,4 +56,4 @@ def convert_navsatfix(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return convert_navsatfix_run([msg], [ctx])
 
 
-SPEC = ConverterSpec(convert=convert_navsatfix, convert_run=convert_navsatfix_run)
+SPEC = ConverterSpec(convert_navsatfix_run, single=convert_navsatfix)

@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components, time_columns
 from host_bridge.options import PoseArrayOptions, PoseCovarianceOptions, PoseOptions
 
@@ -318,7 +318,7 @@ def _vector_converter(spec: _VectorSet) -> ConverterSpec:
     def convert(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
         return convert_run([msg], [ctx])
 
-    return ConverterSpec(convert=convert, convert_run=convert_run)
+    return ConverterSpec(convert_run, single=convert)
 
 
 # --- points and polygons ------------------------------------------------------------------------
@@ -337,11 +337,11 @@ def _polygon_stamped(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return [LogItem(ctx.entity_path, (lines, *frame_components(ctx.frame(msg.header.frame_id))))]
 
 
-POSE_STAMPED = ConverterSpec(convert=_pose_stamped, convert_run=_pose_stamped_run)
-POSE_WITH_COVARIANCE = ConverterSpec(convert=_pose_with_covariance)
-POSE_ARRAY = ConverterSpec(convert=_pose_array)
+POSE_STAMPED = ConverterSpec(_pose_stamped_run, single=_pose_stamped)
+POSE_WITH_COVARIANCE = per_message(_pose_with_covariance)
+POSE_ARRAY = per_message(_pose_array)
 TWIST = _vector_converter(_TWIST)
 WRENCH = _vector_converter(_WRENCH)
 VECTOR3 = _vector_converter(_VECTOR3)
-POINT = ConverterSpec(convert=_point_stamped)
-POLYGON = ConverterSpec(convert=_polygon_stamped)
+POINT = per_message(_point_stamped)
+POLYGON = per_message(_polygon_stamped)

@@ -46,7 +46,7 @@ import numpy.typing as npt
 import pyarrow as pa
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem, per_message
 from host_bridge.converters.video import CODEC_SPELLINGS, VideoFrame, video_codec, video_entries
 from host_bridge.errors import ConvertError
 from host_bridge.options import ImageOptions
@@ -558,10 +558,8 @@ def convert_compressed_image(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return convert_compressed_image_run([msg], [ctx])
 
 
-IMAGE = ConverterSpec(convert=convert_image)
-COMPRESSED_IMAGE = ConverterSpec(
-    convert=convert_compressed_image, convert_run=convert_compressed_image_run
-)
+IMAGE = per_message(convert_image)
+COMPRESSED_IMAGE = ConverterSpec(convert_compressed_image_run, single=convert_compressed_image)
 
 __all__ = [
     "COMPRESSED_IMAGE",

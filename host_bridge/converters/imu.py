@@ -121,5 +121,5 @@ def _magnetic_field(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
     return {} if all(math.isnan(v) for v in field) else {(): field}
 
 
-IMU = ConverterSpec(convert=convert_imu, convert_run=convert_imu_run)
+IMU = ConverterSpec(convert_imu_run, single=convert_imu)
 MAGNETIC_FIELD = series_spec(_magnetic_field, {(): XYZ})

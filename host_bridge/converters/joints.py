@@ -36,7 +36,7 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem, per_message
 from host_bridge.errors import ConvertError, PartialConvertError
 
 MOVABLE_TYPES = frozenset({"revolute", "continuous", "prismatic"})
@@ -321,5 +321,5 @@ def convert_joint_trajectory(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
 
 
 # JointState's row combines this (the robot model moves) with scalars.JOINT_STATE (plots).
-JOINT_STATE = ConverterSpec(convert=convert_joint_state, convert_run=convert_joint_state_run)
-JOINT_TRAJECTORY = ConverterSpec(convert=convert_joint_trajectory)
+JOINT_STATE = ConverterSpec(convert_joint_state_run, single=convert_joint_state)
+JOINT_TRAJECTORY = per_message(convert_joint_trajectory)

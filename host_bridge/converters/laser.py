@@ -15,7 +15,7 @@ import numpy.typing as npt
 import rerun as rr
 
 from host_bridge.colormap import apply_colormap
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components, header_frame
 from host_bridge.errors import ConvertError
 from host_bridge.options import LaserScanOptions
@@ -71,4 +71,4 @@ def convert_scan(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return items
 
 
-SPEC = ConverterSpec(convert_scan)
+SPEC = per_message(convert_scan)

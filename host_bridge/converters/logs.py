@@ -63,7 +63,7 @@ def _text_spec(
     def convert(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
         return convert_run([msg], [ctx])
 
-    return ConverterSpec(convert=convert, convert_run=convert_run)
+    return ConverterSpec(convert_run, single=convert)
 
 
 def _log_text(msg: Any) -> str:

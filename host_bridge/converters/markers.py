@@ -38,7 +38,7 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import stamp_ns, xyz, xyzw
 from host_bridge.errors import ConvertError
 
@@ -330,5 +330,5 @@ def convert_marker_array(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return _convert_markers(msg.markers, ctx)
 
 
-MARKER = ConverterSpec(convert=convert_marker)
-MARKER_ARRAY = ConverterSpec(convert=convert_marker_array)
+MARKER = per_message(convert_marker)
+MARKER_ARRAY = per_message(convert_marker_array)

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components
 from host_bridge.converters.geometry import points_array, pose_arrays, pose_arrows
 from host_bridge.options import PathOptions
@@ -44,5 +44,5 @@ def _grid_cells(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return [LogItem(ctx.entity_path, (boxes, *frame_components(ctx.frame(msg.header.frame_id))))]
 
 
-PATH = ConverterSpec(convert=_path)
-GRID_CELLS = ConverterSpec(convert=_grid_cells)
+PATH = per_message(_path)
+GRID_CELLS = per_message(_grid_cells)

@@ -46,7 +46,7 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components, xyz, xyzw
 from host_bridge.errors import ConvertError
 from host_bridge.options import GridOptions, GridUpdateOptions
@@ -277,8 +277,8 @@ def convert_costmap_update(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return grid_items(grid)
 
 
-GRID = ConverterSpec(convert_grid)
-GRID_UPDATE = ConverterSpec(convert_update)
+GRID = per_message(convert_grid)
+GRID_UPDATE = per_message(convert_update)
 # Costmaps are drawn, not turned into walls (walls.GRID_WALLS and UPDATE_WALLS are for the maps).
-COSTMAP = ConverterSpec(convert_costmap)
-COSTMAP_UPDATE = ConverterSpec(convert_costmap_update)
+COSTMAP = per_message(convert_costmap)
+COSTMAP_UPDATE = per_message(convert_costmap_update)

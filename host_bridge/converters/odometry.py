@@ -38,4 +38,4 @@ def convert_odometry(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return convert_odometry_run([msg], [ctx])
 
 
-SPEC = ConverterSpec(convert_odometry, convert_odometry_run)
+SPEC = ConverterSpec(convert_odometry_run, single=convert_odometry)

@@ -15,7 +15,7 @@ import numpy.typing as npt
 import rerun as rr
 
 from host_bridge.colormap import apply_colormap
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components
 from host_bridge.errors import ConvertError
 from host_bridge.options import PointCloudOptions
@@ -168,4 +168,4 @@ def convert_pointcloud2(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return [LogItem(ctx.entity_path, (points, *frame))]
 
 
-SPEC = ConverterSpec(convert=convert_pointcloud2)
+SPEC = per_message(convert_pointcloud2)

@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components
 
 _RIM_SEGMENTS = 32
@@ -71,4 +71,4 @@ def convert_range(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     ]
 
 
-SPEC = ConverterSpec(convert=convert_range)
+SPEC = per_message(convert_range)

@@ -95,7 +95,7 @@ def series_spec(
             items.append(ColumnsItem(ctx0.child_path(*sub), _rows_column(parts), times))
         return items
 
-    return ConverterSpec(convert=convert, convert_run=convert_run)
+    return ConverterSpec(convert_run, single=convert)
 
 
 def _data(msg: Any, _topic: str) -> Mapping[SubPath, Values]:

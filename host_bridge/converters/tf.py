@@ -89,4 +89,4 @@ def convert_tf(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return convert_tf_run([msg], [ctx])
 
 
-SPEC = ConverterSpec(convert_tf, convert_tf_run)
+SPEC = ConverterSpec(convert_tf_run, single=convert_tf)

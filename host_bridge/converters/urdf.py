@@ -56,7 +56,7 @@ import rerun as rr
 import trimesh
 import yourdfpy
 
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters.joints import (
     JointModel,
     MimicModel,
@@ -461,4 +461,4 @@ def is_robot_description(topic: str) -> bool:
 
 # Routed by topic, not type: std_msgs/String carries plain text everywhere else, so the
 # registry's row picks this for topics where is_robot_description() holds.
-SPEC = ConverterSpec(convert=convert)
+SPEC = per_message(convert)

@@ -341,7 +341,7 @@ def convert_compressed_video(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return convert_compressed_video_run([msg], [ctx])
 
 
-SPEC = ConverterSpec(convert_compressed_video, convert_compressed_video_run)
+SPEC = ConverterSpec(convert_compressed_video_run, single=convert_compressed_video)
 
 __all__ = [
     "SPEC",

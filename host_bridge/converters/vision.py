@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components, xyz, xyzw
 
 _MAX_CLASS_ID = 0xFFFF  # Rerun class ids are u16
@@ -101,7 +101,7 @@ def convert_detection3d(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return _boxes3d([msg], msg.header.frame_id, ctx)
 
 
-DETECTION_2D_ARRAY = ConverterSpec(convert=convert_detection2d_array)
-DETECTION_2D = ConverterSpec(convert=convert_detection2d)
-DETECTION_3D_ARRAY = ConverterSpec(convert=convert_detection3d_array)
-DETECTION_3D = ConverterSpec(convert=convert_detection3d)
+DETECTION_2D_ARRAY = per_message(convert_detection2d_array)
+DETECTION_2D = per_message(convert_detection2d)
+DETECTION_3D_ARRAY = per_message(convert_detection3d_array)
+DETECTION_3D = per_message(convert_detection3d)

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components
 from host_bridge.converters.occupancy import Grid, grid_for_update, grid_from_msg
 from host_bridge.errors import ConvertError
@@ -194,5 +194,5 @@ def update_wall_items(update_msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return _grid_wall_items(grid_for_update(ctx), ctx.robot_state)
 
 
-GRID_WALLS = ConverterSpec(wall_items)
-UPDATE_WALLS = ConverterSpec(update_wall_items)
+GRID_WALLS = per_message(wall_items)
+UPDATE_WALLS = per_message(update_wall_items)

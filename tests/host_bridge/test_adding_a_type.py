@@ -13,7 +13,7 @@ import rerun.blueprint as rrb
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from host_bridge.blueprint import BlueprintFollower, TopicEntry, build_blueprint
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components
 from host_bridge.dispatch import Dispatcher
 from host_bridge.registry import Registry, Row, View, default_registry
@@ -48,7 +48,7 @@ def convert_beacon(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     ))]
 
 
-BEACON = ConverterSpec(convert=convert_beacon)
+BEACON = per_message(convert_beacon)
 
 
 # Step 2: one row in the table (in default_registry(), beside the others).

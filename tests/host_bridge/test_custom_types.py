@@ -149,8 +149,8 @@ def test_costmap_raw_scheme_shows_the_costs_and_updates_patch_them() -> None:
 
 def test_costmap_types_are_registered_and_bundled() -> None:
     registry = default_registry()
-    assert registry.get("nav2_msgs/msg/Costmap").convert is occupancy.convert_costmap
-    assert registry.get("nav2_msgs/msg/CostmapUpdate").convert is occupancy.convert_costmap_update
+    assert registry.get("nav2_msgs/msg/Costmap").single is occupancy.convert_costmap
+    assert registry.get("nav2_msgs/msg/CostmapUpdate").single is occupancy.convert_costmap_update
     fields = [name for name, _ in base_typestore().fielddefs["nav2_msgs/msg/CostmapMetaData"][1]]
     assert fields == ["map_load_time", "update_time", "layer", "resolution", "size_x", "size_y",
                       "origin"]
@@ -178,7 +178,7 @@ def test_service_event_bytes_from_rclpy_decode_with_rosbag2s_definition() -> Non
     assert list(request.response) == []
     assert bool(response.response[0].success) is True
     assert event_text(response) == f"response sent #7 (client {GID}): {{success: true}}"
-    assert default_registry().get(EVENT).convert_run is not None
+    assert not default_registry().get(EVENT).message_by_message
 
 
 def test_service_with_empty_request_and_idl_dependencies() -> None:

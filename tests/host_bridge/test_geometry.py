@@ -160,7 +160,7 @@ def test_trail_length_zero_disables_the_trail() -> None:
 
 
 def test_pose_run_splits_rows_by_frame_and_stamps_trail_rows() -> None:
-    assert POSE_STAMPED.convert_run is not None
+    assert not POSE_STAMPED.message_by_message
     msgs = [
         _pose_stamped((0.0, 0.0, 0.0), "map"),
         _pose_stamped((1.0, 0.0, 0.0), ""),

@@ -105,7 +105,7 @@ def test_ros1_log_levels(level: int, expected: str) -> None:
 
 def test_rosout_run_is_one_column_with_a_row_per_line() -> None:
     spec = ROS2_LOG
-    assert spec.convert_run is not None
+    assert not spec.message_by_message
     msgs = [
         _ros2_log(level, f"node{level}", f"line {level}", ns=level * NS)
         for level in (20, 30, 40, 10)
@@ -135,7 +135,7 @@ def test_real_string_topics_become_info_lines(
     run = list(read_topic(shared_data / "tb3_nav_sim_paths_amr" / "rosbag_demo.bag", topic))
     assert len(run) == count
     spec = STRING
-    assert spec.convert_run is not None
+    assert not spec.message_by_message
     (item,) = spec.convert_run(run, [_ctx(topic, ns=i) for i in range(count)])
     assert item.path == f"/tb3{topic}"
     rows = _rows(item)

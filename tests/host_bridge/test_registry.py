@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from host_bridge.contract import ConverterSpec
+from host_bridge.contract import ConverterSpec, per_message
 from host_bridge.converters import (
     camera,
     generic,
@@ -73,7 +73,7 @@ def test_special_cases_are_plain_rows() -> None:
     # JointState moves the model and is plotted: both converters, with a run form.
     joint_state = TABLE.row("sensor_msgs/msg/JointState")
     assert joint_state.view is View.JOINTS
-    assert joint_state.spec.convert_run is not None
+    assert not joint_state.spec.message_by_message
     # Anything else: the generic converter.
     unknown = TABLE.row("acme_msgs/msg/Gauge")
     assert (unknown.spec, unknown.view) == (generic.SPEC, View.CUSTOM)
@@ -99,7 +99,7 @@ def test_every_type_the_relay_classes_has_a_row_on_the_host() -> None:
     assert TABLE.get("sensor_msgs/msg/PointCloud") is generic.SPEC
 
 
-SPEC = ConverterSpec(convert=lambda msg, ctx: [])
+SPEC = per_message(lambda msg, ctx: [])
 CATCH = Row(CATCH_ALL, SPEC, View.CUSTOM)
 
 

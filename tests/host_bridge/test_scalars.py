@@ -241,7 +241,7 @@ def test_joint_state_length_mismatch_names_topic() -> None:
 
 
 def test_every_type_has_a_run_form() -> None:
-    plotted = [row for row in REGISTRY.rows() if row.spec.convert.__module__ == scalars.__name__]
+    plotted = [row for row in REGISTRY.rows() if row.spec.convert_run.__module__ == scalars.__name__]
     assert len(plotted) == 13 + 11 + 2 + 4 + 1 + 1  # numbers, arrays, times, sensors, battery, imu's field
-    assert all(row.spec.convert_run is not None for row in plotted)
-    assert scalars.JOINT_STATE.convert_run is not None
+    assert not any(row.spec.message_by_message for row in plotted)
+    assert not scalars.JOINT_STATE.message_by_message

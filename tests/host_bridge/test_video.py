@@ -373,7 +373,7 @@ def test_format_spellings(fmt: str, codec: rr.VideoCodec | None) -> None:
 
 
 def test_registered_and_shown_in_a_2d_view() -> None:
-    assert default_registry().get(COMPRESSED_VIDEO).convert is convert_compressed_video
+    assert default_registry().get(COMPRESSED_VIDEO).single is convert_compressed_video
     topic = TopicEntry(ROBOT, "/camera/video", COMPRESSED_VIDEO, f"/{ROBOT}/camera/video")
     blueprint = build_blueprint([topic])
     found: list[rrb.View] = []
