@@ -31,7 +31,7 @@ from host_bridge.contract import (
 from host_bridge.decode import Decoder
 from host_bridge.errors import ConfigError, HostError, PartialConvertError
 from host_bridge.frames import RobotFrames
-from host_bridge.registry import Registry, default_registry, slow_converters
+from host_bridge.registry import Registry, default_registry
 from host_bridge.resources import ResourceResolver
 from host_bridge.sink import RerunSink
 from host_bridge.state import RobotState, TopicState
@@ -134,7 +134,7 @@ class Dispatcher:
         self._robots: dict[str, _Robot] = {}
         self._robots_lock = threading.Lock()
         self._warned: set[tuple[str, str, str]] = set()
-        self._slow = _SlowWorker(self, slow_converters())
+        self._slow = _SlowWorker(self, self.registry.slow_converters())
 
     def _robot(self, robot: str) -> _Robot:
         # The slow converters' thread logs for robots too.

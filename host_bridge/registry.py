@@ -237,7 +237,3 @@ def default_registry() -> Registry:
         Row(CATCH_ALL, generic.SPEC, View.CUSTOM),
     ])
 
-
-def slow_converters() -> dict[str, ConverterSpec]:
-    """The slow converters of Swanky's table, by type (the dispatcher's worker runs them)."""
-    return default_registry().slow_converters()
