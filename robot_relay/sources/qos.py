@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
 from robot_relay.wire import QosProfile
 
@@ -15,6 +16,11 @@ Offer = tuple[str, str, int]
 # queue would hold one message, and any stall of the relay longer than one message period would
 # overwrite reliable messages before they are forwarded.
 LIVE_DEPTH_FLOOR = 10
+# Reliable streams promise every message, and the relay's queue is what rides out its own stalls
+# (garbage collection, a loaded CPU, a congested link blocking a reliable topic's Zenoh put): 10
+# holds a third of a second of 30 Hz odometry, which a loaded machine exceeds; 50 hold 1.6 s.
+# The memory is used only while the relay lags behind.
+LIVE_RELIABLE_STREAM_FLOOR = 50
 
 
 def adapted_qos(offers: Sequence[Offer], floor: int = 1) -> QosProfile:
@@ -39,3 +45,13 @@ def adapted_qos(offers: Sequence[Offer], floor: int = 1) -> QosProfile:
         durability="transient_local" if latched else "volatile",
         depth=max(floor, sum(depths) if latched else max(depths)),
     )
+
+
+def live_qos(offers: Sequence[Offer]) -> QosProfile:
+    """What the live relay subscribes with: :func:`adapted_qos` with :data:`LIVE_DEPTH_FLOOR`,
+    reliable volatile streams at least :data:`LIVE_RELIABLE_STREAM_FLOOR` deep. Latched topics
+    keep the smaller floor: their depth also sizes the cache late hosts get."""
+    qos = adapted_qos(offers, LIVE_DEPTH_FLOOR)
+    if qos.reliability == "reliable" and qos.durability == "volatile":
+        return replace(qos, depth=max(qos.depth, LIVE_RELIABLE_STREAM_FLOOR))
+    return qos

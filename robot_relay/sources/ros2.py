@@ -2,13 +2,13 @@
 
 Every ``DISCOVERY_PERIOD_S`` the graph is read again (:meth:`Ros2Source.discover`): a topic with
 at least one publisher that passes the allow/deny globs enters the catalog with the QoS adapted
-to all its publishers (:func:`robot_relay.sources.qos.adapted_qos`: the ``ros2 bag record``
-rule, with a queue of at least 10) and the full definition of its type read from the ament share
-directories (.msg, else .idl, as rosbag2 does), so custom packages decode on a host without
-them. A topic whose last publisher leaves drops out; one whose type or policies change, or whose
-publishers need a deeper queue, is subscribed again. Publishers merely coming and going change
-nothing, so a latched topic's history is not delivered again (and what a new subscription does
-re-deliver is recognised and dropped: :class:`_Delivered`).
+to all its publishers (:func:`robot_relay.sources.qos.live_qos`: the ``ros2 bag record`` rule,
+with a queue of at least 10, 50 for reliable streams) and the full definition of its type read
+from the ament share directories (.msg, else .idl, as rosbag2 does), so custom packages decode on
+a host without them. A topic whose last publisher leaves drops out; one whose type or policies
+change, or whose publishers need a deeper queue, is subscribed again. Publishers merely coming
+and going change nothing, so a latched topic's history is not delivered again (and what a new
+subscription does re-deliver is recognised and dropped: :class:`_Delivered`).
 
 Subscriptions follow demand: the Relay calls :meth:`Ros2Source.on_demand` from Zenoh's threads
 when a host starts or stops listening, and the discovery thread applies it (create or destroy
@@ -39,12 +39,18 @@ from collections.abc import Callable, Hashable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from robot_relay.sources.qos import LIVE_DEPTH_FLOOR, Offer, adapted_qos
+from robot_relay.sources.qos import Offer, live_qos
 from robot_relay.wire import Catalog, MessageDefinition, RawMessage, TopicInfo
 
 log = logging.getLogger("swanky.relay")
 
-DISCOVERY_PERIOD_S = 2.0
+# A new topic is forwarded within this plus DDS's own matching of the new subscription (up to
+# a second or two on a loaded robot); one graph read costs about a millisecond.
+DISCOVERY_PERIOD_S = 1.0
+# How many forwarded messages of a latched topic are remembered so that a new subscription's
+# re-delivery of them is recognised. Depths do not tell: Fast DDS reports 0, and /rosout keeps
+# 1000 lines per node (for 10 s); remembering one costs about 100 bytes.
+REDELIVERY_WINDOW = 4096
 _PRIMITIVES = frozenset({
     "bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32",
     "uint32", "int64", "uint64", "string", "wstring",
@@ -284,7 +290,7 @@ class Ros2Source:
             if definition is None:
                 self._warn_once(topic, "%s: no definition of %s in AMENT_PREFIX_PATH; hosts decode "
                                 "it with their bundled types only", msgtype)
-            info = TopicInfo(topic, msgtype, definition, adapted_qos(offers, LIVE_DEPTH_FLOOR))
+            info = TopicInfo(topic, msgtype, definition, live_qos(offers))
             old = self.topics.get(topic)
             found[topic] = old if old is not None and _same_request(old, info) else info
             counts[topic] = len(offers)
@@ -309,9 +315,9 @@ class Ros2Source:
             if not info.latched:
                 self.delivered.pop(topic, None)
             elif window is None or window.msgtype != info.msgtype:
-                self.delivered[topic] = _Delivered(info.msgtype, info.qos.depth)
+                self.delivered[topic] = _Delivered(info.msgtype, max(info.qos.depth, REDELIVERY_WINDOW))
             else:
-                window.capacity = info.qos.depth
+                window.capacity = max(info.qos.depth, REDELIVERY_WINDOW)
         for topic in self.delivered.keys() - self.topics.keys():
             del self.delivered[topic]
 
@@ -396,11 +402,11 @@ def run_ros2_relay(
         return 2
     from robot_relay.files import serve_files
     from robot_relay.relay import Relay
-    from robot_relay.session import open_session
+    from robot_relay.session import open_session, zenoh_options
 
     # Jazzy (and Iron) hand a callback taking two arguments the message info too; Humble never.
     with_message_info = hasattr(Subscription, "CallbackType")
-    session = open_session(args)
+    session = open_session(zenoh_options(args))
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = rclpy.create_node("swanky_relay")

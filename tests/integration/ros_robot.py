@@ -13,9 +13,9 @@
 - ``/camera/image_raw`` Image 640x480 rgb8 15 Hz, reliable, depth 10;
 - ``/points`` PointCloud2 of 50,000 points 5 Hz, reliable, depth 10.
 
-``python -m tests.integration.ros_robot late SECONDS`` publishes ``/late_chatter`` at 10 Hz
-for SECONDS and then exits; it also starts :data:`LATE_NODES` more nodes, each logging one
-line, so /rosout gains publishers mid-run.
+``python -m tests.integration.ros_robot late SECONDS`` starts :data:`LATE_NODES` + 1 nodes, each
+logging one line (so /rosout gains publishers mid-run), waits until it sees the relay's node,
+then publishes ``/late_chatter`` at 10 Hz for SECONDS and exits.
 
 Message ``i`` of a topic is stamped ``T0_NS + i * period`` and carries values derived from
 ``i`` (:func:`odom_values`, :func:`joint_position`, :func:`image_pixels`, :func:`first_point_x`),
@@ -266,9 +266,14 @@ def late(seconds: float, stop: threading.Event) -> None:
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("late")
     helpers = [rclpy.create_node(f"late_helper_{k}") for k in range(LATE_NODES)]
-    publisher = node.create_publisher(String, "/late_chatter", QoSProfile(depth=10))
     for k, helper in enumerate(helpers):
         helper.get_logger().info(f"late helper {k} up")
+    # The topic appears once this process's participant and the relay's know each other: how
+    # long that takes is Fast DDS's participant discovery (its announcements come every 3 s).
+    known = time.monotonic() + 30
+    while "swanky_relay" not in node.get_node_names() and time.monotonic() < known:
+        time.sleep(0.05)
+    publisher = node.create_publisher(String, "/late_chatter", QoSProfile(depth=10))
     say(f"late first publish at {time.time_ns()}")
     ends = time.monotonic() + seconds
     i = 0

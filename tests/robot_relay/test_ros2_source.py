@@ -18,7 +18,7 @@ from host_bridge.decode import Decoder
 from robot_relay.cli import topic_filter
 from robot_relay.config import DEFAULT_DENY
 from robot_relay.relay import Relay
-from robot_relay.sources.qos import LIVE_DEPTH_FLOOR, adapted_qos
+from robot_relay.sources.qos import adapted_qos, live_qos
 from robot_relay.sources.ros2 import (
     MessageInfo,
     Ros2Source,
@@ -79,14 +79,14 @@ def test_qos_follows_ros2_bag_record() -> None:
     )
 
 
-def test_live_queues_hold_at_least_ten_messages_where_fast_dds_reports_depth_0() -> None:
-    assert LIVE_DEPTH_FLOOR == 10
-    assert adapted_qos([("reliable", "volatile", 0)], LIVE_DEPTH_FLOOR).depth == 10
+def test_live_queues_hold_enough_where_fast_dds_reports_depth_0() -> None:
     assert adapted_qos([("reliable", "volatile", 0)]).depth == 1  # a bag's offers: as recorded
-    assert adapted_qos([("reliable", "volatile", 0), ("reliable", "volatile", 50)],
-                       LIVE_DEPTH_FLOOR).depth == 50
+    assert live_qos([("best_effort", "volatile", 0)]).depth == 10
+    assert live_qos([("reliable", "volatile", 0)]).depth == 50  # rides out a stall of the relay
+    assert live_qos([("reliable", "volatile", 0), ("reliable", "volatile", 80)]).depth == 80
+    assert live_qos([("reliable", "transient_local", 0)]).depth == 10
     twelve_latched = [("reliable", "transient_local", 0)] * 12
-    assert adapted_qos(twelve_latched, LIVE_DEPTH_FLOOR).depth == 12
+    assert live_qos(twelve_latched).depth == 12
 
 
 def test_idl_only_package_gives_a_ros2idl_definition_rosbags_parses(tmp_path: Path) -> None:
@@ -285,19 +285,22 @@ def test_a_new_subscription_does_not_forward_the_latched_history_again() -> None
     source.on_demand("/robot_description", True)
     source.apply_demand(published.append)
     node.callbacks["/robot_description"](b"urdf", info(1, source_ns=100))
+    for sequence in range(2, 30):  # more than the queue's depth: the first is still remembered
+        node.callbacks["/robot_description"](b"update", info(sequence, source_ns=100 + sequence))
 
     # Twelve publishers: a deeper queue, so subscribed again; the history comes again.
     node.graph["/robot_description"][1].extend(latched() for _ in range(11))
     source.discover()
     source.apply_demand(published.append)
     assert node.subscribed == ["/robot_description", "/robot_description"]
+    published.clear()
     node.callbacks["/robot_description"](b"urdf", info(1, source_ns=100))  # the same message
-    node.callbacks["/robot_description"](b"urdf", info(2, source_ns=200))  # republished
-    assert [m.data for m in published] == [b"urdf", b"urdf"]
+    node.callbacks["/robot_description"](b"urdf", info(30, source_ns=200))  # republished
+    assert [m.data for m in published] == [b"urdf"]
     # Without message info (Humble), identical bytes are the same message.
     node.callbacks["/robot_description"](b"other", None)
     node.callbacks["/robot_description"](b"other", None)
-    assert [m.data for m in published] == [b"urdf", b"urdf", b"other"]
+    assert [m.data for m in published] == [b"urdf", b"other"]
 
 
 def test_sequence_gaps_of_a_single_publisher_count_as_drops() -> None:
