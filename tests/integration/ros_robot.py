@@ -207,8 +207,7 @@ def robot(stop: threading.Event) -> None:
 
 
 def camera(stop: threading.Event) -> None:
-    """The camera driver: its own process, as on a robot (and Fast DDS's shared-memory
-    segment of the odometry's process is not filled with frames)."""
+    """The camera driver: its own process, as on a robot."""
     import rclpy
     from rclpy.qos import QoSProfile
     from rclpy.serialization import serialize_message
