@@ -1,4 +1,7 @@
-"""``swanky-host``: runs on the PC; decodes, converts and logs robots (live or bags) to Rerun."""
+"""``swanky-host``: runs on the PC; decodes, converts and logs robots (live or bags) to Rerun.
+
+This module only turns flags into a :class:`~host_bridge.app.HostOptions` record and the
+process's signals into a stop event; ``host_bridge/app.py`` does the rest."""
 
 from __future__ import annotations
 
@@ -8,24 +11,13 @@ import os
 import signal
 import sys
 import threading
-import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
-from host_bridge.blueprint import BlueprintFollower, check_blueprint_file
-from host_bridge.config import HostConfig
-from host_bridge.dispatch import Dispatcher
-from host_bridge.errors import HostError, PartialConvertError, SinkError
-from host_bridge.inputs.queues import InputProblem, QueueItem, RobotEvent, presence_items
-from host_bridge.recorder import McapRecorder, may_hold_several_robots
-from host_bridge.registry import default_registry
-from host_bridge.resources import ResourceResolver, RobotFetch, parse_package_path
-from host_bridge.robot_files import RobotFiles
-from host_bridge.sink import APPLICATION_ID, LOOPBACK, RerunSink, SinkOptions
-from robot_relay.errors import RelayError
-from robot_relay.session import add_zenoh_arguments
-from robot_relay.wire import check_robot_name
+from host_bridge import app
+from host_bridge.errors import HostError
+from host_bridge.sink import LOOPBACK, SinkOptions
+from robot_relay.session import add_zenoh_arguments, zenoh_options
 
 log = logging.getLogger("swanky.host")
 
@@ -165,129 +157,35 @@ def sink_options(args: argparse.Namespace) -> SinkOptions:
     return options
 
 
-def resolver(args: argparse.Namespace, robot_fetch: RobotFetch | None = None) -> ResourceResolver:
-    env = ResourceResolver.from_env()
-    packages = dict(parse_package_path(option) for option in args.package_path)
-    return ResourceResolver(packages, env.search_paths, robot_fetch=robot_fetch)
-
-
-def log_urdf_file(args: argparse.Namespace, dispatcher: Dispatcher) -> None:
-    """The --urdf model of robot --robot, logged once (static) before any data; the robot's
-    /robot_description is then not drawn."""
-    from host_bridge.contract import ConvertContext
-    from host_bridge.converters.urdf import model_items_from_file
-
-    ctx = ConvertContext(
-        robot=args.robot, topic="/robot_description", entity_path=f"/{args.robot}/robot_model",
-        times={}, robot_state=dispatcher.robot_state(args.robot),
+def host_options(args: argparse.Namespace) -> app.HostOptions:
+    return app.HostOptions(
+        sink=sink_options(args),
+        zenoh=zenoh_options(args),
+        bag=args.bag,
+        robot=args.robot,
+        demo=args.demo,
+        robots=args.robots,
+        domain=args.domain,
+        rmw_zenoh=args.rmw_zenoh,
+        list_topics=args.list,
+        record_mcap=args.record_mcap,
+        stats=args.stats,
+        blueprint=args.blueprint,
+        send_layout=not args.no_blueprint,
+        duration=args.duration,
+        until_idle=args.until_idle,
+        urdf=args.urdf,
+        package_path=tuple(args.package_path),
+        config=args.config,
+        print_config=args.print_config,
+        strict=args.strict,
     )
-    try:
-        dispatcher.log(args.robot, model_items_from_file(args.urdf, ctx), {})
-    except PartialConvertError as err:
-        dispatcher.log(args.robot, err.items, {})
-        dispatcher.warn(args.robot, str(args.urdf), err)
-
-
-def start_layout(args: argparse.Namespace, sink: RerunSink) -> BlueprintFollower | None:
-    """The user's --blueprint file, sent once; else Swanky's layout following the topics,
-    unless --no-blueprint."""
-    if args.blueprint is not None:
-        sink.send_blueprint_file(args.blueprint)
-        return None
-    if args.no_blueprint:
-        return None
-    stats = args.stats if args.stats is not None else args.bag is None
-    return BlueprintFollower(sink.send_blueprint, stats=stats)
-
-
-def convert_bag(args: argparse.Namespace, dispatcher: Dispatcher, stop: threading.Event) -> None:
-    from host_bridge.inputs.bag import bag_runs
-    from host_bridge.progress import Progress, bag_extent
-    from host_bridge.stats import StatsTap
-
-    progress = Progress(bag_extent(args.bag))
-    dispatcher.taps.append(progress)
-    if args.stats:
-        dispatcher.taps.append(StatsTap(dispatcher.sink, dispatcher.counters))
-    for run in bag_runs(args.bag, args.robot):
-        dispatcher.dispatch(run)
-        if stop.is_set():
-            break
-    progress.finish()
-
-
-def handle_items(dispatcher: Dispatcher, items: Sequence[QueueItem]) -> None:
-    """One robot's run of input items: problems warned about, arrivals logged, data dispatched."""
-    batch = []
-    for item in items:
-        if isinstance(item, InputProblem):
-            dispatcher.warn(item.robot, item.topic, item.error)
-        elif isinstance(item, RobotEvent):
-            log.info("%s", item.text)
-            dispatcher.sink.log(presence_items(item, time.time_ns()), {})
-        else:
-            batch.append(item)
-    if batch:
-        dispatcher.dispatch(batch)
-
-
-def run_live(
-    args: argparse.Namespace, dispatcher: Dispatcher, stop: threading.Event,
-    robot_files: RobotFiles | None = None,
-) -> None:
-    """Dispatch live samples until stopped, ``--duration`` or ``--until-idle``. Each robot is
-    dispatched from its own thread (inputs/queues.py): a slow or broken robot delays only itself."""
-    from host_bridge.inputs.queues import RobotQueues
-    from host_bridge.inputs.rmw_zenoh import RmwZenohInput
-    from host_bridge.inputs.zenoh import ZenohInput
-    from host_bridge.stats import StatsTap
-    from robot_relay.session import open_session
-
-    session = open_session(args)
-    if robot_files is not None:
-        robot_files.attach(session)
-    queues = RobotQueues()
-    sources: list[ZenohInput | RmwZenohInput] = [
-        ZenohInput(session, robots=args.robots, queues=queues)
-    ]
-    if args.rmw_zenoh:
-        sources.append(RmwZenohInput(session, args.domain, args.robots, args.robot, queues))
-    stats = None if args.stats is False else StatsTap(
-        dispatcher.sink, dispatcher.counters, session=session, robots=args.robots
-    )
-    if stats is not None:
-        dispatcher.taps.append(stats)
-    queues.serve(lambda items: handle_items(dispatcher, items))
-    started = time.monotonic()
-    try:
-        while not stop.wait(0.05):
-            if queues.error is not None:
-                raise queues.error
-            now = time.monotonic()
-            if args.duration is not None and now - started >= args.duration:
-                break
-            if args.until_idle is not None and now - queues.last_activity >= args.until_idle:
-                log.info("no data for %.1f s, stopping", args.until_idle)
-                break
-    finally:
-        for source in sources:
-            source.close()
-        queues.close()
-        if stats is not None:
-            stats.close()
-        if robot_files is not None:
-            robot_files.detach()
-        session.close()
-    if queues.dropped:
-        log.warning("messages dropped because the host fell behind:\n%s", queues.drop_summary())
-    if queues.error is not None:
-        raise queues.error
 
 
 class StopSignals:
     """SIGINT and SIGTERM: the first stops the host cleanly (a saved .rrd is completed), a second
     exits at once, as swanky-relay does. Everything the main thread waits on is bounded in short
-    steps (sink.py, run_live), so the handler always gets to run within about a second."""
+    steps (sink.py, app.wait_for_end), so the handler always gets to run within about a second."""
 
     def __init__(self, stop: threading.Event) -> None:
         self.stop = stop
@@ -307,92 +205,6 @@ class StopSignals:
         self.stop.set()
 
 
-@dataclass
-class Outputs:
-    """What the host writes to, closed in reverse order of opening whatever happened."""
-
-    sink: RerunSink | None = None
-    layout: BlueprintFollower | None = None
-    recorder: McapRecorder | None = None
-
-    def close(self) -> bool:
-        """Close everything; False (and said why on stderr) when a viewer missed data."""
-        if self.recorder is not None:
-            self.recorder.close()
-        if self.layout is not None:
-            self.layout.close()
-        if self.sink is None:
-            return True
-        try:
-            self.sink.close()
-        except SinkError as err:
-            print(f"swanky-host: error: {err}", file=sys.stderr)
-            return False
-        return True
-
-
-def run_host(args: argparse.Namespace, signals: StopSignals, outputs: Outputs) -> int:
-    stop = signals.stop
-    check_robot_name(args.robot)
-    if args.list:
-        from host_bridge.listing import run_list
-
-        return run_list(args, stop)
-    registry = default_registry()
-    config = (
-        HostConfig.load(args.config, registry.types()) if args.config is not None
-        else HostConfig.builtin(registry.types())
-    )
-    if args.print_config:
-        print(config.dump(), end="")
-        return 0
-    if args.bag is not None and not args.bag.exists():
-        print(f"swanky-host: error: bag {args.bag} does not exist", file=sys.stderr)
-        return 2
-    if args.demo:
-        from host_bridge.demo.run import configure_demo
-
-        configure_demo(args)  # checks --robots N before a viewer opens
-    if args.blueprint is not None:
-        check_blueprint_file(args.blueprint, APPLICATION_ID)
-    # Live robots serve the meshes this PC lacks (robot_relay/files.py).
-    robot_files = None if args.bag is not None else RobotFiles()
-    meshes = resolver(args, None if robot_files is None else robot_files.fetch)  # checks dirs
-    # After a stop signal a slow viewer is not waited for.
-    sink = outputs.sink = RerunSink(sink_options(args), give_up=lambda: signals.received)
-    if sink.web_url:
-        print(f"Rerun web viewer: {sink.web_url}", flush=True)
-        print(f"swanky-host: {sink.web_note}", file=sys.stderr)
-    layout = outputs.layout = start_layout(args, sink)
-    dispatcher = Dispatcher(
-        sink, registry=registry, config=config, strict=args.strict,
-        resolver=meshes,
-        on_new_topic=None if layout is None else layout.topic_seen,
-    )
-    if args.record_mcap is not None:
-        outputs.recorder = McapRecorder(args.record_mcap, prefix_robot=may_hold_several_robots(
-            bag=args.bag is not None, demo=args.demo and len(args.demo_robots) == 1,
-            robots=args.robots))
-        dispatcher.taps.append(outputs.recorder)
-    if args.urdf is not None:
-        log_urdf_file(args, dispatcher)
-    if args.bag is not None:
-        convert_bag(args, dispatcher, stop)
-        if args.serve_web and not stop.is_set():
-            # The web viewer lives in this process: keep serving the converted bag.
-            print("bag converted; serving the web viewer until Ctrl-C", file=sys.stderr)
-            stop.wait(args.duration)
-    elif args.demo:
-        from host_bridge.demo.run import run_demo
-
-        run_demo(args, lambda: run_live(args, dispatcher, stop, robot_files), stop)
-    else:
-        run_live(args, dispatcher, stop, robot_files)
-    dispatcher.close()
-    print(dispatcher.summary(), file=sys.stderr)
-    return 0
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(
@@ -401,10 +213,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     signals = StopSignals(threading.Event())
     signals.install()
-    outputs = Outputs()
+    outputs = app.Outputs()
     try:
-        code = run_host(args, signals, outputs)
-    except (HostError, RelayError) as err:
+        code = app.run(host_options(args), signals.stop, lambda: signals.received, outputs)
+    except HostError as err:
         print(f"swanky-host: error: {err}", file=sys.stderr)
         code = 2
     finally:

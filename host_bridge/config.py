@@ -33,6 +33,7 @@ import yaml
 from jsonschema import Draft202012Validator
 from jsonschema.exceptions import best_match
 
+from host_bridge.errors import ConfigError, relay_errors
 from host_bridge.options import CONVERTER_OPTION, OPTIONS_BY_DEFINITION, fixed_defaults
 from robot_relay.configfile import (
     FORMAT_CHECKER,
@@ -43,7 +44,6 @@ from robot_relay.configfile import (
     load_config,
     schema,
 )
-from robot_relay.errors import ConfigError
 
 SCHEMA_NAME = "host"
 DEFAULT_ENTITY_PATH = "/{robot}{topic}"
@@ -164,7 +164,9 @@ class HostConfig:
     @classmethod
     def load(cls, path: Path, registered_types: Collection[str]) -> HostConfig:
         """Read and check ``path``; a mistake raises ConfigError naming file:line:key."""
-        return cls(load_config(path, SCHEMA_NAME), registered_types)
+        with relay_errors():  # the file is read and checked by the relay's shared loader
+            document = load_config(path, SCHEMA_NAME)
+        return cls(document, registered_types)
 
     @classmethod
     def builtin(cls, registered_types: Collection[str]) -> HostConfig:

@@ -31,6 +31,7 @@ from host_bridge.contract import (
 from host_bridge.decode import Decoder
 from host_bridge.errors import ConfigError, HostError, PartialConvertError
 from host_bridge.frames import RobotFrames
+from host_bridge.inputs.base import InputItem, InputProblem, RobotEvent, presence_items
 from host_bridge.registry import Registry, default_registry
 from host_bridge.resources import ResourceResolver
 from host_bridge.sink import RerunSink
@@ -214,6 +215,21 @@ class Dispatcher:
             counters.sequence_gaps += sequence_gap(counters.last_sequence, raw.sequence)
             counters.last_sequence = raw.sequence
         return counters
+
+    def take(self, items: Sequence[InputItem]) -> None:
+        """A run from an input (inputs/base.py): problems warned about, robots joining or
+        leaving logged under /_swanky/robots, messages dispatched."""
+        batch = []
+        for item in items:
+            if isinstance(item, InputProblem):
+                self.warn(item.robot, item.topic, item.error)
+            elif isinstance(item, RobotEvent):
+                log.info("%s", item.text)
+                self.sink.log(presence_items(item, time.time_ns()), {})
+            else:
+                batch.append(item)
+        if batch:
+            self.dispatch(batch)
 
     def dispatch(self, batch: Sequence[RawMessage]) -> None:
         """Convert and log a run of messages; messages of one topic keep their order."""

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
+
+from robot_relay.errors import RelayError
 
 
 class HostError(Exception):
@@ -62,3 +66,14 @@ class SinkError(HostError):
 
 class RecorderError(HostError):
     """The --record-mcap file cannot be written."""
+
+
+@contextmanager
+def relay_errors() -> Iterator[None]:
+    """Around the host's calls into the relay's shared code (the Zenoh session, robot names,
+    config files): the relay's error becomes the host's ConfigError, word for word, so the
+    host's command line catches its own errors only."""
+    try:
+        yield
+    except RelayError as err:
+        raise ConfigError(str(err)) from err

@@ -8,7 +8,6 @@ Bandwidth counts payload bytes as they travel (compressed if the relay compresse
 
 from __future__ import annotations
 
-import argparse
 import threading
 import time
 from collections.abc import Callable
@@ -16,8 +15,10 @@ from dataclasses import dataclass, field
 
 import zenoh
 
+from host_bridge.inputs.live import open_host_session
 from host_bridge.inputs.zenoh import fetch_catalog
 from robot_relay.errors import WireError
+from robot_relay.session import ZenohOptions
 from robot_relay.wire import (
     Catalog,
     alive_selector,
@@ -161,14 +162,13 @@ def format_listing(listing: Listing) -> str:
     return "\n".join(lines + listing.problems)
 
 
-def run_list(args: argparse.Namespace, stop: threading.Event) -> int:
-    """``--list``: connect like live mode, watch ``--duration`` seconds, print the table."""
-    from robot_relay.session import open_session
-
-    duration = DEFAULT_DURATION_S if args.duration is None else args.duration
-    session = open_session(args)
+def run_list(
+    zenoh_options: ZenohOptions, robots: str, duration: float | None, stop: threading.Event
+) -> int:
+    """``--list``: connect like live mode, watch ``duration`` seconds (default 3), print the table."""
+    session = open_host_session(zenoh_options)
     try:
-        listing = collect(session, args.robots, duration, stop)
+        listing = collect(session, robots, DEFAULT_DURATION_S if duration is None else duration, stop)
     finally:
         session.close()
     print(format_listing(listing), flush=True)

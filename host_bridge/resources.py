@@ -19,9 +19,8 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path, PurePosixPath
 from urllib.parse import unquote
 
-from host_bridge.errors import ConfigError, ConvertError, MissingResourceError
+from host_bridge.errors import ConvertError, MissingResourceError, relay_errors
 from robot_relay import files
-from robot_relay.errors import RelayError
 
 Fetch = Callable[[str], bytes | None]
 """Asks the robot for a ``package://`` URI; returns None when the robot cannot serve it, or
@@ -36,10 +35,8 @@ FILE_SCHEME = "file://"
 def parse_package_path(option: str) -> tuple[str, Path]:
     """Split a ``--package-path NAME=DIR`` option into the package name and its directory
     (the relay's option, spelt and checked the same way)."""
-    try:
+    with relay_errors():
         return files.parse_package_path(option)
-    except RelayError as err:
-        raise ConfigError(str(err)) from err
 
 
 def split_package_uri(uri: str) -> tuple[str, str]:

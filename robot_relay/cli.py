@@ -16,7 +16,7 @@ from pathlib import Path
 
 from robot_relay.config import RelayConfig, load_relay_config
 from robot_relay.errors import RelayError
-from robot_relay.session import add_zenoh_arguments, open_session
+from robot_relay.session import add_zenoh_arguments, open_session, zenoh_options
 from robot_relay.wire import ROBOT_NAME_PATTERN, check_robot_name
 
 log = logging.getLogger("swanky.relay")
@@ -111,7 +111,7 @@ def run_bag(args: argparse.Namespace, stop: threading.Event) -> int:
         if not catalog.topics:
             log.error("bag %s has no topics matching %s", args.bag, " ".join(args.topics))
             return 1
-        session = open_session(args)
+        session = open_session(zenoh_options(args))
         try:
             relay = Relay(session, catalog, args.policies)
             files = serve_files(session, args.robot, args.package_path)

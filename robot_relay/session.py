@@ -11,12 +11,28 @@ import logging
 import threading
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import zenoh
 
 from robot_relay.errors import ConfigError
 
 log = logging.getLogger("swanky.zenoh")
+
+
+@dataclass(frozen=True, slots=True)
+class ZenohOptions:
+    """How to open the Zenoh session: the zenoh flags both commands take, as a record (what
+    ``open_session`` reads, so nothing below the command lines sees ``argparse``)."""
+
+    mode: str | None = None
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    config_file: str | None = None
+    """``--zenoh-config``: a zenoh configuration file (JSON5)."""
+    cfg: tuple[str, ...] = ()
+    """``--cfg KEY:JSON5`` items, applied last."""
+    multicast_scouting: bool = True
 
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,25 +56,37 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def config_from_args(args: argparse.Namespace) -> zenoh.Config:
+def zenoh_options(args: argparse.Namespace) -> ZenohOptions:
+    """The record of the flags :func:`add_zenoh_arguments` added (each command's cli.py)."""
+    return ZenohOptions(
+        mode=args.mode,
+        connect=tuple(args.connect),
+        listen=tuple(args.listen),
+        config_file=args.zenoh_config,
+        cfg=tuple(args.cfg),
+        multicast_scouting=not args.no_multicast_scouting,
+    )
+
+
+def zenoh_config(options: ZenohOptions) -> zenoh.Config:
     try:
         config: zenoh.Config = (
-            zenoh.Config.from_file(args.zenoh_config) if args.zenoh_config else zenoh.Config()
+            zenoh.Config.from_file(options.config_file) if options.config_file else zenoh.Config()
         )
     except Exception as err:
-        msg = f"zenoh config file {args.zenoh_config}: {err}"
+        msg = f"zenoh config file {options.config_file}: {err}"
         raise ConfigError(msg) from err
     # zenoh-ext's AdvancedPublisher (latched topics) needs timestamps on samples.
     values: list[tuple[str, str]] = [("timestamping/enabled", "true")]
-    if args.mode:
-        values.append(("mode", json.dumps(args.mode)))
-    if args.connect:
-        values.append(("connect/endpoints", json.dumps(args.connect)))
-    if args.listen:
-        values.append(("listen/endpoints", json.dumps(args.listen)))
-    if args.no_multicast_scouting:
+    if options.mode:
+        values.append(("mode", json.dumps(options.mode)))
+    if options.connect:
+        values.append(("connect/endpoints", json.dumps(list(options.connect))))
+    if options.listen:
+        values.append(("listen/endpoints", json.dumps(list(options.listen))))
+    if not options.multicast_scouting:
         values.append(("scouting/multicast/enabled", "false"))
-    for item in args.cfg:
+    for item in options.cfg:
         key, sep, value = item.partition(":")
         if not sep:
             msg = f"--cfg {item!r}: expected KEY:JSON5, e.g. 'mode:\"client\"'"
@@ -73,15 +101,15 @@ def config_from_args(args: argparse.Namespace) -> zenoh.Config:
     return config
 
 
-def open_session(args: argparse.Namespace) -> zenoh.Session:
-    config = config_from_args(args)
+def open_session(options: ZenohOptions) -> zenoh.Session:
+    config = zenoh_config(options)
     try:
         session: zenoh.Session = zenoh.open(config)
     except Exception as err:
         msg = f"cannot open a zenoh session ({err}); check -e/-l endpoints, --zenoh-config and --cfg"
         raise ConfigError(msg) from err
-    if args.connect:
-        watch_connection(session, args.connect)
+    if options.connect:
+        watch_connection(session, options.connect)
     return session
 
 

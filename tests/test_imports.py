@@ -28,7 +28,11 @@ HOST_MAY_IMPORT: dict[str, tuple[str, str]] = {
     "robot_relay.wire": ("host_bridge", "the protocol both sides speak"),
     "robot_relay.session": ("host_bridge", "Zenoh flags and session opening, alike on both commands"),
     "robot_relay.sources.bag": ("host_bridge", "--bag reads bags with the source the relay replays"),
-    "robot_relay.errors": ("host_bridge", "the errors the modules above raise"),
+    "robot_relay.errors": (
+        "host_bridge", "caught where the host calls the modules above: wire and graph errors "
+        "become input problems (warned about under their own names), the others host errors "
+        "(errors.relay_errors, inputs/bag.py); the host's command line catches HostError only",
+    ),
     "robot_relay.configfile": (
         "host_bridge", "both config files load alike: line-numbered errors, topic-glob precedence",
     ),

@@ -9,7 +9,6 @@ with its own frames (``sim2/base_link``), map and sensors.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import multiprocessing
 import os
@@ -18,15 +17,17 @@ import socket
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from host_bridge.demo.bag import write_demo_bag
 from host_bridge.demo.robot import lap_length
 from host_bridge.errors import ConfigError
+from host_bridge.inputs.base import Deliver, Input
 from robot_relay.relay import Relay
-from robot_relay.session import add_zenoh_arguments, open_session
+from robot_relay.session import ZenohOptions, open_session
 from robot_relay.sources.bag import BagSource
 
 log = logging.getLogger("swanky.demo")
@@ -55,26 +56,31 @@ def demo_robot_names(robots: str) -> list[str]:
     return [DEMO_ROBOT if i == 0 else f"{DEMO_ROBOT}{i + 1}" for i in range(count)]
 
 
-def configure_demo(args: argparse.Namespace) -> None:
-    """Check ``--robots`` before anything opens, and point the host at a private loopback
-    endpoint for the demo relays (no multicast, so no other robot joins by accident)."""
-    args.demo_robots = demo_robot_names(args.robots)
-    args.robots = f"{DEMO_ROBOT}$*"  # sim, sim2, ...: a Zenoh chunk wildcard
-    args.demo_endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-    args.listen = [*args.listen, args.demo_endpoint]
-    args.no_multicast_scouting = True
+@dataclass(frozen=True, slots=True)
+class DemoPlan:
+    """``--demo --robots N``: the simulated robots, and the private loopback endpoint their
+    relays reach the host on."""
+
+    robots: tuple[str, ...]
+    endpoint: str
+    robot_filter: str = f"{DEMO_ROBOT}$*"
+    """The host's ``--robots``: sim, sim2, ... (a Zenoh chunk wildcard)."""
+
+    def host_zenoh(self, zenoh: ZenohOptions) -> ZenohOptions:
+        """The host's session: listening on the demo's endpoint too, and no multicast, so no
+        other robot joins by accident."""
+        return replace(zenoh, listen=(*zenoh.listen, self.endpoint), multicast_scouting=False)
+
+
+def configure_demo(robots: str) -> DemoPlan:
+    """Check ``--robots`` before anything opens, and pick the demo relays' endpoint."""
+    return DemoPlan(tuple(demo_robot_names(robots)), f"tcp/127.0.0.1:{free_loopback_port()}")
 
 
 def free_loopback_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
-
-
-def _relay_args(endpoint: str) -> argparse.Namespace:
-    parser = argparse.ArgumentParser()
-    add_zenoh_arguments(parser)
-    return parser.parse_args(["--connect", endpoint, "--no-multicast-scouting"])
 
 
 def _write_bag(job: tuple[Path, float, float]) -> Path:
@@ -127,7 +133,7 @@ def _replay(
     bag: Path, robot: str, endpoint: str, stop: threading.Event, host_stop: threading.Event
 ) -> None:
     try:
-        session = open_session(_relay_args(endpoint))
+        session = open_session(ZenohOptions(connect=(endpoint,), multicast_scouting=False))
         try:
             with BagSource(bag, robot, rate=1.0, loop=True) as source:
                 relay = Relay(session, source.catalog())
@@ -144,33 +150,54 @@ def _replay(
         host_stop.set()
 
 
-def run_demo(args: argparse.Namespace, run_host: Callable[[], None], stop: threading.Event) -> None:
-    """Write the bags, start one relay per robot, run the host until it stops."""
-    robots: list[str] = args.demo_robots
-    # With --duration the replay need not be longer than the demo itself.
-    seconds = DEMO_BAG_SECONDS if args.duration is None else min(DEMO_BAG_SECONDS, max(args.duration, 1.0))
-    relay_stop = threading.Event()
-    with tempfile.TemporaryDirectory(prefix="swanky-demo-") as tmp:
-        log.info("demo: simulating %s for %.0f s", ", ".join(robots), seconds)
+class DemoInput:
+    """The :class:`~host_bridge.inputs.base.Input` of ``--demo``: writes the bags, starts one
+    relay per robot, and hands on what ``live`` (the host's live input, listening on the plan's
+    endpoint) receives from them."""
+
+    def __init__(
+        self, plan: DemoPlan, live: Input, stop: threading.Event, duration: float | None
+    ) -> None:
+        self.plan = plan
+        self._live = live
+        self._stop = stop
+        # With --duration the replay need not be longer than the demo itself.
+        self._seconds = DEMO_BAG_SECONDS if duration is None else min(DEMO_BAG_SECONDS, max(duration, 1.0))
+        self._relay_stop = threading.Event()
+        self._relays: list[threading.Thread] = []
+        self._bags = tempfile.TemporaryDirectory(prefix="swanky-demo-")
+
+    @property
+    def last_activity(self) -> float:
+        return self._live.last_activity
+
+    def start(self, deliver: Deliver) -> None:
+        """Write the bags (watching the host's stop), then start the relays and the live input."""
+        robots = list(self.plan.robots)
+        log.info("demo: simulating %s for %.0f s", ", ".join(robots), self._seconds)
         started = time.monotonic()
-        bags = write_bags(Path(tmp), robots, seconds, stop)
+        bags = write_bags(Path(self._bags.name), robots, self._seconds, self._stop)
         if bags is None:
             return
         log.info("demo: bags written in %.1f s; relaying them over %s",
-                 time.monotonic() - started, args.demo_endpoint)
-        relays = [
+                 time.monotonic() - started, self.plan.endpoint)
+        self._relays = [
             threading.Thread(
-                target=_replay, args=(bag, robot, args.demo_endpoint, relay_stop, stop),
+                target=_replay, args=(bag, robot, self.plan.endpoint, self._relay_stop, self._stop),
                 name=f"demo-relay-{robot}", daemon=True,
             )
             for bag, robot in zip(bags, robots, strict=True)
         ]
-        for relay in relays:
+        for relay in self._relays:
             relay.start()
-        try:
-            run_host()
-        finally:
-            relay_stop.set()
-            stop.set()
-            for relay in relays:
-                relay.join(timeout=5.0)
+        self._live.start(deliver)
+
+    def ended(self) -> bool:
+        return self._live.ended()
+
+    def close(self) -> None:
+        self._live.close()
+        self._relay_stop.set()
+        for relay in self._relays:
+            relay.join(timeout=5.0)
+        self._bags.cleanup()

@@ -6,10 +6,13 @@ give the host the same RawMessages (same CDR, same definitions, same log times).
 
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 from host_bridge.errors import InputError
+from host_bridge.inputs.base import Deliver
 from robot_relay.errors import SourceError
 from robot_relay.sources.bag import BagSource
 from robot_relay.wire import RawMessage
@@ -29,3 +32,42 @@ def bag_runs(path: Path, robot: str, run_size: int = 2048) -> Iterator[list[RawM
                 yield run
     except SourceError as err:
         raise InputError(str(err)) from err
+
+
+class BagInput:
+    """The :class:`~host_bridge.inputs.base.Input` of ``--bag``: the bag's runs, read and
+    delivered on a thread of its own until its end or :meth:`close` (after the current run)."""
+
+    def __init__(self, path: Path, robot: str) -> None:
+        self.path = path
+        self.robot = robot
+        self.last_activity = time.monotonic()
+        self._closing = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def start(self, deliver: Deliver) -> None:
+        self._thread = threading.Thread(
+            target=self._read, args=(deliver,), name="bag-input", daemon=True
+        )
+        self._thread.start()
+
+    def _read(self, deliver: Deliver) -> None:
+        try:
+            for run in bag_runs(self.path, self.robot):
+                self.last_activity = time.monotonic()
+                deliver(run)
+                if self._closing.is_set():
+                    return
+        except BaseException as err:  # raised on the app's thread by ended()
+            self._error = err
+
+    def ended(self) -> bool:
+        if self._error is not None:
+            raise self._error
+        return self._thread is not None and not self._thread.is_alive()
+
+    def close(self) -> None:
+        self._closing.set()
+        if self._thread is not None:
+            self._thread.join()

@@ -13,12 +13,8 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
-from dataclasses import dataclass
 
-import rerun as rr
-
-from host_bridge.contract import TIMELINE_RECEIVE, LogItem
+from host_bridge.inputs.base import Deliver, InputItem, InputProblem
 from robot_relay.wire import RawMessage
 
 log = logging.getLogger("swanky.host")
@@ -28,44 +24,11 @@ MAX_BATCH = 1024
 # A worker that wakes for one message waits this long for more, so high-rate topics reach the
 # converters as runs (send_columns) instead of one call per message.
 GATHER_S = 0.005
-PRESENCE_PATH = "/_swanky/robots"
-
-
-@dataclass(frozen=True, slots=True)
-class InputProblem:
-    """A sample the input had to drop; the dispatcher reports it once per kind."""
-
-    robot: str
-    topic: str
-    error: Exception
-
-
-@dataclass(frozen=True, slots=True)
-class RobotEvent:
-    """A robot joined or left (its liveliness token(s) appeared or all disappeared)."""
-
-    robot: str
-    joined: bool
-    source: str
-
-    @property
-    def text(self) -> str:
-        return f"robot {self.robot} {'joined' if self.joined else 'left'} ({self.source})"
-
-
-def presence_items(event: RobotEvent, now_ns: int) -> list[LogItem]:
-    """A robot joining or leaving, as a line of the /_swanky/robots TextLog at ``now_ns``."""
-    text = rr.TextLog(event.text, level=rr.TextLogLevel.INFO)
-    return [LogItem(PRESENCE_PATH, (text,), times={TIMELINE_RECEIVE: now_ns})]
-
-
-QueueItem = RawMessage | InputProblem | RobotEvent
-Handler = Callable[[list[QueueItem]], None]
 
 
 class _RobotQueue:
     def __init__(self, lock: threading.Lock) -> None:
-        self.items: deque[tuple[QueueItem, bool]] = deque()
+        self.items: deque[tuple[InputItem, bool]] = deque()
         self.ready = threading.Condition(lock)
         self.worker: threading.Thread | None = None
 
@@ -83,10 +46,10 @@ class RobotQueues:
         self._lock = threading.Lock()
         self._any = threading.Condition(self._lock)
         self._robots: dict[str, _RobotQueue] = {}
-        self._handler: Handler | None = None
+        self._handler: Deliver | None = None
         self._closing = False
 
-    def put(self, item: QueueItem, latched: bool = False) -> None:
+    def put(self, item: InputItem, latched: bool = False) -> None:
         robot = item.robot
         with self._lock:
             state = self._robots.get(robot)
@@ -111,7 +74,7 @@ class RobotQueues:
                 return True
         return False
 
-    def _count_drop(self, robot: str, item: QueueItem) -> None:
+    def _count_drop(self, robot: str, item: InputItem) -> None:
         topic = item.topic if isinstance(item, RawMessage | InputProblem) else ""
         key = (robot, topic)
         if key not in self.dropped:
@@ -121,29 +84,9 @@ class RobotQueues:
             )
         self.dropped[key] = self.dropped.get(key, 0) + 1
 
-    # -- single consumer (tests, tools) ---------------------------------------------------
-
-    def drain(self, max_items: int = MAX_BATCH, wait: float = 0.05) -> list[QueueItem]:
-        """Items from every robot, taken in turn, once at least one arrived within ``wait``."""
-        deadline = time.monotonic() + wait
-        with self._lock:
-            while not any(s.items for s in self._robots.values()):
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or not self._any.wait(remaining):
-                    return []
-        time.sleep(GATHER_S)
-        items: list[QueueItem] = []
-        with self._lock:
-            queues = [s for s in self._robots.values() if s.worker is None]
-            while len(items) < max_items and any(s.items for s in queues):
-                for state in queues:
-                    if state.items and len(items) < max_items:
-                        items.append(state.items.popleft()[0])
-        return items
-
     # -- one worker thread per robot ---------------------------------------------------------
 
-    def serve(self, handler: Handler) -> None:
+    def serve(self, handler: Deliver) -> None:
         """From now on every robot's items go to ``handler`` from that robot's own thread."""
         with self._lock:
             self._handler = handler
@@ -158,7 +101,7 @@ class RobotQueues:
         )
         state.worker.start()
 
-    def _work(self, state: _RobotQueue, handler: Handler) -> None:
+    def _work(self, state: _RobotQueue, handler: Deliver) -> None:
         while True:
             with self._lock:
                 while not state.items and not self._closing:

@@ -25,7 +25,8 @@ import zenoh
 from zenoh import ext
 
 from host_bridge.errors import UnknownTypeError
-from host_bridge.inputs.queues import InputProblem, QueueItem, RobotEvent, RobotQueues
+from host_bridge.inputs.base import InputProblem, RobotEvent
+from host_bridge.inputs.queues import RobotQueues
 from host_bridge.inputs.zenoh import check_robot_pattern, robot_matches
 from host_bridge.schemas import BundledDefinitions
 from robot_relay.errors import GraphError
@@ -277,11 +278,6 @@ class RmwZenohInput:
                 return
             self._warned.add((robot, key))
         self.queues.put(InputProblem(robot, key, err))
-
-    # -- consumer side -------------------------------------------------------------------------
-
-    def drain(self, max_items: int = 1024, wait: float = 0.05) -> list[QueueItem]:
-        return self.queues.drain(max_items, wait)
 
     def close(self) -> None:
         with self._lock:

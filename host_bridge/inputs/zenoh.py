@@ -18,7 +18,8 @@ import zenoh
 from zenoh import ext
 
 from host_bridge.errors import ConfigError
-from host_bridge.inputs.queues import InputProblem, QueueItem, RobotEvent, RobotQueues
+from host_bridge.inputs.base import InputItem, InputProblem, RobotEvent
+from host_bridge.inputs.queues import RobotQueues
 from robot_relay.errors import WireError
 from robot_relay.wire import (
     Attachment,
@@ -39,10 +40,6 @@ log = logging.getLogger("swanky.host")
 CATALOG_TIMEOUT_S = 5.0
 CATALOG_RETRY_S = 2.0
 MAX_PENDING_PER_ROBOT = 2000
-
-__all__ = [
-    "InputProblem", "QueueItem", "RobotEvent", "ZenohInput", "check_robot_pattern", "fetch_catalog",
-]
 
 
 def check_robot_pattern(pattern: str) -> str:
@@ -176,7 +173,7 @@ class ZenohInput:
         if deliver:
             self._put(raw, latched)
 
-    def _put(self, item: QueueItem, latched: bool = False) -> None:
+    def _put(self, item: InputItem, latched: bool = False) -> None:
         self.queues.put(item, latched)
 
     def _fetch_catalog(self, robot: str) -> None:
@@ -222,12 +219,6 @@ class ZenohInput:
             if info is not None and info.msgtype == waiting.msgtype:
                 waiting = dataclasses.replace(waiting, definition=info.definition)  # noqa: PLW2901
             self._put(waiting, info is not None and info.latched)
-
-    # -- consumer side -----------------------------------------------------------------------
-
-    def drain(self, max_items: int = 1024, wait: float = 0.05) -> list[QueueItem]:
-        """Gather what arrives within ``wait`` seconds (at least one item, or none on timeout)."""
-        return self.queues.drain(max_items, wait)
 
     def close(self) -> None:
         self._closed.set()

@@ -21,10 +21,9 @@ from host_bridge.config import HostConfig, TopicSettings
 from host_bridge.contract import LogEntry, LogItem
 from host_bridge.converters import images, laser
 from host_bridge.dispatch import Dispatcher
-from host_bridge.errors import ConfigError as HostConfigError
+from host_bridge.errors import ConfigError
 from host_bridge.registry import default_registry
 from host_bridge.sink import RerunSink
-from robot_relay.errors import ConfigError
 from robot_relay.wire import RawMessage
 
 REGISTERED = default_registry().types()
@@ -368,6 +367,6 @@ def test_dispatcher_warns_once_about_a_misfit_glob_and_converts_anyway(tmp_path:
     ]]
     assert [type(e.archetypes[0]) for e, _ in sink.items("/tb3/cam1")] == [rr.Image, rr.Image]
     assert dispatcher.counters[("tb3", "/cam2")].converted == 1
-    with pytest.raises(HostConfigError, match=r"topics\./cam\*\.converter"):
+    with pytest.raises(ConfigError, match=r"topics\./cam\*\.converter"):
         Dispatcher(RecordingSink(), config=load(tmp_path, "topics:\n  /cam*:\n    converter: both\n"),
                    strict=True).dispatch([RawMessage("tb3", "/cam1", IMAGE, image_cdr(1))])

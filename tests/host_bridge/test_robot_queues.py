@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Sequence
 
-from host_bridge.inputs.queues import InputProblem, QueueItem, RobotEvent, RobotQueues
+from host_bridge.inputs.base import InputItem, InputProblem, RobotEvent
+from host_bridge.inputs.queues import RobotQueues
 from robot_relay.wire import RawMessage
+from tests.host_bridge.inputs.received import Received
 
 
 def raw(robot: str, topic: str, n: int) -> RawMessage:
@@ -19,7 +22,10 @@ def test_full_queue_drops_oldest_non_latched_and_counts() -> None:
     for n in range(1, 6):
         queues.put(raw("a", "/scan", n))
     queues.put(raw("b", "/scan", 9))
-    items = queues.drain(wait=0.5)
+    received = Received()
+    queues.serve(received.take)  # the workers start only now: the queues are full
+    items = received.wait_for(lambda items: len(items) == 4)
+    queues.close(timeout=5)
     a = [i.data[0] for i in items if isinstance(i, RawMessage) and i.robot == "a"]
     assert a == [0, 4, 5]  # the latched one survives, then the newest scans
     assert [i.data[0] for i in items if isinstance(i, RawMessage) and i.robot == "b"] == [9]
@@ -27,13 +33,21 @@ def test_full_queue_drops_oldest_non_latched_and_counts() -> None:
     assert "[a] /scan: 3 dropped" in queues.drop_summary()
 
 
-def test_drain_takes_robots_in_turn() -> None:
+def test_each_robot_is_served_on_its_own_thread() -> None:
     queues = RobotQueues()
     for n in range(4):
         queues.put(raw("a", "/x", n))
     queues.put(raw("b", "/x", 10))
-    items = queues.drain(max_items=2, wait=0.5)
-    assert sorted(i.robot for i in items) == ["a", "b"]
+    threads: dict[str, set[str]] = {}
+
+    def take(items: Sequence[InputItem]) -> None:
+        for item in items:
+            threads.setdefault(item.robot, set()).add(threading.current_thread().name)
+
+    queues.serve(take)
+    queues.close(timeout=5)
+    assert sorted(threads) == ["a", "b"]
+    assert threads == {"a": {"robot-a"}, "b": {"robot-b"}}
 
 
 def test_a_stalled_robot_does_not_stall_the_others() -> None:
@@ -41,7 +55,7 @@ def test_a_stalled_robot_does_not_stall_the_others() -> None:
     release = threading.Event()
     seen: dict[str, list[int]] = {"slow": [], "fast": []}
 
-    def handle(items: list[QueueItem]) -> None:
+    def handle(items: Sequence[InputItem]) -> None:
         for item in items:
             if isinstance(item, RawMessage):
                 if item.robot == "slow":
@@ -70,7 +84,7 @@ def test_a_stalled_robot_does_not_stall_the_others() -> None:
 def test_worker_error_is_kept_for_the_main_thread() -> None:
     queues = RobotQueues()
 
-    def handle(items: list[QueueItem]) -> None:
+    def handle(items: Sequence[InputItem]) -> None:
         raise ValueError("strict")
 
     queues.serve(handle)
@@ -85,6 +99,10 @@ def test_robot_events_count_as_activity() -> None:
     time.sleep(0.01)
     queues.put(RobotEvent("a", True, "rmw_zenoh"))
     assert queues.last_activity > before
-    assert next(i for i in queues.drain(wait=0.5) if isinstance(i, RobotEvent)).text == (
+    received = Received()
+    queues.serve(received.take)
+    items = received.wait_for(lambda items: len(items) == 1)
+    queues.close(timeout=5)
+    assert next(i for i in items if isinstance(i, RobotEvent)).text == (
         "robot a joined (rmw_zenoh)"
     )

@@ -16,14 +16,14 @@ from pathlib import Path
 
 import zenoh
 
-from robot_relay.session import add_zenoh_arguments, open_session
+from robot_relay.session import add_zenoh_arguments, open_session, zenoh_options
 
 
 def open_loopback(*flags: str) -> zenoh.Session:
     """A Zenoh session opened through the commands' own flags, never scouting the network."""
     parser = argparse.ArgumentParser()
     add_zenoh_arguments(parser)
-    return open_session(parser.parse_args(["--no-multicast-scouting", *flags]))
+    return open_session(zenoh_options(parser.parse_args(["--no-multicast-scouting", *flags])))
 
 
 def free_port() -> int:

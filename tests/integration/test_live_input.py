@@ -8,23 +8,15 @@ import pytest
 import zenoh
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.inputs.zenoh import InputProblem, QueueItem, ZenohInput
+from host_bridge.inputs.base import InputProblem
+from host_bridge.inputs.live import LiveInput
 from robot_relay.relay import Relay
 from robot_relay.wire import Attachment, Catalog, RawMessage, TopicInfo, cdr_encoding, data_key
+from tests.host_bridge.inputs.received import collect
 
 pytestmark = pytest.mark.integration
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
-
-
-
-
-def collect(source: ZenohInput, count: int, timeout: float = 10.0) -> list[QueueItem]:
-    items: list[QueueItem] = []
-    deadline = time.monotonic() + timeout
-    while len(items) < count and time.monotonic() < deadline:
-        items.extend(source.drain(wait=0.1))
-    return items
 
 
 def test_wrong_attachment_version_is_named_and_other_samples_flow(
@@ -35,7 +27,7 @@ def test_wrong_attachment_version_is_named_and_other_samples_flow(
                                      "std_msgs/msg/String"))
     catalog = Catalog("tb3", "bag", (TopicInfo("/chat", "std_msgs/msg/String", None),))
     relay = Relay(robot, catalog)
-    source = ZenohInput(host)
+    source = LiveInput(host, rmw_zenoh=False)
     try:
         assert relay.wait_for_host(10.0)
         bad = bytearray(Attachment(0, 1).pack())
@@ -75,7 +67,7 @@ def test_latched_topic_reaches_a_host_that_starts_late(
     try:
         relay.publish(RawMessage("tb3", "/tf_static", "tf2_msgs/msg/TFMessage", data))
         time.sleep(0.5)
-        source = ZenohInput(host)  # subscribes only now
+        source = LiveInput(host, rmw_zenoh=False)  # subscribes only now
         try:
             items = collect(source, 1)
         finally:

@@ -17,7 +17,7 @@ from rosbags.rosbag2 import Writer
 from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.cli import main as host_main
-from host_bridge.inputs.zenoh import ZenohInput
+from host_bridge.inputs.live import LiveInput
 from robot_relay.policy import PolicyTable
 from robot_relay.relay import Relay
 from robot_relay.sources.ros2 import Ros2Source
@@ -31,8 +31,8 @@ from robot_relay.wire import (
     TopicInfo,
     data_key,
 )
+from tests.host_bridge.inputs.received import collect
 from tests.integration.procs import command, free_port, running
-from tests.integration.test_live_input import collect
 from tests.robot_relay.test_ros2_source import FakeNode, latched, make_source, sensor
 from tests.rrd import entity_rows
 
@@ -166,7 +166,7 @@ def test_compressed_payloads_reach_the_host_byte_for_byte(
                                len(s.payload.to_bytes()))),
     )
     relay = Relay(robot, catalog, policies)
-    source = ZenohInput(host)
+    source = LiveInput(host, rmw_zenoh=False)
     try:
         assert relay.wait_for_host(10.0)
         time.sleep(0.5)  # the advanced subscriber's late-publisher detection settles

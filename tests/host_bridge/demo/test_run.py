@@ -6,7 +6,7 @@ import re
 
 import pytest
 
-from host_bridge.cli import parse_args
+from host_bridge.cli import host_options, parse_args
 from host_bridge.demo.run import configure_demo, demo_robot_names
 from host_bridge.errors import ConfigError
 from host_bridge.inputs.zenoh import robot_matches
@@ -25,12 +25,15 @@ def test_robots_must_be_a_count_with_demo(value: str) -> None:
 
 
 def test_configure_demo_listens_on_loopback_for_its_own_robots() -> None:
-    args = parse_args(["--demo", "--robots", "3", "--save", "x.rrd", "-l", "tcp/127.0.0.1:7447"])
-    configure_demo(args)
-    assert args.demo_robots == ["sim", "sim2", "sim3"]
-    assert all(robot_matches(name, args.robots) for name in args.demo_robots)
-    assert not robot_matches("tb3", args.robots)
-    assert args.listen[0] == "tcp/127.0.0.1:7447"
-    assert args.listen[1] == args.demo_endpoint
-    assert args.demo_endpoint.startswith("tcp/127.0.0.1:")
-    assert args.no_multicast_scouting
+    options = host_options(
+        parse_args(["--demo", "--robots", "3", "--save", "x.rrd", "-l", "tcp/127.0.0.1:7447"])
+    )
+    demo = configure_demo(options.robots)
+    zenoh = demo.host_zenoh(options.zenoh)
+    assert list(demo.robots) == ["sim", "sim2", "sim3"]
+    assert all(robot_matches(name, demo.robot_filter) for name in demo.robots)
+    assert not robot_matches("tb3", demo.robot_filter)
+    assert zenoh.listen[0] == "tcp/127.0.0.1:7447"
+    assert zenoh.listen[1] == demo.endpoint
+    assert demo.endpoint.startswith("tcp/127.0.0.1:")
+    assert not zenoh.multicast_scouting

@@ -3,15 +3,15 @@
 
 from __future__ import annotations
 
-import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import pytest
 import zenoh
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from host_bridge.inputs.queues import InputProblem, QueueItem, RobotEvent, RobotQueues
+from host_bridge.inputs.base import InputItem, InputProblem, RobotEvent
+from host_bridge.inputs.queues import RobotQueues
 from host_bridge.inputs.zenoh import ZenohInput, check_robot_pattern, robot_matches
 from robot_relay.wire import (
     Attachment,
@@ -25,11 +25,11 @@ from robot_relay.wire import (
     cdr_encoding,
     data_key,
 )
+from tests.host_bridge.inputs.received import TIMEOUT_S, Received
 
 READING = "acme_msgs/msg/Reading"
 READING_DEFINITION = MessageDefinition("ros2msg", "float64 celsius\nstring sensor\n")
 STRING = "std_msgs/msg/String"
-TIMEOUT_S = 20.0  # generous: the machine is shared; every wait ends as soon as its condition holds
 
 
 def reading_cdr(celsius: float, sensor: str) -> bytes:
@@ -50,26 +50,7 @@ def catalog(robot: str) -> Catalog:
     ))
 
 
-class Received:
-    """What the input's queues hand the host, taken the way the host takes it (queues.serve)."""
-
-    def __init__(self, queues: RobotQueues) -> None:
-        self.items: list[QueueItem] = []
-        self._changed = threading.Condition()
-        queues.serve(self._take)
-
-    def _take(self, batch: list[QueueItem]) -> None:
-        with self._changed:
-            self.items.extend(batch)
-            self._changed.notify_all()
-
-    def wait_for(self, done: Callable[[list[QueueItem]], bool]) -> list[QueueItem]:
-        with self._changed:
-            self._changed.wait_for(lambda: done(self.items), TIMEOUT_S)
-            return list(self.items)
-
-
-def messages(items: list[QueueItem]) -> list[RawMessage]:
+def messages(items: list[InputItem]) -> list[RawMessage]:
     return [item for item in items if isinstance(item, RawMessage)]
 
 
@@ -109,7 +90,8 @@ def test_a_sample_becomes_a_raw_message_with_its_catalog_definition(
     sessions: tuple[zenoh.Session, zenoh.Session], queues: RobotQueues
 ) -> None:
     host, robot = sessions
-    received = Received(queues)
+    received = Received()
+    queues.serve(received.take)
     queryable = serve_catalog(robot, host, "tb3")
     source = ZenohInput(host, queues=queues)
     try:
@@ -135,7 +117,8 @@ def test_unknown_attachment_version_is_a_problem_naming_the_key_and_the_next_sam
     sessions: tuple[zenoh.Session, zenoh.Session], queues: RobotQueues
 ) -> None:
     host, robot = sessions
-    received = Received(queues)
+    received = Received()
+    queues.serve(received.take)
     queryable = serve_catalog(robot, host, "tb3")
     source = ZenohInput(host, queues=queues)
     try:
@@ -163,7 +146,8 @@ def test_only_the_robots_of_the_pattern_are_heard(
     sessions: tuple[zenoh.Session, zenoh.Session], queues: RobotQueues
 ) -> None:
     host, robot = sessions
-    received = Received(queues)
+    received = Received()
+    queues.serve(received.take)
     queryables = [serve_catalog(robot, host, name) for name in ("east-1", "west-1")]
     tokens = [robot.liveliness().declare_token(alive_key(name)) for name in ("west-1", "east-1")]
     source = ZenohInput(host, robots="east-$*", queues=queues)

@@ -1,0 +1,264 @@
+"""``swanky-host``'s wiring: options -> one input -> the dispatcher -> the outputs.
+
+cli.py turns the flags into a :class:`HostOptions` record and the process's signals into a stop
+event; everything here reads records only. The input is a :class:`~host_bridge.inputs.base.Input`
+(a bag, live robots over Zenoh, the demo); the outputs are the Rerun sink with its layout, and
+the dispatcher's taps (``--record-mcap``, ``/_stats``, the bag's progress line).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+import time
+from collections.abc import Callable
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from host_bridge.blueprint import BlueprintFollower, check_blueprint_file
+from host_bridge.config import HostConfig
+from host_bridge.dispatch import Dispatcher
+from host_bridge.errors import PartialConvertError, SinkError, relay_errors
+from host_bridge.inputs.base import Input
+from host_bridge.recorder import McapRecorder, may_hold_several_robots
+from host_bridge.registry import default_registry
+from host_bridge.resources import ResourceResolver, RobotFetch, parse_package_path
+from host_bridge.robot_files import RobotFiles
+from host_bridge.sink import APPLICATION_ID, RerunSink, SinkOptions
+from robot_relay.session import ZenohOptions
+from robot_relay.wire import check_robot_name
+
+if TYPE_CHECKING:
+    from host_bridge.demo.run import DemoPlan
+
+log = logging.getLogger("swanky.host")
+
+POLL_S = 0.05
+"""How often the main thread looks at the input, the clock and the stop event."""
+
+
+@dataclass(frozen=True, slots=True)
+class HostOptions:
+    """Everything ``swanky-host`` was asked to do (cli.py reads it from the flags)."""
+
+    sink: SinkOptions = field(default_factory=lambda: SinkOptions(spawn=True))
+    zenoh: ZenohOptions = field(default_factory=ZenohOptions)
+    bag: Path | None = None
+    robot: str = "robot"
+    demo: bool = False
+    robots: str = "*"
+    """Live: a Zenoh key chunk of robot names; with ``demo``: how many simulated robots."""
+    domain: int = 0
+    rmw_zenoh: bool = True
+    list_topics: bool = False
+    record_mcap: Path | None = None
+    stats: bool | None = None
+    """None: on live, off for a bag."""
+    blueprint: Path | None = None
+    send_layout: bool = True
+    duration: float | None = None
+    until_idle: float | None = None
+    urdf: Path | None = None
+    package_path: tuple[str, ...] = ()
+    config: Path | None = None
+    print_config: bool = False
+    strict: bool = False
+
+
+@dataclass
+class Outputs:
+    """What the host writes to, closed in reverse order of opening whatever happened."""
+
+    sink: RerunSink | None = None
+    layout: BlueprintFollower | None = None
+    recorder: McapRecorder | None = None
+
+    def close(self) -> bool:
+        """Close everything; False (and said why on stderr) when a viewer missed data."""
+        if self.recorder is not None:
+            self.recorder.close()
+        if self.layout is not None:
+            self.layout.close()
+        if self.sink is None:
+            return True
+        try:
+            self.sink.close()
+        except SinkError as err:
+            print(f"swanky-host: error: {err}", file=sys.stderr)
+            return False
+        return True
+
+
+def resolver(package_path: tuple[str, ...], robot_fetch: RobotFetch | None = None) -> ResourceResolver:
+    env = ResourceResolver.from_env()
+    packages = dict(parse_package_path(option) for option in package_path)
+    return ResourceResolver(packages, env.search_paths, robot_fetch=robot_fetch)
+
+
+def log_urdf_file(robot: str, urdf: Path, dispatcher: Dispatcher) -> None:
+    """The --urdf model of robot --robot, logged once (static) before any data; the robot's
+    /robot_description is then not drawn."""
+    from host_bridge.contract import ConvertContext
+    from host_bridge.converters.urdf import model_items_from_file
+
+    ctx = ConvertContext(
+        robot=robot, topic="/robot_description", entity_path=f"/{robot}/robot_model",
+        times={}, robot_state=dispatcher.robot_state(robot),
+    )
+    try:
+        dispatcher.log(robot, model_items_from_file(urdf, ctx), {})
+    except PartialConvertError as err:
+        dispatcher.log(robot, err.items, {})
+        dispatcher.warn(robot, str(urdf), err)
+
+
+def start_layout(options: HostOptions, sink: RerunSink) -> BlueprintFollower | None:
+    """The user's --blueprint file, sent once; else Swanky's layout following the topics,
+    unless --no-blueprint."""
+    if options.blueprint is not None:
+        sink.send_blueprint_file(options.blueprint)
+        return None
+    if not options.send_layout:
+        return None
+    stats = options.stats if options.stats is not None else options.bag is None
+    return BlueprintFollower(sink.send_blueprint, stats=stats)
+
+
+def open_input(
+    options: HostOptions, dispatcher: Dispatcher, *, demo: DemoPlan | None,
+    robot_files: RobotFiles | None, stop: threading.Event, closing: ExitStack,
+) -> Input:
+    """The input the options name, with the taps that go with it; ``closing`` closes what was
+    opened (the input first, the Zenoh session last)."""
+    from host_bridge.stats import StatsTap
+
+    if options.bag is not None:
+        from host_bridge.inputs.bag import BagInput
+
+        if options.stats:
+            dispatcher.taps.append(StatsTap(dispatcher.sink, dispatcher.counters))
+        bag: Input = BagInput(options.bag, options.robot)
+        closing.callback(bag.close)
+        return bag
+    from host_bridge.inputs.live import LiveInput, open_host_session
+
+    zenoh, robots = options.zenoh, options.robots
+    if demo is not None:
+        zenoh, robots = demo.host_zenoh(zenoh), demo.robot_filter
+    session = open_host_session(zenoh)
+    closing.callback(session.close)
+    if robot_files is not None:
+        robot_files.attach(session)
+        closing.callback(robot_files.detach)
+    if options.stats is not False:
+        stats = StatsTap(dispatcher.sink, dispatcher.counters, session=session, robots=robots)
+        dispatcher.taps.append(stats)
+        closing.callback(stats.close)
+    live: Input = LiveInput(
+        session, robots=robots, domain=options.domain, root_robot=options.robot,
+        rmw_zenoh=options.rmw_zenoh,
+    )
+    source = live
+    if demo is not None:
+        from host_bridge.demo.run import DemoInput
+
+        source = DemoInput(demo, live, stop, options.duration)
+    closing.callback(source.close)
+    return source
+
+
+def wait_for_end(
+    source: Input, stop: threading.Event, duration: float | None, until_idle: float | None
+) -> None:
+    """Until the input ends (a bag) or the host stops: a signal, ``duration`` seconds, or no
+    data for ``until_idle`` seconds."""
+    started = time.monotonic()
+    while not stop.wait(POLL_S):
+        if source.ended():
+            return
+        now = time.monotonic()
+        if duration is not None and now - started >= duration:
+            return
+        if until_idle is not None and now - source.last_activity >= until_idle:
+            log.info("no data for %.1f s, stopping", until_idle)
+            return
+
+
+def run(
+    options: HostOptions, stop: threading.Event, give_up: Callable[[], bool], outputs: Outputs
+) -> int:
+    """Run the host until its input ends or ``stop`` is set; ``give_up()``: a stop signal came,
+    so a slow viewer is not waited for. The exit code; HostErrors are the caller's to print."""
+    with relay_errors():
+        check_robot_name(options.robot)
+    if options.list_topics:
+        from host_bridge.listing import run_list
+
+        return run_list(options.zenoh, options.robots, options.duration, stop)
+    registry = default_registry()
+    config = (
+        HostConfig.load(options.config, registry.types()) if options.config is not None
+        else HostConfig.builtin(registry.types())
+    )
+    if options.print_config:
+        print(config.dump(), end="")
+        return 0
+    if options.bag is not None and not options.bag.exists():
+        print(f"swanky-host: error: bag {options.bag} does not exist", file=sys.stderr)
+        return 2
+    demo = None
+    if options.demo:
+        from host_bridge.demo.run import configure_demo
+
+        demo = configure_demo(options.robots)  # checks --robots N before a viewer opens
+    if options.blueprint is not None:
+        check_blueprint_file(options.blueprint, APPLICATION_ID)
+    # Live robots serve the meshes this PC lacks (robot_relay/files.py).
+    robot_files = None if options.bag is not None else RobotFiles()
+    meshes = resolver(options.package_path, None if robot_files is None else robot_files.fetch)
+    sink = outputs.sink = RerunSink(options.sink, give_up=give_up)
+    if sink.web_url:
+        print(f"Rerun web viewer: {sink.web_url}", flush=True)
+        print(f"swanky-host: {sink.web_note}", file=sys.stderr)
+    layout = outputs.layout = start_layout(options, sink)
+    dispatcher = Dispatcher(
+        sink, registry=registry, config=config, strict=options.strict,
+        resolver=meshes,
+        on_new_topic=None if layout is None else layout.topic_seen,
+    )
+    if options.record_mcap is not None:
+        outputs.recorder = McapRecorder(options.record_mcap, prefix_robot=may_hold_several_robots(
+            bag=options.bag is not None,
+            demo=demo is not None and len(demo.robots) == 1,
+            robots=options.robots))
+        dispatcher.taps.append(outputs.recorder)
+    if options.urdf is not None:
+        log_urdf_file(options.robot, options.urdf, dispatcher)
+    progress = None
+    if options.bag is not None:
+        from host_bridge.progress import Progress, bag_extent
+
+        progress = Progress(bag_extent(options.bag))
+        dispatcher.taps.append(progress)
+    with ExitStack() as closing:
+        source = open_input(
+            options, dispatcher, demo=demo, robot_files=robot_files, stop=stop, closing=closing
+        )
+        source.start(dispatcher.take)
+        # A bag converts to its end; --duration is then how long --serve-web keeps serving it.
+        live = options.bag is None
+        wait_for_end(source, stop, options.duration if live else None,
+                     options.until_idle if live else None)
+    source.ended()  # what went wrong while the last items were delivered
+    if progress is not None:
+        progress.finish()
+        if options.sink.serve_web and not stop.is_set():
+            # The web viewer lives in this process: keep serving the converted bag.
+            print("bag converted; serving the web viewer until Ctrl-C", file=sys.stderr)
+            stop.wait(options.duration)
+    dispatcher.close()
+    print(dispatcher.summary(), file=sys.stderr)
+    return 0

@@ -1,0 +1,81 @@
+"""What every host input is: the :class:`Input` protocol and the items inputs deliver.
+
+An input (a bag, the robots reached over Zenoh, the demo) turns what it reads into runs of
+:data:`InputItem`: RawMessages, the problems it met on the way (a sample it could not parse) and
+robots joining or leaving. ``host_bridge/app.py`` starts one with
+:meth:`Dispatcher.take <host_bridge.dispatch.Dispatcher.take>` as the place to put them, waits
+until it ends (a bag) or the host stops (live), and closes it. Push, not pull: live inputs
+receive on Zenoh's threads and convert each robot on a thread of its own (inputs/queues.py), so
+one slow robot delays only itself; a bag reads on its own thread and pushes its runs the same
+way, and the app waits on both alike.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import rerun as rr
+
+from host_bridge.contract import TIMELINE_RECEIVE, LogItem
+from robot_relay.wire import RawMessage
+
+PRESENCE_PATH = "/_swanky/robots"
+
+
+@dataclass(frozen=True, slots=True)
+class InputProblem:
+    """A sample the input had to drop; the dispatcher reports it once per kind."""
+
+    robot: str
+    topic: str
+    error: Exception
+
+
+@dataclass(frozen=True, slots=True)
+class RobotEvent:
+    """A robot joined or left (its liveliness token(s) appeared or all disappeared)."""
+
+    robot: str
+    joined: bool
+    source: str
+
+    @property
+    def text(self) -> str:
+        return f"robot {self.robot} {'joined' if self.joined else 'left'} ({self.source})"
+
+
+def presence_items(event: RobotEvent, now_ns: int) -> list[LogItem]:
+    """A robot joining or leaving, as a line of the /_swanky/robots TextLog at ``now_ns``."""
+    text = rr.TextLog(event.text, level=rr.TextLogLevel.INFO)
+    return [LogItem(PRESENCE_PATH, (text,), times={TIMELINE_RECEIVE: now_ns})]
+
+
+InputItem = RawMessage | InputProblem | RobotEvent
+Deliver = Callable[[Sequence[InputItem]], None]
+"""Where an input puts its runs (the dispatcher's ``take``); it may raise (``--strict``)."""
+
+
+class Input(Protocol):
+    """A source of robots' messages for the host, in the manner of rosbags' storage plugins:
+    the app only ever calls these four members."""
+
+    def start(self, deliver: Deliver) -> None:
+        """Begin handing runs of items to ``deliver``, from the input's own threads: one
+        robot's runs one at a time and in order, different robots' possibly at once. Returns
+        at once (the demo first writes its bags, watching the host's stop)."""
+
+    def ended(self) -> bool:
+        """True once the input has delivered all it ever will (a bag read to its end; a live
+        input never ends). Raises what stopped it: an unreadable bag, or the error ``deliver``
+        raised (``--strict``)."""
+
+    @property
+    def last_activity(self) -> float:
+        """``time.monotonic()`` when data, a problem or a robot event last arrived: what
+        ``--until-idle`` waits on."""
+
+    def close(self) -> None:
+        """Stop reading; what was already read is still delivered (a saved .rrd is then
+        complete). Idempotent."""
