@@ -23,7 +23,7 @@ from host_bridge.config import HostConfig
 from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import PartialConvertError, SinkError, relay_errors
 from host_bridge.inputs.base import Input
-from host_bridge.recorder import McapRecorder, may_hold_several_robots
+from host_bridge.recorder import McapRecorder, RawOutput, may_hold_several_robots
 from host_bridge.registry import default_registry
 from host_bridge.resources import ResourceResolver, RobotFetch, parse_package_path
 from host_bridge.robot_files import RobotFiles
@@ -74,7 +74,7 @@ class Outputs:
 
     sink: RerunSink | None = None
     layout: BlueprintFollower | None = None
-    recorder: McapRecorder | None = None
+    recorder: RawOutput | None = None
 
     def close(self) -> bool:
         """Close everything; False (and said why on stderr) when a viewer missed data."""
@@ -154,7 +154,9 @@ def open_input(
         robot_files.attach(session)
         closing.callback(robot_files.detach)
     if options.stats is not False:
-        stats = StatsTap(dispatcher.sink, dispatcher.counters, session=session, robots=robots)
+        stats: RawOutput = StatsTap(
+            dispatcher.sink, dispatcher.counters, session=session, robots=robots
+        )
         dispatcher.taps.append(stats)
         closing.callback(stats.close)
     live: Input = LiveInput(
@@ -230,11 +232,12 @@ def run(
         on_new_topic=None if layout is None else layout.topic_seen,
     )
     if options.record_mcap is not None:
-        outputs.recorder = McapRecorder(options.record_mcap, prefix_robot=may_hold_several_robots(
+        recorder: RawOutput = McapRecorder(options.record_mcap, prefix_robot=may_hold_several_robots(
             bag=options.bag is not None,
             demo=demo is not None and len(demo.robots) == 1,
             robots=options.robots))
-        dispatcher.taps.append(outputs.recorder)
+        outputs.recorder = recorder
+        dispatcher.taps.append(recorder)
     if options.urdf is not None:
         log_urdf_file(options.robot, options.urdf, dispatcher)
     progress = None

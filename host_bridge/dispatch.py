@@ -34,7 +34,7 @@ from host_bridge.frames import RobotFrames
 from host_bridge.inputs.base import InputItem, InputProblem, RobotEvent, presence_items
 from host_bridge.registry import Registry, default_registry
 from host_bridge.resources import ResourceResolver
-from host_bridge.sink import RerunSink
+from host_bridge.sink import Sink
 from host_bridge.state import RobotState, TopicState
 from robot_relay.wire import RawMessage
 
@@ -111,7 +111,7 @@ def message_times(msg: Any, raw: RawMessage, *, restamp: bool = False) -> dict[s
 class Dispatcher:
     def __init__(
         self,
-        sink: RerunSink,
+        sink: Sink,
         *,
         registry: Registry | None = None,
         decoder: Decoder | None = None,

@@ -23,7 +23,7 @@ import logging
 import threading
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, BinaryIO
+from typing import TYPE_CHECKING, BinaryIO, Protocol
 
 from mcap.writer import CompressionType, Writer
 
@@ -37,6 +37,15 @@ log = logging.getLogger("swanky.host")
 
 PROFILE = "ros2"
 MESSAGE_ENCODING = "cdr"
+
+
+class RawOutput(Protocol):
+    """An output of the raw messages themselves, before decoding: a dispatcher tap closed when
+    the host ends (the MCAP recorder, the ``/_stats`` tap). Called from each robot's thread."""
+
+    def __call__(self, batch: Sequence[RawMessage]) -> None: ...
+
+    def close(self) -> None: ...
 
 
 def may_hold_several_robots(*, bag: bool, demo: bool, robots: str) -> bool:

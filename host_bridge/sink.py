@@ -19,6 +19,7 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 from urllib.parse import urlsplit
 
 import numpy as np
@@ -51,6 +52,19 @@ DISCONNECT_TIMEOUT_S = 6.0
 """Longer than Rerun's own 5 s wait for a viewer it is still connecting to at shutdown."""
 FLUSH_STEP_S = 1.0
 """Flushes wait in steps this long, so Python sees signals and a dead viewer in between."""
+
+
+class Sink(Protocol):
+    """Where converted entries go: what the dispatcher and the ``/_stats`` tap write to.
+    :class:`RerunSink` is the host's; a second recording or a test's list would do as well."""
+
+    def log(self, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
+        """Log ``entries`` (LogItems at ``times`` unless they carry their own, ColumnsItems
+        with their time columns, static items once)."""
+
+    def close(self) -> None:
+        """Deliver everything logged (a file is then complete); a SinkError names what missed
+        some."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -44,7 +44,7 @@ from robot_relay.wire import RawMessage, RelayReport, parse_robot_key, stats_sel
 if TYPE_CHECKING:
     import zenoh
 
-    from host_bridge.sink import RerunSink
+    from host_bridge.sink import Sink
 
 log = logging.getLogger("swanky.host")
 
@@ -236,7 +236,7 @@ class StatsTap:
 
     def __init__(
         self,
-        sink: RerunSink,
+        sink: Sink,
         counters: Mapping[tuple[str, str], TopicCounters],
         *,
         session: zenoh.Session | None = None,
