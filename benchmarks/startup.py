@@ -1,0 +1,111 @@
+"""Start-up time of the two commands against a bare interpreter, and the imports that cost it.
+
+``swanky-host --help`` and ``swanky-relay --help`` (the console scripts installed beside this
+Python) are timed wall clock, whole process, alternating with the baseline ``python -c pass``
+(the same interpreter, site-packages and .pth files, nothing imported); each figure is the median
+of ``--runs``. Targets (issue 13): host <= 0.4 s, relay <= 0.3 s; the ratio printed against a
+target is target / ours, so >= 1.0 is met.
+
+Then ``python -X importtime`` of each command lists where the time goes: the third-party packages
+(and the project's own modules) each project module imports first, by cumulative import time. An
+import is charged to the first module that imports it, so these are the imports to make lazy.
+
+    .venv/bin/python benchmarks/startup.py [--runs 5] [--top 12]
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+BUDGET_SECONDS = 120
+
+OURS = ("host_bridge", "robot_relay", "swanky_schemas")
+COMMANDS = {"swanky-host": 0.4, "swanky-relay": 0.3}  # command -> target seconds for --help
+_IMPORTTIME_LINE = re.compile(r"import time:\s+(\d+) \|\s+(\d+) \|( *)(\S+)")
+
+
+@dataclass(frozen=True, slots=True)
+class Import:
+    module: str
+    cumulative_us: int
+    depth: int
+    parent: str  # the module whose import ran this one; "" at the top
+
+
+def wall_time(command: list[str]) -> float:
+    started = time.perf_counter()
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return time.perf_counter() - started
+
+
+def imports(command: list[str]) -> list[Import]:
+    """The modules ``command`` imports, parsed from ``-X importtime``, each with its importer.
+
+    importtime prints a module after everything it imported, one indent level deeper than it:
+    the parent of a line is the next line with a smaller indent."""
+    done = subprocess.run([sys.executable, "-X", "importtime", *command], check=True,
+                          capture_output=True, text=True)
+    rows = [(int(m[2]), len(m[3]) // 2, m[4])
+            for m in map(_IMPORTTIME_LINE.match, done.stderr.splitlines()) if m]
+    found: list[Import] = []
+    for k, (cumulative, depth, module) in enumerate(rows):
+        parent = next((name for _, d, name in rows[k + 1:] if d < depth), "")
+        found.append(Import(module, cumulative, depth, parent))
+    return found
+
+
+def is_ours(module: str) -> bool:
+    return module.split(".", maxsplit=1)[0] in OURS
+
+
+def report_imports(command: str, script: str, top: int) -> None:
+    found = imports([script, "--help"])
+    total = sum(i.cumulative_us for i in found if i.depth == 0)
+    print(f"{command} --help imports, {total / 1e3:.0f} ms in all; heaviest imports made by "
+          "project modules (cumulative ms, importer -> module):")
+    pulled_in = [i for i in found if is_ours(i.parent)]
+    for entry in sorted(pulled_in, key=lambda i: -i.cumulative_us)[:top]:
+        print(f"  {entry.cumulative_us / 1e3:7.1f} ms  {entry.parent} -> {entry.module}")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--runs", type=int, default=5, help="timings per command (median)")
+    parser.add_argument("--top", type=int, default=12, help="imports listed per command")
+    args = parser.parse_args()
+    bin_dir = Path(sys.executable).parent
+    scripts = {name: shutil.which(name, path=str(bin_dir)) for name in COMMANDS}
+    missing = [name for name, path in scripts.items() if path is None]
+    if missing:
+        print(f"needs {' and '.join(missing)} in {bin_dir} (pip install -e '.[host,relay]')",
+              file=sys.stderr)
+        return 1
+    baseline_runs: list[float] = []
+    command_runs: dict[str, list[float]] = {name: [] for name in COMMANDS}
+    for _ in range(args.runs):
+        baseline_runs.append(wall_time([sys.executable, "-c", "pass"]))
+        for name, script in scripts.items():
+            command_runs[name].append(wall_time([str(script), "--help"]))
+    baseline = statistics.median(baseline_runs)
+    print(f"baseline python -c pass: {baseline * 1e3:6.0f} ms (median of {args.runs})")
+    for name, target in COMMANDS.items():
+        ours = statistics.median(command_runs[name])
+        verdict = "met" if ours <= target else "MISSED"
+        print(f"{name} --help: {ours * 1e3:6.0f} ms (median of {args.runs}), "
+              f"{ours / baseline:.1f}x the bare interpreter; ratio target/ours "
+              f"{target / ours:.2f} (target <= {target * 1e3:.0f} ms: {verdict})")
+    for name, script in scripts.items():
+        report_imports(name, str(script), args.top)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
