@@ -1,23 +1,27 @@
-"""``swanky-relay``: runs on the robot; forwards raw CDR of ROS topics (live or from a bag)."""
+"""``swanky-relay``: runs on the robot; forwards raw CDR of ROS topics (live or from a bag).
+
+This module only turns flags (over the ``--config`` file) into a
+:class:`~robot_relay.app.RelayOptions` record and the process's signals into a stop event;
+``robot_relay/app.py`` does the rest."""
 
 from __future__ import annotations
 
 import argparse
-import fnmatch
+import dataclasses
 import logging
-import math
 import os
 import signal
 import socket
 import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
+from robot_relay import app
 from robot_relay.config import RelayConfig, load_relay_config
 from robot_relay.errors import RelayError
-from robot_relay.session import add_zenoh_arguments, open_session, zenoh_options
-from robot_relay.wire import ROBOT_NAME_PATTERN, check_robot_name
+from robot_relay.session import add_zenoh_arguments, zenoh_options
+from robot_relay.wire import ROBOT_NAME_PATTERN
 
 log = logging.getLogger("swanky.relay")
 
@@ -70,71 +74,32 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def apply_config(args: argparse.Namespace, config: RelayConfig) -> None:
-    """Fill what the command line left unset from the config file, then the defaults."""
-    args.robot = args.robot or config.robot or default_robot_name()
-    args.mode = args.mode or config.mode
-    args.connect = args.connect or list(config.connect)
-    args.listen = args.listen or list(config.listen)
-    if not args.zenoh_config and config.zenoh_config is not None:
-        args.zenoh_config = str(config.zenoh_config)
-    args.no_multicast_scouting = args.no_multicast_scouting or config.multicast_scouting is False
-    args.topics = args.topics or list(config.allow)
-    args.exclude = list(config.deny) if args.exclude is None else args.exclude
-    args.policies = config.policies
-
-
-def topic_filter(include: Sequence[str], exclude: Sequence[str]) -> Callable[[str], bool]:
-    """Topics matching an ``include`` glob and no ``exclude`` glob; a topic named exactly in
-    ``include`` is taken whatever ``exclude`` says (asking for /parameter_events by name)."""
-    named = {g for g in include if not any(c in g for c in "*?[")}
-
-    def accept(topic: str) -> bool:
-        name = "/" + topic.lstrip("/")
-        return name in named or (any(fnmatch.fnmatchcase(name, g) for g in include) and not any(
-            fnmatch.fnmatchcase(name, g) for g in exclude
-        ))
-
-    return accept
-
-
-def run_bag(args: argparse.Namespace, stop: threading.Event) -> int:
-    from robot_relay.files import serve_files
-    from robot_relay.relay import Relay
-    from robot_relay.sources.bag import BagSource
-
-    with BagSource(
-        args.bag, args.robot, rate=args.rate, loop=args.loop,
-        topics=topic_filter(args.topics, args.exclude),
-    ) as source:
-        catalog = source.catalog()
-        if not catalog.topics:
-            log.error("bag %s has no topics matching %s", args.bag, " ".join(args.topics))
-            return 1
-        session = open_session(zenoh_options(args))
-        try:
-            relay = Relay(session, catalog, args.policies)
-            files = serve_files(session, args.robot, args.package_path)
-            log.info("robot %s: %d topics from %s", args.robot, len(catalog.topics), args.bag)
-            if not relay.wait_for_host(args.wait_for_host):
-                log.error("no host subscribed within %.1f s; nothing replayed", args.wait_for_host)
-                return 1
-            relay.publish_all(files.watch(source.messages()), stop)
-            log.info("robot %s: replay finished, %d messages sent", args.robot, relay.published)
-            if args.hold > 0 and not stop.is_set():
-                log.info("robot %s: serving latched topics and files for %s s", args.robot, args.hold)
-                stop.wait(None if math.isinf(args.hold) else args.hold)
-            files.close()
-            relay.close()
-        finally:
-            session.close()
-    return 0
-
-
-def run_live(args: argparse.Namespace, stop: threading.Event) -> int:
-    from robot_relay.sources.ros2 import run_ros2_relay
-
-    return run_ros2_relay(args, stop, topic_filter(args.topics, args.exclude))
+def relay_options(args: argparse.Namespace, config: RelayConfig) -> app.RelayOptions:
+    """The flags over the ``--config`` file (what the command line left unset comes from the
+    file, then the defaults)."""
+    zenoh = zenoh_options(args)
+    return app.RelayOptions(
+        robot=args.robot or config.robot or default_robot_name(),
+        zenoh=dataclasses.replace(
+            zenoh,
+            mode=zenoh.mode or config.mode,
+            connect=zenoh.connect or config.connect,
+            listen=zenoh.listen or config.listen,
+            config_file=zenoh.config_file or (
+                None if config.zenoh_config is None else str(config.zenoh_config)
+            ),
+            multicast_scouting=zenoh.multicast_scouting and config.multicast_scouting is not False,
+        ),
+        topics=tuple(args.topics or config.allow),
+        exclude=config.deny if args.exclude is None else tuple(args.exclude),
+        policies=config.policies,
+        bag=args.bag,
+        rate=args.rate,
+        loop=args.loop,
+        wait_for_host=args.wait_for_host,
+        hold=args.hold,
+        package_path=tuple(args.package_path),
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -153,9 +118,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     try:
-        apply_config(args, load_relay_config(args.config) if args.config else RelayConfig())
-        check_robot_name(args.robot)
-        return run_bag(args, stop) if args.bag is not None else run_live(args, stop)
+        config = load_relay_config(args.config) if args.config else RelayConfig()
+        return app.run(relay_options(args, config), stop)
     except RelayError as err:
         print(f"swanky-relay: error: {err}", file=sys.stderr)
         return 2

@@ -18,13 +18,15 @@ Needs rosbags (``pip install ".[relay,bag]"``); the live ROS 2 source does not.
 from __future__ import annotations
 
 import logging
+import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
 from robot_relay.errors import SourceError
+from robot_relay.sources.base import Outlet, SourceThread, TopicFilter
 from robot_relay.sources.qos import adapted_qos
 from robot_relay.wire import (
     Catalog,
@@ -40,8 +42,6 @@ log = logging.getLogger("swanky.relay")
 # Bags recorded without QoS metadata (ROS 1, old rosbag2) still have these latched in ROS.
 CONVENTIONALLY_LATCHED = frozenset({"/tf_static", "/robot_description", "/map"})
 ROSBAGS_MISSING = 'reading bags needs rosbags: pip install ".[relay,bag]"'
-
-TopicFilter = Callable[[str], bool]
 
 
 def _all_topics(topic: str) -> bool:
@@ -150,7 +150,12 @@ def _storage_connections(reader: Any, wanted: Sequence[Any]) -> list[Any]:
 
 
 class BagSource:
-    """Yields a bag's messages as RawMessages in log-time order, optionally paced."""
+    """Yields a bag's messages as RawMessages in log-time order, optionally paced.
+
+    Opened as a context manager (``with BagSource(...) as bag: bag.messages()``), or, as the
+    relay's :class:`~robot_relay.sources.base.Source`, entered once and then :meth:`start`-ed:
+    it replays on its own thread until its end or :meth:`close`. Pacing waits end at ``close``.
+    """
 
     def __init__(
         self,
@@ -160,20 +165,26 @@ class BagSource:
         rate: float = 0.0,
         loop: bool = False,
         topics: TopicFilter = _all_topics,
-        sleep: Callable[[float], None] = time.sleep,
+        sleep: Callable[[float], object] | None = None,
     ) -> None:
         self.paths = bag_paths(path)
         self.robot = robot
         self.rate = rate
         self.loop = loop
         self.topics = topics
-        self._sleep = sleep
+        self._closing = threading.Event()
+        self._sleep = self._closing.wait if sleep is None else sleep
+        self._replay: SourceThread | None = None
         self._stack = ExitStack()
         self._reader: Any = None
         self._ros1_store: Any = None
         self._warned: set[str] = set()
 
     def __enter__(self) -> BagSource:
+        return self.open()
+
+    def open(self) -> BagSource:
+        """Open the bag and read its connections (nothing of the messages yet)."""
         self._reader = _open_reader(self.paths, self._stack)
         self.is_ros1 = self.paths[0].suffix == ".bag"
         self.connections = [c for c in self._reader.connections if self.topics(c.topic)]
@@ -194,6 +205,34 @@ class BagSource:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def start(self, outlet: Outlet) -> None:
+        """Replay on a thread of its own, to the end or until :meth:`close`."""
+
+        def replay() -> None:
+            for raw in self.messages():
+                if self._closing.is_set():
+                    return
+                outlet.publish(raw)
+
+        self._replay = SourceThread("bag-replay", replay)
+        self._replay.start()
+
+    def ended(self) -> bool:
+        return self._replay is not None and self._replay.ended()
+
+    def on_demand(self, topic: str, wanted: bool) -> None:
+        """A replay sends every message whoever listens."""
+
+    def drop_counts(self) -> Mapping[str, int]:
+        return {}
+
+    def close(self) -> None:
+        """Stop the replay (after the message being sent) and close the bag."""
+        self._closing.set()
+        if self._replay is not None:
+            self._replay.join()
         self._stack.close()
 
     @property

@@ -19,7 +19,7 @@ Loss the relay can see: with one publisher on a topic, a gap in the publication 
 rclpy hands the callback (Iron and later) counts as drops, reported in the relay's stats.
 
 How this was checked: the source alone against fake nodes answering like rclpy's graph API
-(tests/robot_relay/test_ros2_source.py), and :func:`run_ros2_relay` as ``swanky-relay`` against
+(tests/robot_relay/test_ros2_source.py), and :class:`RclpySource` in ``swanky-relay`` against
 real rclpy nodes of ROS 2 Jazzy with Fast DDS, from the ros-jazzy PyPI wheels
 (tests/integration/test_ros2_live.py). Humble's rclpy (no message info in callbacks) has not run
 here; keep this adapter thin.
@@ -27,7 +27,6 @@ here; keep this adapter thin.
 
 from __future__ import annotations
 
-import argparse
 import collections
 import importlib
 import logging
@@ -39,6 +38,8 @@ from collections.abc import Callable, Hashable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from robot_relay.errors import SourceError
+from robot_relay.sources.base import Outlet, SourceThread
 from robot_relay.sources.qos import Offer, live_qos
 from robot_relay.wire import Catalog, MessageDefinition, RawMessage, TopicInfo
 
@@ -382,34 +383,38 @@ def message_class(msgtype: str) -> Any:
     return getattr(importlib.import_module(f"{package}.{interface}"), name)
 
 
-def run_ros2_relay(
-    args: argparse.Namespace, stop: threading.Event, accept: Callable[[str], bool]
-) -> int:
-    """The live relay: a node ``swanky_relay`` whose executor runs on its own thread, the
-    source's discovery on this one, until ``stop``; then the subscriptions and the node go, the
-    relay's Zenoh declarations, ROS and the Zenoh session, in that order. rclpy's own signal
-    handlers are not installed (they would shut ROS down under the running executor and end in
-    tracebacks): the command's set ``stop``."""
-    try:
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-        from rclpy.signals import SignalHandlerOptions
-        from rclpy.subscription import Subscription
-    except ImportError as err:
-        log.error("rclpy is not importable (%s): source ROS 2 (e.g. /opt/ros/humble/setup.bash) "
-                  "or use --bag to replay a bag", err)
-        return 2
-    from robot_relay.files import serve_files
-    from robot_relay.relay import Relay
-    from robot_relay.session import open_session, zenoh_options
+class RclpySource:
+    """The live ROS 2 graph as the relay's :class:`~robot_relay.sources.base.Source`: a node
+    ``swanky_relay`` whose executor spins on one thread while another reads the graph
+    (:class:`Ros2Source`) and applies the hosts' demand. :meth:`close` destroys the
+    subscriptions, the executor and the node, then shuts ROS down. rclpy's own signal handlers
+    are not installed (they would shut ROS down under the running executor and end in
+    tracebacks): the command's stop the relay, which then closes this."""
 
-    # Jazzy (and Iron) hand a callback taking two arguments the message info too; Humble never.
-    with_message_info = hasattr(Subscription, "CallbackType")
-    session = open_session(zenoh_options(args))
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        node = rclpy.create_node("swanky_relay")
+    def __init__(self, robot: str, accept: Callable[[str], bool]) -> None:
+        try:
+            import rclpy
+            from rclpy.executors import SingleThreadedExecutor
+            from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+            from rclpy.signals import SignalHandlerOptions
+            from rclpy.subscription import Subscription
+        except ImportError as err:
+            msg = (f"rclpy is not importable ({err}): source ROS 2 (e.g. "
+                   "/opt/ros/humble/setup.bash) or use --bag to replay a bag")
+            raise SourceError(msg) from err
+        self.robot = robot
+        self._rclpy: Any = rclpy
+        self._stop = threading.Event()
+        self._threads: list[SourceThread] = []
+        self._closed = False
+        # Jazzy (and Iron) hand a callback taking two arguments the message info too; Humble never.
+        with_message_info = hasattr(Subscription, "CallbackType")
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+        try:
+            node = self._node = rclpy.create_node("swanky_relay")
+        except BaseException:
+            rclpy.shutdown()
+            raise
 
         def subscribe(info: TopicInfo, forward: Forward) -> Any:
             profile = QoSProfile(
@@ -430,37 +435,48 @@ def run_ros2_relay(
             )
             return node.create_subscription(message_type, info.topic, callback, profile, raw=True)
 
-        source = Ros2Source(node, args.robot, accept, ament_share_dirs(), subscribe=subscribe,
-                            unsubscribe=node.destroy_subscription)
-        relay = Relay(session, Catalog(args.robot, "ros2", ()), args.policies, demand=source,
-                      source_drops=source.drop_counts)
-        files = serve_files(session, args.robot, args.package_path)
+        self.graph = Ros2Source(node, robot, accept, ament_share_dirs(), subscribe=subscribe,
+                                unsubscribe=node.destroy_subscription)
+        self._executor: Any = SingleThreadedExecutor()
+        self._executor.add_node(node)
 
-        def forward(raw: RawMessage) -> None:
-            files.learn(raw)
-            relay.publish(raw)
+    def catalog(self) -> Catalog:
+        """Nothing yet: topics arrive through the outlet as the graph is read."""
+        return Catalog(self.robot, "ros2", ())
 
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-
+    def start(self, outlet: Outlet) -> None:
         def spin() -> None:
-            while not stop.is_set():
-                executor.spin_once(timeout_sec=0.1)
+            while not self._stop.is_set():
+                self._executor.spin_once(timeout_sec=0.1)
 
-        spinner = threading.Thread(target=spin, name="rclpy-executor")
-        spinner.start()
+        self._threads = [
+            SourceThread("rclpy-executor", spin),
+            SourceThread("ros2-graph", lambda: self.graph.run(
+                outlet.update_catalog, outlet.publish, self._stop)),
+        ]
+        for thread in self._threads:
+            thread.start()
+
+    def ended(self) -> bool:
+        """Never, unless a thread failed (raised here)."""
+        return any(thread.ended() for thread in self._threads)
+
+    def on_demand(self, topic: str, wanted: bool) -> None:
+        self.graph.on_demand(topic, wanted)
+
+    def drop_counts(self) -> Mapping[str, int]:
+        return self.graph.drop_counts()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        for thread in self._threads:
+            thread.join()
         try:
-            source.run(relay.update_catalog, forward, stop)
+            self.graph.close()
+            self._executor.shutdown()
+            self._node.destroy_node()
         finally:
-            stop.set()
-            spinner.join()
-            source.close()
-            executor.shutdown()
-            node.destroy_node()
-            files.close()
-            relay.close()
-        log.info("robot %s: stopped, %d messages sent", args.robot, relay.published)
-    finally:
-        rclpy.shutdown()
-        session.close()
-    return 0
+            self._rclpy.shutdown()

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from robot_relay.cli import apply_config, parse_args
+from robot_relay.cli import parse_args, relay_options
 from robot_relay.config import DEFAULT_DENY, RelayConfig, load_relay_config
 from robot_relay.errors import ConfigError
 from robot_relay.policy import (
@@ -214,14 +214,15 @@ def test_deploy_example_is_valid_and_the_command_line_overrides_it() -> None:
 
     args = parse_args(["--config", str(example), "--robot", "pupper", "-e", "tcp/10.0.0.2:7447",
                        "--exclude", "/rosout"])
-    apply_config(args, config)
-    assert (args.robot, args.connect, args.mode) == ("pupper", ["tcp/10.0.0.2:7447"], "client")
-    assert args.exclude == ["/rosout"]
-    assert args.topics == list(config.allow)
-    assert args.policies is table
+    options = relay_options(args, config)
+    assert (options.robot, options.zenoh.connect, options.zenoh.mode) == (
+        "pupper", ("tcp/10.0.0.2:7447",), "client"
+    )
+    assert options.exclude == ("/rosout",)
+    assert options.topics == config.allow
+    assert options.policies is table
 
-    bare = parse_args([])
-    apply_config(bare, RelayConfig())
-    assert bare.topics == ["*"]
-    assert bare.exclude == list(DEFAULT_DENY)
+    bare = relay_options(parse_args([]), RelayConfig())
+    assert bare.topics == ("*",)
+    assert bare.exclude == DEFAULT_DENY
     assert bare.robot  # the hostname

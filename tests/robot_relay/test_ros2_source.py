@@ -15,9 +15,9 @@ import pytest
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from host_bridge.decode import Decoder
-from robot_relay.cli import topic_filter
 from robot_relay.config import DEFAULT_DENY
 from robot_relay.relay import Relay
+from robot_relay.sources.base import topic_filter
 from robot_relay.sources.qos import adapted_qos, live_qos
 from robot_relay.sources.ros2 import (
     MessageInfo,
