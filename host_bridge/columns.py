@@ -16,6 +16,8 @@ knows, from its field list (no code per type):
    length prefixes it read. Every payload of that length whose header and length prefixes hold the
    same bytes has the same layout (each prefix's offset depends only on the prefixes before it), a
    comparison numpy makes for all of them at once; the others are walked in turn the same way.
+   Layouts are remembered per type and typestore (up to 64), so the next run of a topic walks
+   nothing: it only compares those bytes.
 3. Strings come out once per block: the string bytes of a layout's rows are compared with its
    first row, and only where they differ are the rows split by their distinct strings.
 
@@ -65,8 +67,10 @@ ENCAPSULATION = 4
 
 MESSAGES_PER_BLOCK = 16
 """A run is read in columns while it has at most one block per this many messages (plus one): a
-block costs about what rosbags takes for this many small messages, one by one."""
+new layout costs about what rosbags takes to decode 15 small messages one by one, a remembered
+one about 3."""
 
+_KEPT_LAYOUTS = 64  # layouts remembered per type
 _MAX_TRAILING = 3  # rosbags refuses a payload with more bytes after the message
 _LITTLE_ENDIAN = b"\x00\x01"
 _BIG_ENDIAN = b"\x00\x00"
@@ -159,18 +163,45 @@ def _element(desc: Any) -> tuple[Nodetype, Any, int | None, bool]:
     return node, arg, None, False
 
 
-_PLANS: weakref.WeakKeyDictionary[Typestore, dict[str, tuple[_Field, ...] | str]] = (
-    weakref.WeakKeyDictionary()
-)
+class _Plan:
+    """A type compiled for columns: its fields, and the layouts its payloads had (by payload
+    length), so a topic's runs walk a layout once, not once a run."""
+
+    def __init__(self, fields: tuple[_Field, ...]) -> None:
+        self.fields = fields
+        leaves = list(_leaves(fields))
+        self.numbers = [leaf for leaf in leaves if leaf.kind == "number"]
+        self.strings = [leaf for leaf in leaves if leaf.kind == "string"]
+        self._layouts: dict[int, list[_Layout]] = {}
+
+    def layouts(self, length: int) -> list[_Layout]:
+        return list(self._layouts.get(length, ()))
+
+    def remember(self, layout: _Layout) -> None:
+        if sum(map(len, self._layouts.values())) >= _KEPT_LAYOUTS:
+            self._layouts.clear()  # a type whose layouts keep changing (free text) starts over
+        self._layouts.setdefault(layout.length, []).append(layout)
 
 
-def _plan(store: Typestore, msgtype: str) -> tuple[_Field, ...]:
-    """The compiled fields of ``msgtype`` (kept per typestore, like rosbags' own functions)."""
+def _leaves(fields: tuple[_Field, ...]) -> Iterator[_Field]:
+    """The number and string fields, nested messages' included, in walk order."""
+    for field in fields:
+        if field.kind == "message":
+            yield from _leaves(field.members)
+        else:
+            yield field
+
+
+_PLANS: weakref.WeakKeyDictionary[Typestore, dict[str, _Plan | str]] = weakref.WeakKeyDictionary()
+
+
+def _plan(store: Typestore, msgtype: str) -> _Plan:
+    """The plan of ``msgtype`` (kept per typestore, like rosbags' own generated functions)."""
     plans = _PLANS.setdefault(store, {})
     plan = plans.get(msgtype)
     if plan is None:
         try:
-            plan = _compile(store, msgtype, "", ())
+            plan = _Plan(_compile(store, msgtype, "", ()))
         except _NotColumnarError as err:
             plan = str(err)
         plans[msgtype] = plan
@@ -188,8 +219,8 @@ Slot = tuple[tuple[int, ...], int, int]
 and its element count (numbers) or byte length with the terminator (strings)."""
 
 
-class _Layout:
-    """Where every field of one payload lies, found by walking it with CDR's rules."""
+class _Walk:
+    """One payload walked with CDR's rules: where each value lies, the lengths read on the way."""
 
     def __init__(self, payload: bytes, fields: tuple[_Field, ...], max_sequence: int) -> None:
         header = payload[:2]
@@ -205,16 +236,10 @@ class _Layout:
         self.numbers: dict[str, list[Slot]] = defaultdict(list)
         self.strings: dict[str, list[Slot]] = defaultdict(list)
         self.counts: dict[tuple[str, tuple[int, ...]], int] = {}
-        end = self._walk(fields, 0, ())
+        end = self._fields(fields, 0, ())
         if self._size - end > _MAX_TRAILING:
             msg = f"{self._size - end} bytes follow the message"
             raise _NotColumnarError(msg)
-
-    def signature(self) -> npt.NDArray[np.intp]:
-        """Offsets of the bytes that decide the layout: the header's and every length prefix's."""
-        starts = np.array(self.prefixes, dtype=np.intp)
-        prefix_bytes = (starts[:, None] + np.arange(4)).ravel()
-        return np.concatenate([np.arange(2), prefix_bytes])
 
     def _length_prefix(self, pos: int) -> int:
         if pos + 4 > self._size:
@@ -223,7 +248,7 @@ class _Layout:
         value: int = self._uint32.unpack_from(self._payload, ENCAPSULATION + pos)[0]
         return value
 
-    def _walk(self, fields: tuple[_Field, ...], pos: int, index: tuple[int, ...]) -> int:
+    def _fields(self, fields: tuple[_Field, ...], pos: int, index: tuple[int, ...]) -> int:
         for field in fields:
             count = field.length
             if field.sequence:
@@ -241,10 +266,10 @@ class _Layout:
                 for element in range(1 if count is None else count):
                     pos = self._string(field, pos, index if count is None else (*index, element))
             elif count is None:
-                pos = self._walk(field.members, pos, index)
+                pos = self._fields(field.members, pos, index)
             else:
                 for element in range(count):
-                    pos = self._walk(field.members, pos, (*index, element))
+                    pos = self._fields(field.members, pos, (*index, element))
         return pos
 
     def _number(self, field: _Field, pos: int, index: tuple[int, ...], count: int | None) -> int:
@@ -279,6 +304,98 @@ class _Layout:
             dims.append(count)
             indices = [(*index, element) for index in indices for element in range(count)]
         return tuple(dims)
+
+
+@dataclass(frozen=True, slots=True)
+class _NumberColumn:
+    """How one number field's column comes out of a layout's structured dtype."""
+
+    path: str
+    names: tuple[str, ...]
+    dims: tuple[int, ...]
+    code: str
+
+
+@dataclass(frozen=True, slots=True)
+class _StringSpan:
+    path: str
+    dims: tuple[int, ...]
+    sizes: tuple[int, ...]
+
+
+class _Layout:
+    """Where every field lies in the payloads of one length whose header and length prefixes hold
+    the bytes ``key`` at the offsets ``signature``: one payload walked, a structured dtype."""
+
+    def __init__(self, payload: bytes, plan: _Plan, max_sequence: int) -> None:
+        walk = _Walk(payload, plan.fields, max_sequence)
+        self.length = len(payload)
+        prefix_bytes = (np.array(walk.prefixes, dtype=np.intp)[:, None] + np.arange(4)).ravel()
+        self.signature = np.concatenate([np.arange(2), prefix_bytes])
+        self.key = np.frombuffer(payload, dtype=np.uint8)[self.signature]
+        names: list[str] = []
+        formats: list[Any] = []
+        offsets: list[int] = []
+        self._numbers: list[_NumberColumn] = []
+        for field in plan.numbers:
+            field_names = []
+            for index, offset, count in walk.numbers[field.path]:
+                if count:  # an empty sequence has no bytes to view
+                    field_names.append(f"{field.path}{list(index)}")
+                    code = f"{walk.byte_order}{'u1' if field.code == _BOOL else field.code}"
+                    formats.append(code if not field.repeated else (code, (count,)))
+                    offsets.append(offset)
+            names.extend(field_names)
+            self._numbers.append(_NumberColumn(field.path, tuple(field_names), walk.dims(field), field.code))
+        self._dtype = np.dtype(
+            {"names": names, "formats": formats, "offsets": offsets, "itemsize": self.length}
+        )
+        self._strings = [
+            _StringSpan(field.path, walk.dims(field), tuple(size for _, _, size in walk.strings[field.path]))
+            for field in plan.strings
+        ]
+        self._string_offsets = np.array(
+            [byte for field in plan.strings for _, offset, size in walk.strings[field.path]
+             for byte in range(offset, offset + size)],
+            dtype=np.intp,
+        )
+
+    def matching(self, grid: npt.NDArray[np.uint8], rows: npt.NDArray[np.intp]) -> npt.NDArray[np.bool_]:
+        """Which of ``grid``'s ``rows`` have this layout."""
+        same: npt.NDArray[np.bool_] = (grid[rows[:, None], self.signature] == self.key).all(axis=1)
+        return same
+
+    def numbers(self, grid: npt.NDArray[np.uint8]) -> dict[str, npt.NDArray[Any]]:
+        """Every number field of ``grid``'s payloads as a native-order column (rows, *dims),
+        through one structured view of the bytes."""
+        records = grid.view(self._dtype)[:, 0]
+        columns: dict[str, npt.NDArray[Any]] = {}
+        for column in self._numbers:
+            shape = (len(grid), *column.dims)
+            if not column.names:
+                columns[column.path] = np.zeros(shape, dtype=column.code)
+                continue
+            parts = [records[name] for name in column.names]
+            values = parts[0] if len(parts) == 1 else np.stack(parts, axis=1)
+            native = values != 0 if column.code == _BOOL else values.astype(column.code)
+            columns[column.path] = native.reshape(shape)
+        return columns
+
+    def string_bytes(self, grid: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+        """Every string's bytes (terminators included) of each payload, one row per payload."""
+        return grid[:, self._string_offsets]
+
+    def strings(self, row: npt.NDArray[np.uint8]) -> dict[str, StringValue]:
+        """The string fields of one row of :meth:`string_bytes`."""
+        strings: dict[str, StringValue] = {}
+        start = 0
+        for span in self._strings:
+            texts = []
+            for size in span.sizes:
+                texts.append(_decode(row[start : start + size], span.path))
+                start += size
+            strings[span.path] = _nest(texts, span.dims)
+        return strings
 
 
 @dataclass(frozen=True, slots=True)
@@ -366,93 +483,70 @@ def read_columns(
     limit = 1 + len(payloads) // MESSAGES_PER_BLOCK if max_blocks is None else max_blocks
     blocks: list[Block] = []
     try:
-        reader = _RunReader(_plan(store, msgtype), store.max_sequence_length)
-        for block in reader.blocks(payloads):
-            blocks.append(block)
-            if len(blocks) > limit:
-                return None
+        plan = _plan(store, msgtype)
+        for rows, grid in _by_length(payloads):
+            for block in _blocks(plan, rows, grid, store.max_sequence_length):
+                blocks.append(block)
+                if len(blocks) > limit:
+                    return None
     except _NotColumnarError:
         return None
     return Columns(len(payloads), tuple(sorted(blocks, key=lambda block: int(block.rows[0]))))
 
 
-def _leaves(fields: tuple[_Field, ...]) -> Iterator[_Field]:
-    """The number and string fields, nested messages' included, in walk order."""
-    for field in fields:
-        if field.kind == "message":
-            yield from _leaves(field.members)
-        else:
-            yield field
+def _by_length(
+    payloads: Sequence[bytes | memoryview],
+) -> Iterator[tuple[npt.NDArray[np.intp], npt.NDArray[np.uint8]]]:
+    """The joined payloads split by length: their positions and a (rows, length) byte array."""
+    lengths = np.fromiter(map(len, payloads), dtype=np.intp, count=len(payloads))
+    joined = np.frombuffer(b"".join(payloads), dtype=np.uint8)
+    if (lengths == lengths[0]).all():
+        yield np.arange(len(payloads)), joined.reshape(len(payloads), -1)
+        return
+    starts = np.concatenate([[0], np.cumsum(lengths[:-1])])
+    values, which = np.unique(lengths, return_inverse=True)
+    for number, length in enumerate(values):
+        rows = np.flatnonzero(which == number)
+        yield rows, joined[starts[rows, None] + np.arange(length)]
 
 
-class _RunReader:
-    """The blocks of a run of payloads of one type."""
+def _blocks(
+    plan: _Plan, rows: npt.NDArray[np.intp], grid: npt.NDArray[np.uint8], max_sequence: int
+) -> Iterator[Block]:
+    """Blocks of payloads of one length: the layouts seen before claim their payloads, then each
+    unclaimed payload's layout claims every payload with the same header and length prefixes."""
+    unclaimed = np.arange(len(rows))
+    known = iter(plan.layouts(grid.shape[1]))
+    while unclaimed.size:
+        layout = next(known, None)
+        if layout is None:
+            layout = _Layout(grid[unclaimed[0]].tobytes(), plan, max_sequence)
+            plan.remember(layout)
+        same = layout.matching(grid, unclaimed)
+        if not same.any():
+            continue
+        members = unclaimed[same]
+        unclaimed = unclaimed[~same]
+        members_grid = grid if members.size == len(rows) else grid[members]
+        yield from _layout_blocks(layout, rows[members], members_grid)
 
-    def __init__(self, fields: tuple[_Field, ...], max_sequence: int) -> None:
-        self._fields = fields
-        self._leaves = list(_leaves(fields))
-        self._max_sequence = max_sequence
 
-    def blocks(self, payloads: Sequence[bytes | memoryview]) -> Iterator[Block]:
-        """Splits the joined payloads by length (one 2-D byte array per length)."""
-        lengths = np.fromiter(map(len, payloads), dtype=np.intp, count=len(payloads))
-        joined = np.frombuffer(b"".join(payloads), dtype=np.uint8)
-        if (lengths == lengths[0]).all():
-            yield from self._of_length(np.arange(len(payloads)), joined.reshape(len(payloads), -1))
-            return
-        starts = np.concatenate([[0], np.cumsum(lengths[:-1])])
-        values, which = np.unique(lengths, return_inverse=True)
-        for number, length in enumerate(values):
-            rows = np.flatnonzero(which == number)
-            yield from self._of_length(rows, joined[starts[rows, None] + np.arange(length)])
-
-    def _of_length(self, rows: npt.NDArray[np.intp], grid: npt.NDArray[np.uint8]) -> Iterator[Block]:
-        """Payloads of one length (``grid``'s rows): each unclaimed payload's layout claims
-        every payload whose header and length prefixes hold the same bytes."""
-        unclaimed = np.arange(len(rows))
-        while unclaimed.size:
-            layout = _Layout(grid[unclaimed[0]].tobytes(), self._fields, self._max_sequence)
-            keys = grid[unclaimed[:, None], layout.signature()]
-            same = (keys == keys[0]).all(axis=1)
-            members = unclaimed[same]
-            unclaimed = unclaimed[~same]
-            members_grid = grid if members.size == len(rows) else grid[members]
-            yield from self._of_layout(rows[members], members_grid, layout)
-
-    def _of_layout(
-        self, rows: npt.NDArray[np.intp], grid: npt.NDArray[np.uint8], layout: _Layout
-    ) -> Iterator[Block]:
-        """Payloads of one layout as blocks: numbers through one structured view, split where
-        their strings differ."""
-        numbers = _numbers(grid, layout, [leaf for leaf in self._leaves if leaf.kind == "number"])
-        spans = [
-            (field, layout.dims(field), [(offset, size) for _, offset, size in layout.strings[field.path]])
-            for field in self._leaves
-            if field.kind == "string"
-        ]
-        string_offsets = [np.arange(offset, offset + size) for _, _, slots in spans for offset, size in slots]
-        string_bytes = grid[:, np.concatenate([np.zeros(0, dtype=np.intp), *string_offsets])]
-        if (string_bytes == string_bytes[0]).all():
-            groups = [(np.arange(len(rows)), string_bytes[0])]
-        else:
-            distinct, which = np.unique(string_bytes, axis=0, return_inverse=True)
-            which = which.reshape(-1)
-            groups = [(np.flatnonzero(which == number), value) for number, value in enumerate(distinct)]
-        for members, value in groups:
-            strings: dict[str, StringValue] = {}
-            start = 0
-            for field, dims, slots in spans:
-                texts = []
-                for _, size in slots:
-                    texts.append(_decode(value[start : start + size], field.path))
-                    start += size
-                strings[field.path] = _nest(texts, dims)
-            whole = members.size == len(rows)
-            yield Block(
-                rows[members],
-                numbers if whole else {path: column[members] for path, column in numbers.items()},
-                strings,
-            )
+def _layout_blocks(
+    layout: _Layout, rows: npt.NDArray[np.intp], grid: npt.NDArray[np.uint8]
+) -> Iterator[Block]:
+    """Payloads of one layout as blocks, split only where their strings differ."""
+    numbers = layout.numbers(grid)
+    string_bytes = layout.string_bytes(grid)
+    if (string_bytes == string_bytes[0]).all():
+        yield Block(rows, numbers, layout.strings(string_bytes[0]))
+        return
+    distinct, which = np.unique(string_bytes, axis=0, return_inverse=True)
+    which = which.reshape(-1)
+    for number, value in enumerate(distinct):
+        members = np.flatnonzero(which == number)
+        yield Block(
+            rows[members], {path: column[members] for path, column in numbers.items()}, layout.strings(value)
+        )
 
 
 def _decode(raw: npt.NDArray[np.uint8], path: str) -> str:
@@ -472,35 +566,3 @@ def _nest(texts: list[str], dims: tuple[int, ...]) -> StringValue:
         return texts[0]
     step = len(texts) // dims[0] if dims[0] else 0
     return tuple(_nest(texts[i * step : (i + 1) * step], dims[1:]) for i in range(dims[0]))
-
-
-def _numbers(
-    grid: npt.NDArray[np.uint8], layout: _Layout, fields: list[_Field]
-) -> dict[str, npt.NDArray[Any]]:
-    """Every number field of payloads of one layout, as native-order columns of shape
-    (rows, *dims), read through one structured dtype over the payload bytes."""
-    names: list[str] = []
-    formats: list[Any] = []
-    offsets: list[int] = []
-    for field in fields:
-        for index, offset, count in layout.numbers[field.path]:
-            if count:
-                names.append(f"{field.path}{list(index)}")
-                code = f"{layout.byte_order}{'u1' if field.code == _BOOL else field.code}"
-                formats.append(code if not field.repeated else (code, (count,)))
-                offsets.append(offset)
-    records = grid.view(
-        np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": grid.shape[1]})
-    )[:, 0]
-    columns: dict[str, npt.NDArray[Any]] = {}
-    for field in fields:
-        shape = (len(grid), *layout.dims(field))
-        slots = layout.numbers[field.path]
-        parts = [records[f"{field.path}{list(index)}"] for index, _, count in slots if count]
-        if not parts:
-            columns[field.path] = np.zeros(shape, dtype=field.code)
-            continue
-        values = parts[0] if len(parts) == 1 else np.stack(parts, axis=1)
-        native = values != 0 if field.code == _BOOL else values.astype(field.code)
-        columns[field.path] = native.reshape(shape)
-    return columns

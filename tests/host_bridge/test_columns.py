@@ -544,3 +544,17 @@ def test_real_bags_equal_rosbags(shared_data: Path, bag: str) -> None:
         assert_equals_rosbags(columns, payloads, msgtype, store)
         if msgtype in HIGH_RATE and len(payloads) > 100:
             assert read_columns(payloads, msgtype, store) is not None, topic
+
+
+def test_a_remembered_layout_claims_only_payloads_with_its_length_prefixes() -> None:
+    """The second run's payloads have the first run's length but other string lengths: the
+    layout remembered from the first run must not read them."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    first = [joint_state(["ab", "c"], i, "odom") for i in range(20)]
+    second = [joint_state(["abcd", "e"], i, "odo") for i in range(20)]
+    assert {len(p) for p in first} == {len(p) for p in second}
+    for run in (first, second, first):
+        columns = read_columns(run, JOINT_STATE, store)
+        assert_equals_rosbags(columns, run, JOINT_STATE, store)
+    assert columns is not None
+    assert columns.blocks[0].strings == {"header.frame_id": "odom", "name": ("ab", "c")}
