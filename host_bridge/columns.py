@@ -3,7 +3,7 @@
 Most high-rate ROS types have a fixed CDR layout once the lengths of their strings and sequences
 are known (Imu, Odometry, TwistStamped, NavSatFix, JointState with one list of joints, TFMessage
 with one transform, std_msgs numbers): every payload of a run whose length prefixes hold the same
-values lies out the same, so the run's payloads of that layout are rows of one 2-D byte array and
+values is laid out the same, so the run's payloads of that layout are rows of one 2-D byte array and
 a numpy structured dtype (one field per number, at the offset the layout gives it) turns every
 number field into a column at once. :func:`read_columns` does this for any type the typestore
 knows, from its field list (no code per type):
@@ -318,6 +318,8 @@ class _NumberColumn:
 
 @dataclass(frozen=True, slots=True)
 class _StringSpan:
+    """One string field's place in a row of a layout's string bytes: each string's byte size."""
+
     path: str
     dims: tuple[int, ...]
     sizes: tuple[int, ...]
