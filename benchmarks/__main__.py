@@ -151,13 +151,17 @@ def version(distribution: str) -> str:
         return "not installed"
 
 
-def machine_lines(load: tuple[float, float, float]) -> list[str]:
+def load_average() -> str:
+    return " ".join(f"{value:.2f}" for value in os.getloadavg())
+
+
+def machine_lines() -> list[str]:
     dirty = " with uncommitted changes" if command_output("git", "status", "--porcelain") else ""
     return [
         f"- date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
         f"- machine: {cpu_model()}, {os.cpu_count()} cores, {platform.system()} "
-        f"{platform.release()}; load average when the run began {load[0]:.2f} {load[1]:.2f} "
-        f"{load[2]:.2f} (the machine is shared)",
+        f"{platform.release()}; load average (1, 5, 15 min) when the run began {load_average()} "
+        "(the machine is shared: other work slows every figure, baselines included)",
         f"- python {platform.python_version()}; "
         + ", ".join(f"{name} {version(name)}" for name in VERSIONS),
         f"- tree: {command_output('git', 'rev-parse', '--short', 'HEAD')}{dirty}",
@@ -181,7 +185,8 @@ def write_results(results: Path, header: list[str], outcomes: list[Outcome], tot
         "measures and how.",
         "",
         *header,
-        f"- total: {total_s:.0f} s for {len(outcomes)} benchmark(s)",
+        f"- total: {total_s:.0f} s for {len(outcomes)} benchmark(s); load average at the end "
+        f"{load_average()}",
         "",
     ]
     for outcome in outcomes:
@@ -214,7 +219,7 @@ def main() -> int:
                      f"there are {', '.join(b.name for b in benchmarks)}")
     selected = [b for b in benchmarks if not args.names or b.name in args.names]
     results = args.results if args.results is not None or args.names else RESULTS
-    header = machine_lines(os.getloadavg())
+    header = machine_lines()
     print("\n".join(header), flush=True)
     started = time.perf_counter()
     outcomes = []

@@ -16,11 +16,12 @@ MCAP storage, message definitions included, so both tools decode them):
 
 ``--small-scale`` and ``--large-scale`` multiply each file's message counts (1.0 is the issue's
 size). The small file defaults to 0.25 (117,500 messages) so that three rounds stay within the
-benchmark's time budget while swanky-host takes about 0.15 ms per small message; the ratio barely
-depends on the scale once the host's start-up (about 1.5 s) is small beside its conversion time.
-Targets: small >= 0.5, large >= 1.0.
+benchmark's time budget while swanky-host needs about 0.2 ms per small message (November 2026);
+at that scale Rerun's importer takes about 0.25 s, and swanky-host's start-up (about 2 s of
+imports) weighs more in the ratio than at the full 470k. Targets: small >= 0.5, large >= 1.0.
 
     .venv/bin/python benchmarks/bag_conversion.py [--small-scale 0.25] [--large-scale 1] [--rounds 3]
+    .venv/bin/python benchmarks/bag_conversion.py --keep /tmp/bags   # keep the files, to profile
     .venv/bin/python benchmarks/bag_conversion.py BAG.mcap ...   # your own files instead
 """
 
@@ -186,24 +187,31 @@ def in_time_order(topics: list[Topic], span_ns: int) -> Iterator[tuple[int, int,
         yield int(when[j]), int(which[j]), int(index[j])
 
 
-def write_bag(directory: Path, topics: list[Topic], span_ns: int) -> Path:
-    """The rosbag2 MCAP bag at ``directory``; returns its .mcap file."""
+def write_bag(directory: Path, topics: list[Topic], span_ns: int) -> None:
+    """A rosbag2 bag with MCAP storage at ``directory``."""
     with Writer(directory, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         connections = [writer.add_connection(t.name, t.msgtype, typestore=STORE) for t in topics]
         for stamp, k, i in in_time_order(topics, span_ns):
             topic = topics[k]
             writer.write(connections[k], stamp,
                          STORE.serialize_cdr(topic.make(i, stamp), topic.msgtype))
-    return next(directory.glob("*.mcap"))
 
 
 def generated_bags(root: Path, small_scale: float, large_scale: float) -> dict[str, Path]:
-    small_span = int(SMALL_SPAN_S * small_scale * 1e9)
-    large_span = int(scaled(300, large_scale) / 30 * 1e9)  # the images' 30 Hz
-    return {
-        "small": write_bag(root / "small", small_topics(small_scale), small_span),
-        "large": write_bag(root / "large", large_topics(large_scale), large_span),
+    """The .mcap files of the issue's two bags under ``root``, written unless an earlier run
+    finished them there (rosbags writes metadata.yaml last)."""
+    recipes = {
+        "small": (small_scale, small_topics, SMALL_SPAN_S * small_scale),
+        "large": (large_scale, large_topics, scaled(300, large_scale) / 30),  # images at 30 Hz
     }
+    bags = {}
+    for label, (scale, topics, span_s) in recipes.items():
+        directory = root / f"{label}-{scale:g}"
+        if not (directory / "metadata.yaml").exists():
+            shutil.rmtree(directory, ignore_errors=True)
+            write_bag(directory, topics(scale), int(span_s * 1e9))
+        bags[label] = next(directory.glob("*.mcap"))
+    return bags
 
 
 def message_count(bag: Path) -> int:
@@ -242,7 +250,7 @@ def compare(label: str, bag: Path, rounds: int, tools: dict[str, str], out: Path
           f"runs {', '.join(f'{t:.2f}' for t in baseline_runs)}")
     print(f"  swanky-host --bag --save:    {ours:7.2f} s ({count / ours:>10,.0f} msg/s), "
           f"runs {', '.join(f'{t:.2f}' for t in ours_runs)}")
-    print(f"  ratio {label} rerun/swanky wall time, median of {rounds}: {ratio:.2f}{verdict}",
+    print(f"  ratio {label} rerun/swanky wall time, median of {rounds}: {ratio:.3f}{verdict}",
           flush=True)
 
 
@@ -255,6 +263,9 @@ def main() -> int:
     parser.add_argument("--large-scale", type=float, default=1.0,
                         help="multiply the large-message file's counts (1.0: the issue's 400)")
     parser.add_argument("--rounds", type=int, default=3, help="baseline and ours, this many times")
+    parser.add_argument("--keep", type=Path, metavar="DIR",
+                        help="write the generated bags under DIR and keep them (reused by the next "
+                             "run with the same scale; handy for profiling one conversion)")
     args = parser.parse_args()
     bin_dir = Path(sys.executable).parent
     tools = {name: shutil.which(name, path=str(bin_dir)) for name in ("rerun", "swanky-host")}
@@ -264,16 +275,16 @@ def main() -> int:
               file=sys.stderr)
         return 1
     with tempfile.TemporaryDirectory(prefix="swanky_bench_") as tmp:
-        root = Path(tmp)
+        out = Path(tmp)
         if args.bags:
             bags = {bag.stem: bag for bag in args.bags}
         else:
             started = time.perf_counter()
-            bags = generated_bags(root, args.small_scale, args.large_scale)
-            print(f"generated the issue's two files, small at scale {args.small_scale}, large at "
-                  f"scale {args.large_scale}, in {time.perf_counter() - started:.1f} s", flush=True)
+            bags = generated_bags(args.keep or out, args.small_scale, args.large_scale)
+            print(f"the issue's two files, small at scale {args.small_scale}, large at scale "
+                  f"{args.large_scale}, ready in {time.perf_counter() - started:.1f} s", flush=True)
         for label, bag in bags.items():
-            compare(label, bag, args.rounds, {k: str(v) for k, v in tools.items()}, root)
+            compare(label, bag, args.rounds, {k: str(v) for k, v in tools.items()}, out)
     return 0
 
 
