@@ -97,6 +97,7 @@ def run(options: RelayOptions, stop: threading.Event) -> int:
 
 
 def relay_source(options: RelayOptions, source: Source, stop: threading.Event) -> int:
+    """:func:`run` with its source opened (tests give theirs); closes ``source`` too."""
     catalog = source.catalog()
     replay = options.bag is not None
     if replay and not catalog.topics:

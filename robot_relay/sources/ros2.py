@@ -389,7 +389,7 @@ class RclpySource:
     (:class:`Ros2Source`) and applies the hosts' demand. :meth:`close` destroys the
     subscriptions, the executor and the node, then shuts ROS down. rclpy's own signal handlers
     are not installed (they would shut ROS down under the running executor and end in
-    tracebacks): the command's stop the relay, which then closes this."""
+    tracebacks): the command's own handlers stop the app, which then closes this source."""
 
     def __init__(self, robot: str, accept: Callable[[str], bool]) -> None:
         try:
