@@ -37,6 +37,17 @@ DEMO_BAG_SECONDS = 60.0
 """About one lap: a replay that loops starts again close to where it ended."""
 MAX_DEMO_ROBOTS = 10
 HOST_WAIT_SECONDS = 30.0
+BAG_MARGIN_SECONDS = 10.0
+
+
+def demo_bag_seconds(duration: float | None) -> float:
+    """How much to simulate: with --duration no more than the demo needs, plus a margin. The
+    relays start replaying only once the bags are written and the host listens, about when the
+    host's clock starts; without the margin a replay that ran a little ahead reached the end of
+    its bag and looped, sending the first messages (the model, the first readings) again."""
+    if duration is None:
+        return DEMO_BAG_SECONDS
+    return min(DEMO_BAG_SECONDS, max(duration, 1.0) + BAG_MARGIN_SECONDS)
 
 
 def demo_robot_names(robots: str) -> list[str]:
@@ -161,8 +172,7 @@ class DemoInput:
         self.plan = plan
         self._live = live
         self._stop = stop
-        # With --duration the replay need not be longer than the demo itself.
-        self._seconds = DEMO_BAG_SECONDS if duration is None else min(DEMO_BAG_SECONDS, max(duration, 1.0))
+        self._seconds = demo_bag_seconds(duration)
         self._relay_stop = threading.Event()
         self._relays: list[threading.Thread] = []
         self._bags = tempfile.TemporaryDirectory(prefix="swanky-demo-")

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from host_bridge.demo.messages import STEP_TIMER_TOPIC, TOPICS, simulate
 from host_bridge.demo.robot import BASE_LINK_Z, SCAN_XYZ, WHEEL_RADIUS
+from host_bridge.demo.run import demo_bag_seconds
 from host_bridge.demo.sensors import DEPTH_MAX, camera_matrix
 from host_bridge.demo.world import BOUNDS, distance_to_walls
 from tests.integration.procs import command, running
@@ -234,7 +235,7 @@ def test_recorded_mcap_holds_the_bytes_the_robot_sent(demo: DemoRun) -> None:
                 if line.startswith(f"{ROBOT} ")}
     assert Counter(topic for topic, _ in records) == received
     # The simulation is a pure function of time, except the measured step time.
-    sent = {(m.topic, m.log_ns): m.data for m in simulate(DEMO_SECONDS)
+    sent = {(m.topic, m.log_ns): m.data for m in simulate(demo_bag_seconds(DEMO_SECONDS))
             if m.topic != STEP_TIMER_TOPIC}
     checked = [(topic, m) for topic, m in records if topic != STEP_TIMER_TOPIC]
     assert len(checked) >= 10 * DEMO_SECONDS
