@@ -22,9 +22,9 @@ Why it is built this way:
 * JPEG/PNG CompressedImages are logged as ``EncodedImage`` without decoding; those whose format
   names a video codec (``h264``, ``hevc``, ...) become ``VideoStream`` samples, also undecoded
   (see :mod:`host_bridge.converters.video`). ``compressedDepth``
-  (image_transport's compressed_depth plugin: PNG or RVL after a 12-byte config header) is decoded
-  here into a ``DepthImage``, because a 32FC1 payload holds inverse-quantized values only the
-  host-side formula turns back into metres.
+  (image_transport's compressed_depth plugin: PNG or RVL after a 12-byte config header; the RVL
+  codec is :mod:`host_bridge.rvl`) is decoded here into a ``DepthImage``, because a 32FC1 payload
+  holds inverse-quantized values only the host-side formula turns back into metres.
 * Images carry no ``CoordinateFrame``: they must stay in the implicit frame of their entity path
   so that they land in the image plane of the pinhole the CameraInfo converter logs at the camera
   namespace (see :mod:`host_bridge.converters.camera`).
@@ -50,6 +50,7 @@ from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogIte
 from host_bridge.converters.video import CODEC_SPELLINGS, VideoFrame, video_codec, video_entries
 from host_bridge.errors import ConvertError
 from host_bridge.options import ImageOptions
+from host_bridge.rvl import rvl_decode
 
 _MODES = ("auto", "depth", "color")
 
@@ -384,83 +385,6 @@ def _media_type(fmt: str, data: npt.NDArray[np.uint8]) -> str | None:
     return None
 
 
-# A 32-bit value needs at most 11 three-bit nibbles; longer codes only come from corrupt data.
-_RVL_MAX_NIBBLES = 11
-
-
-def _rvl_codes(stream: npt.NDArray[np.uint8]) -> npt.NDArray[np.int64]:
-    """Every complete variable-length code in an RVL stream, in order."""
-    # Nibbles are consumed from the top of little-endian 32-bit words: bytes 3, 2, 1, 0 of each
-    # word, high nibble first.
-    octets = stream[: stream.size // 4 * 4].reshape(-1, 4)[:, ::-1]
-    nibbles = np.empty((*octets.shape, 2), dtype=np.uint8)
-    nibbles[..., 0] = octets >> 4
-    nibbles[..., 1] = octets & 0xF
-    flat = nibbles.ravel()
-    ends = np.flatnonzero(flat < 8)
-    if ends.size == 0:
-        return np.zeros(0, dtype=np.int64)
-    starts = np.empty_like(ends)
-    starts[0] = 0
-    starts[1:] = ends[:-1] + 1
-    lengths = ends - starts + 1
-    if lengths.max() > _RVL_MAX_NIBBLES:
-        msg = f"RVL stream holds a code of {lengths.max()} nibbles"
-        raise ValueError(msg)
-    digits = (flat & 7).astype(np.int64)
-    codes = digits[starts]
-    for j in range(1, int(lengths.max())):
-        longer = lengths > j
-        codes[longer] |= digits[starts[longer] + j] << (3 * j)
-    return codes
-
-
-def rvl_decode(stream: npt.NDArray[np.uint8], n_pixels: int) -> npt.NDArray[np.uint16]:
-    """Decode an RVL stream (Wilson 2017, as image_transport's RvlCodec writes it) to uint16.
-
-    RVL is runs of (zero count, non-zero count, zig-zag deltas), each number a variable-length
-    code of 3-bit nibbles (high bit = more follow). Splitting nibbles, assembling codes, undoing
-    the deltas and placing the pixels are vectorised. Only finding the run headers is a Python
-    loop, because where a header sits depends on the previous run's length: one turn per run
-    (~0.25 us), never one per pixel. A 640x480 frame with 5 % scattered holes (15k runs) takes
-    about 20 ms in all on the project's 2-core test machine, the loop about 4 ms of it.
-    """
-    out = np.zeros(n_pixels, dtype=np.uint16)
-    if n_pixels == 0:
-        return out
-    codes = _rvl_codes(stream)
-    size = codes.size
-    following = np.arange(2, size + 2, dtype=np.int64)
-    following[:-1] += codes[1:]
-    walk = following.data  # a memoryview: indexing it is several times faster than the ndarray
-    heads: list[int] = []
-    at = 0
-    while at + 1 < size:
-        heads.append(at)
-        at = walk[at]
-    head = np.asarray(heads, dtype=np.int64)
-    zeros, nonzeros = codes[head], codes[head + 1]
-    decoded = np.cumsum(zeros + nonzeros)
-    last = int(np.searchsorted(decoded, n_pixels))
-    if last == head.size or decoded[last] != n_pixels:
-        got = int(decoded[-1]) if decoded.size else 0
-        msg = f"RVL stream encodes {got} pixels where {n_pixels} were expected"
-        raise ValueError(msg)
-    end = int(head[last] + 2 + nonzeros[last])
-    if end > size:
-        msg = f"RVL stream ends inside its last run of {n_pixels} pixels"
-        raise ValueError(msg)
-    head = head[: last + 1]
-    is_delta = np.zeros(size, dtype=bool)
-    is_delta[:end] = True
-    is_delta[head] = is_delta[head + 1] = False
-    zigzag = codes[is_delta]
-    values = np.cumsum((zigzag >> 1) ^ -(zigzag & 1)) & 0xFFFF
-    runs = np.stack([zeros[: last + 1], nonzeros[: last + 1]], axis=1).ravel()
-    out[np.repeat(np.tile([False, True], last + 1), runs)] = values
-    return out
-
-
 def _decode_compressed_depth(msg: Any, ctx: ConvertContext) -> tuple[Pixels, int, int]:
     """(depth pixels, width, height): 16UC1 stays raw millimetres, 32FC1 becomes metres."""
     original, _, codec = msg.format.partition(";")
@@ -567,5 +491,4 @@ __all__ = [
     "convert_compressed_image",
     "convert_compressed_image_run",
     "convert_image",
-    "rvl_decode",
 ]
