@@ -16,7 +16,14 @@ from host_bridge.errors import ConvertError, PartialConvertError
 from host_bridge.resources import ResourceResolver
 from host_bridge.robot_files import RobotFiles
 from robot_relay.files import serve_files
-from tests.host_bridge.test_urdf import archetype, by_path, convert, description_ctx, mesh_urdf, values
+from tests.host_bridge.converters.test_urdf import (
+    archetype,
+    by_path,
+    convert,
+    description_ctx,
+    mesh_urdf,
+    values,
+)
 
 BOX = trimesh.creation.box(extents=[1.0, 2.0, 4.0]).export(file_type="stl")
 

@@ -9,7 +9,7 @@ import numpy.typing as npt
 import pytest
 import rerun as rr
 
-from tests.host_bridge.test_images import (
+from tests.host_bridge.converters.test_images import (
     RNG_SEED,
     H,
     W,

@@ -19,7 +19,7 @@ from host_bridge.segments import (
     merge_segments,
     segments_to_mesh,
 )
-from tests.host_bridge.test_walls import RES, floor_plan
+from tests.host_bridge.converters.test_walls import RES, floor_plan
 
 Float64Array = npt.NDArray[np.float64]
 

@@ -16,9 +16,9 @@ from host_bridge.dispatch import Dispatcher
 from host_bridge.resources import ResourceResolver
 from host_bridge.state import TopicState
 from robot_relay.wire import RawMessage
+from tests.host_bridge.converters.test_markers import marker
 from tests.host_bridge.sensor_test_support import make_ctx
 from tests.host_bridge.test_config import RecordingSink
-from tests.host_bridge.test_markers import marker
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
 MARKERS = "visualization_msgs/msg/MarkerArray"

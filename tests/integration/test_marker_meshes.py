@@ -20,8 +20,8 @@ import trimesh
 
 from host_bridge.cli import main as host_main
 from host_bridge.converters import markers
+from tests.host_bridge.converters.test_markers import marker
 from tests.host_bridge.sensor_test_support import msg
-from tests.host_bridge.test_markers import marker
 from tests.integration.procs import command, free_port, running
 from tests.integration.robot_bags import Entry, Lines, write_bag
 from tests.rrd import entity_rows

@@ -15,8 +15,8 @@ import rerun as rr
 from host_bridge.contract import LogItem
 from host_bridge.converters.camera import convert_camera_info
 from host_bridge.errors import ConvertError
+from tests.host_bridge.converters.test_images import ROBOT, T, first_message, header, pylist
 from tests.host_bridge.sensor_test_support import make_ctx
-from tests.host_bridge.test_images import ROBOT, T, first_message, header, pylist
 
 INFO_TOPIC = "/camera/camera_info"
 K_640 = np.array([525.0, 0.0, 319.5, 0.0, 526.0, 239.5, 0.0, 0.0, 1.0])

@@ -15,8 +15,8 @@ import rerun as rr
 from host_bridge.contract import LogItem
 from host_bridge.converters import occupancy, walls
 from host_bridge.options import GridOptions
+from tests.host_bridge.converters.test_occupancy import grid_msg, shared_contexts, update_msg
 from tests.host_bridge.sensor_test_support import archetype, flat, log_item, make_ctx
-from tests.host_bridge.test_occupancy import grid_msg, shared_contexts, update_msg
 
 Float64Array = npt.NDArray[np.float64]
 

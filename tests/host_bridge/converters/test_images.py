@@ -497,8 +497,8 @@ VIDEO_PAYLOADS = {
 def test_compressed_images_carrying_video_become_video_stream_samples(
     fmt: str, codec: rr.VideoCodec
 ) -> None:
-    """Any spelling of a video codec turns the topic into a VideoStream (tests/host_bridge/
-    test_video.py checks real encoded streams); JPEG and PNG stay EncodedImages above."""
+    """Any spelling of a video codec turns the topic into a VideoStream (test_video.py beside
+    this file checks real encoded streams); JPEG and PNG stay EncodedImages above."""
     payload = VIDEO_PAYLOADS[codec]
     ctx = make_ctx(COMPRESSED_TOPIC, robot=ROBOT, times={})
     entries = convert_compressed_image(make_compressed(fmt, payload), ctx)
