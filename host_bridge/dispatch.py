@@ -280,15 +280,26 @@ class Dispatcher:
         # one, so a message the fast path rejected is neither re-warned nor drawn as walls.
         accepted: tuple[Any, ConvertContext, RawMessage] | None = None
         if not spec.message_by_message and len(decoded) > 1:
+            robot, topic = decoded[0][2].robot, decoded[0][2].topic
+            entries: list[LogEntry] | None = None
             try:
                 entries = spec.convert_run([d[0] for d in decoded], [d[1] for d in decoded])
-                self.log(decoded[0][2].robot, entries, decoded[0][1].times)
-                counters.converted += len(decoded)
-                accepted = decoded[-1]
+            except PartialConvertError as err:
+                if self.strict:
+                    raise
+                # The run converted but for a part (the kinematics of a JointState run before
+                # the robot model arrives; a long custom array): log what did convert and warn
+                # once for the run, instead of converting it again message by message.
+                entries = err.items
+                self.warn(robot, topic, err, decoded[-1][1].times)
             except Exception:
                 if self.strict:
                     raise
                 # Fall through: convert one by one so only the bad message is lost.
+            if entries is not None:
+                self.log(robot, entries, decoded[0][1].times)
+                counters.converted += len(decoded)
+                accepted = decoded[-1]
         if accepted is None:
             for msg, ctx, raw in decoded:
                 try:
