@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 
 from host_bridge.blueprint import BlueprintFollower, check_blueprint_file
 from host_bridge.config import HostConfig
+from host_bridge.destinations import SinkOptions
 from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import PartialConvertError, SinkError, relay_errors
 from host_bridge.inputs.base import Input
@@ -27,7 +28,7 @@ from host_bridge.recorder import McapRecorder, RawOutput, may_hold_several_robot
 from host_bridge.registry import default_registry
 from host_bridge.resources import ResourceResolver, RobotFetch, parse_package_path
 from host_bridge.robot_files import RobotFiles
-from host_bridge.sink import APPLICATION_ID, RerunSink, SinkOptions
+from host_bridge.sink import APPLICATION_ID, RerunSink
 from robot_relay.session import ZenohOptions
 from robot_relay.wire import check_robot_name
 

@@ -13,11 +13,15 @@ import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from host_bridge import app
+from host_bridge.destinations import LOOPBACK, SinkOptions
 from host_bridge.errors import HostError
-from host_bridge.sink import LOOPBACK, SinkOptions
 from robot_relay.session import add_zenoh_arguments, zenoh_options
+
+if TYPE_CHECKING:
+    # Imported when the host runs, not for --help: the app loads Rerun and the converters.
+    from host_bridge import app
 
 log = logging.getLogger("swanky.host")
 
@@ -158,6 +162,8 @@ def sink_options(args: argparse.Namespace) -> SinkOptions:
 
 
 def host_options(args: argparse.Namespace) -> app.HostOptions:
+    from host_bridge import app
+
     return app.HostOptions(
         sink=sink_options(args),
         zenoh=zenoh_options(args),
@@ -213,6 +219,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     signals = StopSignals(threading.Event())
     signals.install()
+    from host_bridge import app
+
     outputs = app.Outputs()
     try:
         code = app.run(host_options(args), signals.stop, lambda: signals.received, outputs)

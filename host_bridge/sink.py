@@ -27,13 +27,13 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from host_bridge.contract import ColumnsItem, LogEntry, LogItem
+from host_bridge.destinations import LOOPBACK, SinkOptions
 from host_bridge.errors import SinkError
 
 log = logging.getLogger("swanky.host")
 
 APPLICATION_ID = "swanky"
 
-LOOPBACK = "127.0.0.1"
 ALL_INTERFACES = ("0.0.0.0", "::")
 VIEWER_PORT = 9876
 """Where ``--spawn`` starts the viewer (Rerun's default), and a ``--serve-web`` gRPC default."""
@@ -65,25 +65,6 @@ class Sink(Protocol):
     def close(self) -> None:
         """Deliver everything logged (a file is then complete); a SinkError names what missed
         some."""
-
-
-@dataclass(frozen=True, slots=True)
-class SinkOptions:
-    """Where the recording goes; several at once are allowed (e.g. a viewer and a file)."""
-
-    spawn: bool = False
-    connect: str | None = None
-    save: Path | None = None
-    serve_web: bool = False
-    web_port: int | None = None
-    grpc_port: int | None = None
-    web_bind: str = LOOPBACK
-    """Address the ``--serve-web`` gRPC server (the recording itself) listens on."""
-    recording_id: str | None = None
-
-    @property
-    def any(self) -> bool:
-        return self.spawn or self.connect is not None or self.save is not None or self.serve_web
 
 
 @dataclass(frozen=True, slots=True)

@@ -15,9 +15,10 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from host_bridge.blueprint import BlueprintFollower, TopicEntry, build_blueprint
 from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components
+from host_bridge.destinations import SinkOptions
 from host_bridge.dispatch import Dispatcher
 from host_bridge.registry import Registry, Row, View, default_registry
-from host_bridge.sink import RerunSink, SinkOptions
+from host_bridge.sink import RerunSink
 from robot_relay.wire import MessageDefinition, RawMessage
 from tests.rrd import entity_rows
 

@@ -17,9 +17,10 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from host_bridge.blueprint import BlueprintFollower, TopicEntry, build_blueprint
 from host_bridge.cli import main as host_main
 from host_bridge.demo.bag import write_demo_bag
+from host_bridge.destinations import SinkOptions
 from host_bridge.dispatch import Dispatcher
 from host_bridge.registry import default_registry
-from host_bridge.sink import APPLICATION_ID, RerunSink, SinkOptions
+from host_bridge.sink import APPLICATION_ID, RerunSink
 from robot_relay.wire import RawMessage
 from tests.host_bridge.sensor_test_support import make_ctx
 from tests.host_bridge.test_dispatch import float_cdr, string_cdr

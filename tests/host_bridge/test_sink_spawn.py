@@ -19,6 +19,7 @@ import rerun as rr
 
 from host_bridge import sink
 from host_bridge.contract import LogItem
+from host_bridge.destinations import SinkOptions
 from host_bridge.errors import SinkError
 from tests.integration.procs import headless_viewer
 from tests.rrd import entity_rows
@@ -70,7 +71,7 @@ def test_viewer_that_never_listens_is_named(
         monkeypatch.setenv(name, value)
     monkeypatch.setattr(rr, "spawn", lambda **kwargs: spawned.append(kwargs))
     with pytest.raises(SinkError) as caught:
-        sink.RerunSink(sink.SinkOptions(spawn=True))
+        sink.RerunSink(SinkOptions(spawn=True))
     viewer = sink.viewer_executable()
     assert str(caught.value).startswith(
         f"cannot spawn the Rerun viewer {viewer}: it exited without listening on port {port} ({reason}"
@@ -82,7 +83,7 @@ def test_viewer_that_never_listens_is_named(
 def test_no_viewer_anywhere_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(sink, "viewer_executable", lambda: None)
     with pytest.raises(SinkError) as caught:
-        sink.RerunSink(sink.SinkOptions(spawn=True))
+        sink.RerunSink(SinkOptions(spawn=True))
     assert str(caught.value) == (
         f"cannot spawn the Rerun viewer: no 'rerun' executable beside {sys.executable} or on "
         "PATH; install rerun-sdk (pip install \".[host]\") or use --save FILE.rrd, --serve-web "
@@ -120,7 +121,7 @@ def test_closing_the_spawned_viewer_is_no_error(
     with headless_viewer() as (_, port, viewer):
         monkeypatch.setattr(sink, "VIEWER_PORT", port)
         monkeypatch.setattr(rr, "spawn", lambda **kwargs: None)  # it is already there
-        rerun_sink = sink.RerunSink(sink.SinkOptions(spawn=True, save=tmp_path / "out.rrd"))
+        rerun_sink = sink.RerunSink(SinkOptions(spawn=True, save=tmp_path / "out.rrd"))
         points = [LogItem(f"/p{i}", (rr.Points3D(np.full((50, 3), i, np.float32)),)) for i in range(20)]
         rerun_sink.log(points[:10], {"ros_time": 1})
         rerun_sink.flush()

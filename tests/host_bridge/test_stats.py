@@ -8,8 +8,9 @@ from typing import Any
 import pytest
 
 from host_bridge.contract import TIMELINE_LOG, TIMELINE_RECEIVE
+from host_bridge.destinations import SinkOptions
 from host_bridge.dispatch import TopicCounters
-from host_bridge.sink import RerunSink, SinkOptions
+from host_bridge.sink import RerunSink
 from host_bridge.stats import RelayRates, StatsTap, StatsTracker, TopicStats, topic_stats_items
 from robot_relay.wire import RawMessage, RelayReport
 from tests.rrd import entity_rows

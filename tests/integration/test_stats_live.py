@@ -14,9 +14,10 @@ import pytest
 import zenoh
 from rosbags.typesys import Stores, get_typestore
 
+from host_bridge.destinations import SinkOptions
 from host_bridge.inputs.base import InputItem
 from host_bridge.inputs.live import LiveInput
-from host_bridge.sink import RerunSink, SinkOptions
+from host_bridge.sink import RerunSink
 from host_bridge.stats import StatsTap
 from robot_relay.relay import Relay
 from robot_relay.wire import Catalog, RawMessage, TopicInfo, stats_key
