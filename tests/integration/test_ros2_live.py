@@ -10,6 +10,11 @@ host starts once the relay holds the latched topics. During the run the relay is
 SIGTERM, a second host runs (a restart: the latched topics again, once), then the relay is
 stopped with SIGTERM. The tests assert on what that run left behind.
 
+By default images and clouds drop under congestion (a stale frame is worth nothing on a weak
+link): the burst after each stall filled Zenoh's queue and lost frames on the loaded 2-core CI
+machine. The relay here gets the config a user who wants every frame writes
+(:data:`EVERY_FRAME`), and the test asserts that nothing is then lost.
+
 The processes get what sourcing ROS sets (``AMENT_PREFIX_PATH`` = this venv, where the wheels
 put the share directories), a private ``ROS_DOMAIN_ID`` and localhost-only discovery.
 """
@@ -54,6 +59,11 @@ STALLS = 5
 STALL_S = 0.3
 LATE_SECONDS = 4.0
 Rows = dict[str, list[dict[str, Any]]]
+EVERY_FRAME = """\
+policy:
+  /camera/image_raw: {congestion: block}
+  /points: {congestion: block}
+"""
 
 
 @dataclass
@@ -122,7 +132,10 @@ def host_command(endpoint: str, save: Path) -> list[str]:
 def live(ros_environment: None, tmp_path_factory: pytest.TempPathFactory) -> LiveRun:
     run = LiveRun(tmp_path_factory.mktemp("ros2_live"))
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    relay_cmd = command("robot_relay.cli", "--robot", ROBOT, "-l", endpoint, "--no-multicast-scouting")
+    config = run.directory / "relay.yaml"
+    config.write_text(EVERY_FRAME)
+    relay_cmd = command("robot_relay.cli", "--robot", ROBOT, "--config", str(config), "-l", endpoint,
+                        "--no-multicast-scouting")
     with running(command("tests.integration.ros_robot", "robot")) as robot, \
             running(command("tests.integration.ros_robot", "camera")) as camera:
         robot_lines, camera_lines = Lines(robot), Lines(camera)
