@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from pathlib import Path
 
 import pytest
 import zenoh
 
+from tests import reliability as reliability_table
 from tests.integration.procs import free_port, open_loopback
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -29,3 +30,28 @@ def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
     yield host, robot
     robot.close()
     host.close()
+
+
+@pytest.fixture
+def reliability(request: pytest.FixtureRequest) -> Iterator[reliability_table.Record]:
+    """Records a row of docs/RELIABILITY.md (tests/reliability.py) if the test passes."""
+    start = len(reliability_table.recorded)
+    yield reliability_table.recorder(request.node.nodeid)
+    report = getattr(request.node, "rep_call", None)
+    if report is None or not report.passed:
+        del reliability_table.recorded[start:]
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(
+    item: pytest.Item, call: pytest.CallInfo[None]
+) -> Generator[None, pytest.TestReport, pytest.TestReport]:
+    report = yield
+    if report.when == "call":
+        item.rep_call = report  # type: ignore[attr-defined]
+    return report
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    if reliability_table.recorded:
+        reliability_table.write_table(reliability_table.recorded)
