@@ -7,6 +7,7 @@ Pure Python with no third-party imports, so the relay on a Raspberry Pi and the 
 from __future__ import annotations
 
 import json
+import math
 import re
 import struct
 from collections.abc import Callable, Mapping
@@ -28,6 +29,11 @@ _KNOWN_FLAGS = FLAG_LZ4 | FLAG_ZSTD
 
 _ATTACHMENT = struct.Struct("<BBHIqqQ")
 ATTACHMENT_SIZE = _ATTACHMENT.size
+
+# The most a compressed payload may inflate to. Zeros compress a thousandfold, so without a bound
+# a 300 KB sample would hold 300 MB of the host's memory; no ROS message a robot sends over its
+# link comes near this (a 4K 16-bit depth image is 17 MB, a 128-beam lidar cloud about 12 MB).
+MAX_DECOMPRESSED_BYTES = 128 * 1024 * 1024
 
 DefinitionEncoding = Literal["ros2msg", "ros2idl"]
 
@@ -85,11 +91,17 @@ def files_selector(robot: str) -> str:
 
 
 def parse_data_key(key: str) -> tuple[str, str]:
-    """Split a data key into (robot, absolute topic)."""
+    """Split a data key into (robot, absolute topic); the robot name must be one a relay can
+    have, since it becomes an entity root and a frame prefix."""
     parts = key.split("/", 3)
     if len(parts) != 4 or parts[0] != PREFIX or parts[2] != "data" or not parts[3]:
         msg = f"key {key!r} is not a Swanky data key ({PREFIX}/<robot>/data/<topic>)"
         raise WireError(msg)
+    try:
+        check_robot_name(parts[1])
+    except WireError as err:
+        msg = f"key {key!r}: {err}"
+        raise WireError(msg) from err
     return parts[1], "/" + parts[3]
 
 
@@ -174,23 +186,73 @@ def compressor(name: str) -> Callable[[bytes], bytes]:
 
 
 def decompress(payload: bytes, flags: int, key: str) -> bytes:
-    """Undo the compression named by the attachment flags."""
+    """Undo the compression named by the attachment flags; a frame that is cut short, or would
+    inflate past MAX_DECOMPRESSED_BYTES, is refused without inflating it."""
+    if not flags & (FLAG_LZ4 | FLAG_ZSTD):
+        return payload
     try:
-        if flags & FLAG_LZ4:
-            import lz4.frame
-
-            return bytes(lz4.frame.decompress(payload))
-        if flags & FLAG_ZSTD:
-            import zstandard
-
-            return bytes(zstandard.ZstdDecompressor().decompress(payload))
+        data = _lz4_decompress(payload) if flags & FLAG_LZ4 else _zstd_decompress(payload)
     except ImportError as err:
         msg = f"sample on {key!r} is compressed but {err.name} is not installed"
         raise WireError(msg) from err
     except Exception as err:
         msg = f"sample on {key!r} does not decompress: {err}"
         raise WireError(msg) from err
-    return payload
+    if data is None:
+        msg = (
+            f"sample on {key!r} would decompress to more than {MAX_DECOMPRESSED_BYTES} bytes "
+            "(no ROS message is that big: a corrupt or hostile frame); dropped"
+        )
+        raise WireError(msg)
+    return data
+
+
+def _lz4_decompress(payload: bytes) -> bytes | None:
+    """The frame's content, None past the bound. Inflated 8 MiB at a time and counted as it
+    grows (python-lz4 sizes one big output buffer twice over)."""
+    import lz4.frame
+
+    decompressor = lz4.frame.LZ4FrameDecompressor()
+    parts: list[bytes] = []
+    size = 0
+    pending = payload
+    while True:
+        part = decompressor.decompress(pending, max_length=8 << 20)
+        pending = b""
+        size += len(part)
+        if size > MAX_DECOMPRESSED_BYTES:
+            return None
+        parts.append(part)
+        if decompressor.eof:
+            return b"".join(parts)
+        if decompressor.needs_input:
+            raise ValueError(f"the lz4 frame ends early, after {size} bytes of content")
+
+
+def _zstd_decompress(payload: bytes) -> bytes | None:
+    """The frame's content, None past the bound. A frame declaring its size (the relay's do) is
+    checked before anything is allocated; one without is fed in small pieces, so what it
+    inflates to is counted as it grows."""
+    import zstandard
+
+    declared = zstandard.frame_content_size(payload)
+    if declared > MAX_DECOMPRESSED_BYTES:
+        return None
+    if declared >= 0:
+        return bytes(zstandard.ZstdDecompressor().decompress(payload))
+    stream = zstandard.ZstdDecompressor().decompressobj()
+    parts: list[bytes] = []
+    size = 0
+    # 1 KiB of zstd inflates to at most ~32 MiB (one RLE block per 3 bytes).
+    for start in range(0, len(payload), 1024):
+        part = stream.decompress(payload[start:start + 1024])
+        size += len(part)
+        if size > MAX_DECOMPRESSED_BYTES:
+            return None
+        parts.append(part)
+        if stream.eof:
+            return b"".join(parts)
+    raise ValueError(f"the zstd frame ends early, after {size} bytes of content")
 
 
 @dataclass(frozen=True, slots=True)
@@ -223,6 +285,22 @@ class TopicInfo:
 T = TypeVar("T")
 
 
+def _field(value: Any, kind: type[T], what: str) -> T:
+    """``value`` if it is a ``kind`` (JSON's true is no integer here), else a TypeError naming
+    ``what``: a catalog's fields end up in Rerun entity paths and decoders."""
+    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        msg = f"{what} is {value!r}, expected {kind.__name__}"
+        raise TypeError(msg)
+    return value
+
+
+def _choice(value: Any, choices: tuple[str, ...], what: str) -> Any:
+    if value not in choices:
+        msg = f"{what} is {value!r}, expected one of {', '.join(choices)}"
+        raise ValueError(msg)
+    return value
+
+
 def parse_versioned_json(
     text: str | bytes, key: str, what: str, version: int, build: Callable[[Any], T]
 ) -> T:
@@ -236,7 +314,9 @@ def parse_versioned_json(
         return build(doc)
     except WireError:
         raise
-    except (ValueError, KeyError, TypeError) as err:
+    # RecursionError: JSON nested deeper than Python recurses; OverflowError: 1e400 as an int;
+    # AttributeError: an object where the document has a list (or the other way round).
+    except (ValueError, KeyError, TypeError, AttributeError, OverflowError, RecursionError) as err:
         msg = f"{what} on {key!r} is not valid: {err!r}"
         raise WireError(msg) from err
 
@@ -274,21 +354,49 @@ class Catalog:
 
     @classmethod
     def from_json(cls, text: str | bytes, key: str) -> Catalog:
-        def build(doc: Any) -> Catalog:
-            topics = tuple(
-                TopicInfo(
-                    topic=t["topic"],
-                    msgtype=t["type"],
-                    definition=None
-                    if t["definition"] is None
-                    else MessageDefinition(t["definition"]["encoding"], t["definition"]["text"]),
-                    qos=QosProfile(**t["qos"]),
-                )
-                for t in doc["topics"]
+        def topic(t: Any) -> TopicInfo:
+            name = _field(t["topic"], str, "a topic's name")
+            definition = t["definition"]
+            qos = t["qos"]
+            return TopicInfo(
+                topic=name,
+                msgtype=_field(t["type"], str, f"the type of {name}"),
+                definition=None if definition is None else MessageDefinition(
+                    _choice(definition["encoding"], ("ros2msg", "ros2idl"),
+                            f"the definition encoding of {name}"),
+                    _field(definition["text"], str, f"the definition of {name}"),
+                ),
+                qos=QosProfile(
+                    reliability=_choice(qos["reliability"], ("reliable", "best_effort"),
+                                        f"the reliability of {name}"),
+                    durability=_choice(qos["durability"], ("volatile", "transient_local"),
+                                       f"the durability of {name}"),
+                    depth=_depth(_field(qos["depth"], int, f"the QoS depth of {name}")),
+                ),
             )
-            return cls(robot=doc["robot"], source=doc["source"], topics=topics)
+
+        def build(doc: Any) -> Catalog:
+            return cls(
+                robot=_field(doc["robot"], str, "robot"),
+                source=_field(doc["source"], str, "source"),
+                topics=tuple(topic(t) for t in _field(doc["topics"], list, "topics")),
+            )
 
         return parse_versioned_json(text, key, "catalog", CATALOG_VERSION, build)
+
+
+def _depth(depth: int) -> int:
+    if depth < 0:
+        msg = f"QoS history depth {depth} is negative"
+        raise ValueError(msg)
+    return depth
+
+
+def _finite(value: float, what: str) -> float:
+    if not math.isfinite(value):
+        msg = f"{what} is {value}"
+        raise ValueError(msg)
+    return value
 
 
 def stats_key(robot: str) -> str:
@@ -332,7 +440,7 @@ class RelayReport:
             lambda doc: cls(
                 robot=str(doc["robot"]),
                 time_ns=int(doc["time_ns"]),
-                cpu_percent=float(doc["cpu_percent"]),
+                cpu_percent=_finite(float(doc["cpu_percent"]), "cpu_percent"),
                 messages=int(doc["messages"]),
                 payload_bytes=int(doc["bytes"]),
                 # Added to version 1 later: a relay without it reports no drops.
@@ -439,10 +547,15 @@ def _rmw_type_hash(text: str) -> str | None:
     return None if text == RMW_TYPE_HASH_NOT_SUPPORTED else text
 
 
+def _is_number(text: str) -> bool:
+    # ASCII only: str.isdigit() also holds for '²', which int() refuses.
+    return text.isascii() and text.isdigit()
+
+
 def parse_rmw_data_key(key: str) -> RmwDataKey:
     """``0/tb3/scan/sensor_msgs::msg::dds_::LaserScan_/RIHS01_...`` -> its parts."""
     parts = key.split("/")
-    if len(parts) < 4 or not parts[0].isdigit():
+    if len(parts) < 4 or not _is_number(parts[0]):
         msg = f"key {key!r} is not an rmw_zenoh data key (<domain>/<topic>/<type>/<hash>)"
         raise GraphError(msg)
     try:
@@ -461,21 +574,20 @@ def parse_rmw_qos(text: str) -> QosProfile:
         msg = f"QoS {text!r} is not an rmw_zenoh QoS string (<rel>:<dur>:<hist>,<depth>:...)"
         raise GraphError(msg)
     _, _, depth = fields[2].partition(",")
-    try:
-        return QosProfile(
-            reliability="best_effort" if fields[0] == "2" else "reliable",
-            durability="transient_local" if fields[1] == "1" else "volatile",
-            depth=int(depth) if depth else 10,
-        )
-    except ValueError as err:
+    if depth and not _is_number(depth):
         msg = f"QoS {text!r}: history depth {depth!r} is not a number"
-        raise GraphError(msg) from err
+        raise GraphError(msg)
+    return QosProfile(
+        reliability="best_effort" if fields[0] == "2" else "reliable",
+        durability="transient_local" if fields[1] == "1" else "volatile",
+        depth=int(depth) if depth else 10,
+    )
 
 
 def parse_rmw_token(key: str) -> RmwGraphEntity:
     """A liveliness token key -> the node or endpoint it announces."""
     parts = key.split("/")
-    if len(parts) < 9 or parts[0] != RMW_LIVELINESS_PREFIX or not parts[1].isdigit():
+    if len(parts) < 9 or parts[0] != RMW_LIVELINESS_PREFIX or not _is_number(parts[1]):
         msg = (
             f"liveliness token {key!r} is not an rmw_zenoh one ({RMW_LIVELINESS_PREFIX}/<domain>/"
             "<zid>/<node id>/<entity id>/<kind>/<enclave>/<namespace>/<node>[/<topic>/<type>/"
