@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import struct
 import warnings
 from pathlib import Path
 from typing import Any
@@ -304,3 +306,127 @@ def test_real_synthetic_cloud_matches_per_field_reference(shared_data: Path) -> 
     assert keep.sum() == len(positions) > 0
     item = log_item(convert_pointcloud2(message, make_ctx("/cloud")), PATH)
     assert not any(isinstance(a, rr.CoordinateFrame) for a in item.archetypes)  # empty frame_id
+
+
+# --- the fast paths against a per-point reference -------------------------------------------------
+#
+# The converter reads x, y, z as one 12-byte record per point (or views them in place), filters
+# non-finite points only when there are any and packs colours into words. The reference below
+# reads each point with struct, as ROS 1's point_cloud2.read_points does, on clouds that have
+# every layout those paths distinguish, with NaN/inf coordinates sprinkled in.
+
+POINTS = 257
+
+
+def reference(
+    data: bytes, offsets: dict[str, int], formats: dict[str, str], point_step: int,
+    packed: str | None, *, width: int, height: int = 1, row_step: int | None = None,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint8]]:
+    """Positions and RGBA of the points with finite x, y, z, one point at a time."""
+    row_step = width * point_step if row_step is None else row_step
+    positions, colors = [], []
+    for row in range(height):
+        for col in range(width):
+            start = row * row_step + col * point_step
+            xyz = [struct.unpack_from(formats[a], data, start + offsets[a])[0] for a in "xyz"]
+            if not all(math.isfinite(v) for v in xyz):
+                continue
+            positions.append(xyz)
+            if packed is not None:
+                order = formats["x"][0]
+                (word,) = struct.unpack_from(order + "I", data, start + offsets[packed])
+                alpha = word >> 24 if packed == "rgba" else 255
+                colors.append([(word >> 16) & 0xFF, (word >> 8) & 0xFF, word & 0xFF, alpha])
+    return (np.array(positions, dtype=np.float32).reshape(-1, 3),
+            np.array(colors, dtype=np.uint8).reshape(-1, 4))
+
+
+# name: (layout {field: (numpy format, offset)}, point_step, packed colour field or None)
+LAYOUTS = {
+    "xyz only, 12-byte points (viewed in place)": (
+        {"x": ("<f4", 0), "y": ("<f4", 4), "z": ("<f4", 8)}, 12, None),
+    "PCL XYZRGB, 32-byte points with padding": (
+        {"x": ("<f4", 0), "y": ("<f4", 4), "z": ("<f4", 8), "rgb": ("<u4", 16)}, 32, "rgb"),
+    "xyz at offset 4 after an intensity, rgba packed": (
+        {"i": ("<f4", 0), "x": ("<f4", 4), "y": ("<f4", 8), "z": ("<f4", 12),
+         "rgba": ("<u4", 16)}, 20, "rgba"),
+    "big-endian float32 with rgb": (
+        {"x": (">f4", 0), "y": (">f4", 4), "z": (">f4", 8), "rgb": (">u4", 12)}, 16, "rgb"),
+    "big-endian xyz only, 12-byte points": (
+        {"x": (">f4", 0), "y": (">f4", 4), "z": (">f4", 8)}, 12, None),
+    "float64 positions": (
+        {"x": ("<f8", 0), "y": ("<f8", 8), "z": ("<f8", 16), "rgb": ("<u4", 24)}, 32, "rgb"),
+    "y before x (not adjacent in order)": (
+        {"y": ("<f4", 0), "x": ("<f4", 4), "z": ("<f4", 8), "rgb": ("<u4", 12)}, 16, "rgb"),
+}
+
+
+def random_cloud_bytes(
+    layout: dict[str, tuple[str, int]], point_step: int, n: int, seed: int
+) -> bytes:
+    rng = np.random.default_rng(seed)
+    rec = records(layout, point_step, n)
+    for axis in "xyz":
+        values = rng.normal(0.0, 10.0, n)
+        values[rng.random(n) < 0.05] = np.nan
+        values[rng.random(n) < 0.02] = rng.choice([np.inf, -np.inf])
+        rec[axis] = values
+    for name in ("rgb", "rgba", "i"):
+        if name in layout:
+            rec[name] = rng.integers(0, 1 << 32, n, dtype=np.uint64) if name != "i" else 1.0
+    raw = bytearray(rec.tobytes())
+    used = np.zeros(point_step, dtype=bool)
+    for fmt, offset in layout.values():
+        used[offset : offset + np.dtype(fmt).itemsize] = True
+    padding = np.flatnonzero(~used)
+    view = np.frombuffer(raw, dtype=np.uint8).reshape(n, point_step)
+    view[:, padding] = 0xFF  # padding must never be read (0xFF.. is a NaN as a float)
+    return bytes(raw)
+
+
+@pytest.mark.parametrize("name", LAYOUTS)
+def test_fast_paths_match_a_per_point_reference(name: str) -> None:
+    layout, point_step, packed = LAYOUTS[name]
+    data = random_cloud_bytes(layout, point_step, POINTS, seed=len(name))
+    datatypes = {"f4": FLOAT32, "f8": FLOAT64, "u4": FLOAT32}  # packed colour declared FLOAT32
+    fields = [field(n, o, datatypes[f[1:]]) for n, (f, o) in layout.items()]
+    big = layout["x"][0].startswith(">")
+    offsets = {n: o for n, (_, o) in layout.items()}
+    formats = {n: f[0] + {"f4": "f", "f8": "d", "u4": "I"}[f[1:]] for n, (f, _) in layout.items()}
+    expected_xyz, expected_rgba = reference(data, offsets, formats, point_step, packed,
+                                            width=POINTS)
+    positions, colors, _ = convert(cloud(data, fields, POINTS, point_step, bigendian=big))
+    assert 0 < len(expected_xyz) < POINTS  # some points were invalid, most were not
+    np.testing.assert_array_equal(positions, expected_xyz)
+    assert colors.shape == (len(expected_xyz), 4)
+    if packed is not None:
+        np.testing.assert_array_equal(colors, expected_rgba)
+
+
+def test_organised_cloud_with_padded_rows_and_nans_matches_reference() -> None:
+    layout, point_step, packed = LAYOUTS["PCL XYZRGB, 32-byte points with padding"]
+    width, height, row_step = 40, 5, 40 * 32 + 24
+    rows = [random_cloud_bytes(layout, point_step, width, seed=row) for row in range(height)]
+    data = b"".join(row + b"\xff" * 24 for row in rows)
+    fields = [field(n, o, FLOAT32) for n, (_, o) in layout.items()]
+    offsets = {n: o for n, (_, o) in layout.items()}
+    formats = {"x": "<f", "y": "<f", "z": "<f", "rgb": "<I"}
+    expected_xyz, expected_rgba = reference(data, offsets, formats, point_step, packed,
+                                            width=width, height=height, row_step=row_step)
+    message = cloud(data, fields, width, point_step, height=height, row_step=row_step)
+    positions, colors, _ = convert(message)
+    np.testing.assert_array_equal(positions, expected_xyz)
+    np.testing.assert_array_equal(colors, expected_rgba)
+
+
+def test_all_finite_12_byte_cloud_reaches_rerun_without_a_copy() -> None:
+    positions = np.random.default_rng(1).normal(size=(1000, 3)).astype(np.float32)
+    data = np.frombuffer(positions.tobytes(), dtype=np.uint8)
+    fields = [field("x", 0, FLOAT32), field("y", 4, FLOAT32), field("z", 8, FLOAT32)]
+    message = cloud(b"", fields, 1000, 12)
+    message.data = data
+    item = log_item(convert_pointcloud2(message, make_ctx("/cloud")), PATH)
+    arrow = archetype(item, rr.Points3D).positions.as_arrow_array()
+    values = arrow.flatten()
+    assert values.buffers()[1].address == data.ctypes.data  # the message's own bytes
+    np.testing.assert_array_equal(values.to_numpy().reshape(-1, 3), positions)
