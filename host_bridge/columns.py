@@ -50,6 +50,7 @@ message's nested sequences differ in length (not a rectangle), also gives ``None
 
 from __future__ import annotations
 
+import functools
 import struct
 import weakref
 from collections import defaultdict
@@ -61,6 +62,8 @@ import numpy as np
 import numpy.typing as npt
 from rosbags.interfaces import Nodetype
 from rosbags.typesys.store import Typestore
+
+from host_bridge.errors import ConvertError
 
 ENCAPSULATION = 4
 """Bytes of the CDR encapsulation header; alignment counts from its end."""
@@ -425,6 +428,17 @@ class Columns:
         first = self.blocks[0]
         return (*first.numbers, *first.strings)
 
+    def groups(self, path: str) -> list[tuple[StringValue, npt.NDArray[np.intp]]]:
+        """The run's rows per value of the string field ``path`` (a frame id, a joint list), in
+        order of first appearance; rows ascending."""
+        rows: dict[StringValue, list[npt.NDArray[np.intp]]] = {}
+        for block in self.blocks:
+            rows.setdefault(block.strings[path], []).append(block.rows)
+        return [
+            (value, parts[0] if len(parts) == 1 else np.sort(np.concatenate(parts)))
+            for value, parts in rows.items()
+        ]
+
     def __getitem__(self, path: str) -> npt.NDArray[Any]:
         """The field's column over the whole run, in run order: numbers as their numpy type,
         strings as an object array; ValueError when its shape differs between blocks (a topic
@@ -494,6 +508,32 @@ def read_columns(
     except _NotColumnarError:
         return None
     return Columns(len(payloads), tuple(sorted(blocks, key=lambda block: int(block.rows[0]))))
+
+
+@functools.cache
+def _message_store() -> Typestore:
+    from host_bridge.decode import base_typestore
+
+    return base_typestore()
+
+
+def columns_of_messages(msgs: Sequence[Any], topic: str) -> Columns:
+    """Decoded messages of one type (``__msgtype__``, ROS 1 ones included) as the columns their
+    CDR gives: serialized again with the bundled definitions and read as a run, any number of
+    blocks allowed. For converters written against columns, called with messages (tests, a
+    run the dispatcher decoded to find its bad message); not a fast path."""
+    msgtype = msgs[0].__msgtype__
+    store = _message_store()
+    try:
+        payloads = [store.serialize_cdr(msg, msgtype) for msg in msgs]
+    except Exception as err:
+        msg = f"{topic}: {msgtype} message does not serialize with the bundled definition: {err}"
+        raise ConvertError(msg) from err
+    columns = read_columns(payloads, msgtype, store, max_blocks=len(payloads))
+    if columns is None:
+        msg = f"{topic}: {msgtype} has nested sequences of differing lengths, not columns"
+        raise ConvertError(msg)
+    return columns
 
 
 def _by_length(

@@ -3,15 +3,17 @@ contexts) and what it returns (log items or columns); it never calls ``rr.log``,
 
 A converter is a pure function ``(msg, ctx) -> list[LogEntry]``; converters of high-rate small
 types also offer the run form, which turns many messages of one topic into columns for
-``rr.send_columns``. Kept apart from :mod:`host_bridge.registry` (the type table) so converters,
-the sink, queues and the layout import the contract without importing every converter.
+``rr.send_columns``, and the columnar form (:func:`columnar`), which reads the run's payloads as
+numpy columns (:mod:`host_bridge.columns`) with no Python per message. Kept apart from
+:mod:`host_bridge.registry` (the type table) so converters, the sink, queues and the layout
+import the contract without importing every converter.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -24,6 +26,12 @@ from host_bridge.state import RobotState, State, TopicState
 TIMELINE_ROS = "ros_time"
 TIMELINE_RECEIVE = "receive_time"
 TIMELINE_LOG = "log_time"
+
+if TYPE_CHECKING:
+    from host_bridge.columns import Columns
+
+Int64Array = npt.NDArray[np.int64]
+RowIndex = npt.NDArray[np.intp]
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,23 +60,15 @@ class ColumnsItem:
 LogEntry = LogItem | ColumnsItem
 
 
-@dataclass(frozen=True, slots=True)
-class ConvertContext:
-    """What a converter may know beyond the message itself.
+class TopicContext:
+    """What both contexts say about their topic: options, state records, frame names, paths."""
 
-    ``topic_state`` is kept by the dispatcher for the topic between messages: its options (read
-    typed with :meth:`options`) and converter state records (:meth:`state`: odometry trails,
-    marker lifetimes). ``robot_state`` is shared by all topics of one robot (the model
-    /joint_states moves, the last map a grid update patches, the mesh resolver). The state
-    records and ``robot_state`` are the only things a converter may mutate.
-    """
-
+    __slots__ = ()
     robot: str
     topic: str
     entity_path: str
-    times: Mapping[str, int]
-    topic_state: TopicState = field(default_factory=TopicState)
-    robot_state: RobotState = field(default_factory=RobotState)
+    topic_state: TopicState
+    robot_state: RobotState
 
     def options(self, kind: type[Options]) -> Options:
         """The topic's options as ``kind`` (the converter family's record, see options.py)."""
@@ -87,8 +87,92 @@ class ConvertContext:
         return "/".join([self.entity_path, *parts])
 
 
+@dataclass(frozen=True, slots=True)
+class ConvertContext(TopicContext):
+    """What a converter may know beyond the message itself.
+
+    ``topic_state`` is kept by the dispatcher for the topic between messages: its options (read
+    typed with :meth:`options`) and converter state records (:meth:`state`: odometry trails,
+    marker lifetimes). ``robot_state`` is shared by all topics of one robot (the model
+    /joint_states moves, the last map a grid update patches, the mesh resolver). The state
+    records and ``robot_state`` are the only things a converter may mutate.
+    """
+
+    robot: str
+    topic: str
+    entity_path: str
+    times: Mapping[str, int]
+    topic_state: TopicState = field(default_factory=TopicState)
+    robot_state: RobotState = field(default_factory=RobotState)
+    # ros_time is the arrival time, not the header stamp (the topic's ``restamp`` setting).
+    restamp: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class RunContext(TopicContext):
+    """A run of ``size`` messages of one topic, converted in columns: the topic's context and
+    each message's arrival times (``None`` for a timeline the input does not give: receive_time
+    offline, log_time live). A columnar converter takes each row's ros_time from its header
+    stamps through :meth:`stamped`, which applies ``restamp`` and the zero-stamp rule."""
+
+    robot: str
+    topic: str
+    entity_path: str
+    size: int
+    receive_ns: Int64Array | None = None
+    log_ns: Int64Array | None = None
+    restamp: bool = False
+    topic_state: TopicState = field(default_factory=TopicState)
+    robot_state: RobotState = field(default_factory=RobotState)
+
+    def stamped(
+        self, stamps: Int64Array | None, rows: RowIndex | None = None
+    ) -> list[tuple[RowIndex, dict[str, Int64Array]]]:
+        """The timelines of entries made from the run's messages ``rows`` (default: one entry
+        per message), ``stamps`` their header stamps in ns (None: a type without a header), in
+        groups ``(entry indices, times)``: one group, or two when some stamps are zero. A zero
+        stamp means "no stamp", as one message gets no ros_time then (``message_times``), and
+        one send_columns call cannot leave a timeline out for some rows only."""
+        rows = np.arange(self.size) if rows is None else rows
+        arrivals = {
+            name: values[rows]
+            for name, values in ((TIMELINE_RECEIVE, self.receive_ns), (TIMELINE_LOG, self.log_ns))
+            if values is not None
+        }
+        arrival = self.receive_ns if self.receive_ns is not None else self.log_ns
+        every = np.arange(len(rows))
+        if self.restamp and arrival is not None:
+            return [(every, {TIMELINE_ROS: arrival[rows], **arrivals})]
+        if stamps is None:
+            return [(every, arrivals)]
+        unstamped = stamps == 0
+        if not unstamped.any():
+            return [(every, {TIMELINE_ROS: stamps, **arrivals})]
+        groups: list[tuple[RowIndex, dict[str, Int64Array]]] = []
+        stamped_rows = np.flatnonzero(~unstamped)
+        if stamped_rows.size:
+            times = {name: values[stamped_rows] for name, values in arrivals.items()}
+            groups.append((stamped_rows, {TIMELINE_ROS: stamps[stamped_rows], **times}))
+        unstamped_rows = np.flatnonzero(unstamped)
+        if arrivals:  # a row with no time at all would be static
+            groups.append(
+                (unstamped_rows, {name: values[unstamped_rows] for name, values in arrivals.items()})
+            )
+        return groups
+
+    def last_times(self) -> dict[str, int]:
+        """The last message's arrival times: where a warning about the run goes."""
+        return {
+            name: int(values[-1])
+            for name, values in ((TIMELINE_RECEIVE, self.receive_ns), (TIMELINE_LOG, self.log_ns))
+            if values is not None and len(values)
+        }
+
+
 Converter = Callable[[Any, ConvertContext], list[LogEntry]]
 RunConverter = Callable[[Sequence[Any], Sequence[ConvertContext]], list[LogEntry]]
+ColumnsConverter = Callable[["Columns", RunContext], "list[LogEntry] | None"]
+"""A run's payloads as columns -> entries; None: this run needs the message path."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,11 +185,16 @@ class ConverterSpec:
     one, or logging rows where the run logs columns). ``message_by_message`` marks a run that is
     only a loop over ``single`` (:func:`per_message`): the dispatcher then converts message by
     message, so a bad message costs only itself and no message's state is applied twice.
+
+    ``convert_columns`` is the columnar form (:func:`columnar`): the dispatcher reads a run's
+    payloads with :func:`host_bridge.columns.read_columns` and hands the columns over, decoding
+    nothing message by message.
     """
 
     convert_run: RunConverter
     single: Converter | None = None
     message_by_message: bool = False
+    convert_columns: ColumnsConverter | None = None
 
     def convert(self, msg: Any, ctx: ConvertContext) -> list[LogEntry]:
         if self.single is not None:
@@ -121,6 +210,47 @@ def per_message(convert: Converter) -> ConverterSpec:
         return [entry for msg, ctx in zip(msgs, ctxs, strict=True) for entry in convert(msg, ctx)]
 
     return ConverterSpec(convert_run, single=convert, message_by_message=True)
+
+
+def run_context(ctxs: Sequence[ConvertContext]) -> RunContext:
+    """The run context of messages given one context each (decoded messages in columns)."""
+    ctx = ctxs[0]
+
+    def arrivals(name: str) -> Int64Array | None:
+        if not all(name in c.times for c in ctxs):
+            return None
+        return np.fromiter((c.times[name] for c in ctxs), dtype=np.int64, count=len(ctxs))
+
+    return RunContext(
+        robot=ctx.robot,
+        topic=ctx.topic,
+        entity_path=ctx.entity_path,
+        size=len(ctxs),
+        receive_ns=arrivals(TIMELINE_RECEIVE),
+        log_ns=arrivals(TIMELINE_LOG),
+        restamp=ctx.restamp,
+        topic_state=ctx.topic_state,
+        robot_state=ctx.robot_state,
+    )
+
+
+def columnar(convert_columns: ColumnsConverter) -> ConverterSpec:
+    """The spec of a converter written against columns only. Its message form (tests, a run the
+    dispatcher had to decode message by message) serializes the messages again and reads them
+    as columns, so the one body serves both and both give the same rows."""
+
+    def convert_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
+        from host_bridge.columns import columns_of_messages
+
+        if not msgs:
+            return []
+        entries = convert_columns(columns_of_messages(msgs, ctxs[0].topic), run_context(ctxs))
+        if entries is None:
+            msg = f"{ctxs[0].topic}: its converter needs columns the messages do not give"
+            raise ConvertError(msg)
+        return entries
+
+    return ConverterSpec(convert_run, convert_columns=convert_columns)
 
 
 def combine(*specs: ConverterSpec) -> ConverterSpec:
@@ -148,6 +278,21 @@ def combine(*specs: ConverterSpec) -> ConverterSpec:
     def convert_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
         return gather([lambda s=s: s.convert_run(msgs, ctxs) for s in specs])  # type: ignore[misc]
 
+    column_forms = [s.convert_columns for s in specs]
+
+    def column_part(form: ColumnsConverter, columns: Columns, ctx: RunContext) -> list[LogEntry]:
+        entries = form(columns, ctx)
+        if entries is None:  # the other parts would run twice on the message path
+            msg = f"{ctx.topic}: one part of its converter declined the columns"
+            raise ConvertError(msg)
+        return entries
+
+    def convert_columns(columns: Columns, ctx: RunContext) -> list[LogEntry] | None:
+        return gather([lambda f=f: column_part(f, columns, ctx) for f in column_forms])  # type: ignore[misc]
+
     return ConverterSpec(
-        convert_run, single=convert, message_by_message=all(s.message_by_message for s in specs)
+        convert_run,
+        single=convert,
+        message_by_message=all(s.message_by_message for s in specs),
+        convert_columns=convert_columns if None not in column_forms else None,
     )

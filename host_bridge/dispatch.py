@@ -17,16 +17,21 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+import numpy.typing as npt
 import rerun as rr
 
+from host_bridge.columns import read_columns
 from host_bridge.config import HostConfig
 from host_bridge.contract import (
     TIMELINE_LOG,
     TIMELINE_RECEIVE,
     TIMELINE_ROS,
     ConvertContext,
+    ConverterSpec,
     LogEntry,
     LogItem,
+    RunContext,
 )
 from host_bridge.decode import Decoder
 from host_bridge.errors import ConfigError, HostError, PartialConvertError
@@ -86,6 +91,21 @@ def sequence_gap(last: int | None, sequence: int) -> int:
     gap = (sequence - last - 1) & 0xFFFFFFFF
     # A relay restart starts again at 0; that is not a loss.
     return gap if 0 < gap < 0x80000000 and sequence != 0 else 0
+
+
+Arrivals = tuple[npt.NDArray[np.int64] | None, npt.NDArray[np.int64] | None]
+
+
+def run_arrivals(run: Sequence[RawMessage]) -> Arrivals | None:
+    """The run's receive and log times, one array each (None: no message has that time); None
+    when some messages have a time and others not, which columns cannot say."""
+    found = []
+    for values in ([raw.receive_ns for raw in run], [raw.log_ns for raw in run]):
+        missing = values.count(None)
+        if 0 < missing < len(values):
+            return None
+        found.append(None if missing else np.array(values, dtype=np.int64))
+    return found[0], found[1]
 
 
 def message_times(msg: Any, raw: RawMessage, *, restamp: bool = False) -> dict[str, int]:
@@ -205,15 +225,19 @@ class Dispatcher:
             times or {TIMELINE_RECEIVE: time.time_ns()},
         )
 
-    def _count(self, raw: RawMessage) -> TopicCounters:
-        key = (raw.robot, raw.topic)
+    def _count(self, run: Sequence[RawMessage]) -> TopicCounters:
+        """Counts a run of one topic as received, with the wire sequence gaps within it."""
+        first = run[0]
+        key = (first.robot, first.topic)
         counters = self.counters.get(key)
         if counters is None:
-            counters = self.counters[key] = TopicCounters(raw.msgtype)
-        counters.received += 1
-        if raw.sequence is not None:
-            counters.sequence_gaps += sequence_gap(counters.last_sequence, raw.sequence)
-            counters.last_sequence = raw.sequence
+            counters = self.counters[key] = TopicCounters(first.msgtype)
+        counters.received += len(run)
+        if first.sequence is not None or run[-1].sequence is not None:
+            for raw in run:
+                if raw.sequence is not None:
+                    counters.sequence_gaps += sequence_gap(counters.last_sequence, raw.sequence)
+                    counters.last_sequence = raw.sequence
         return counters
 
     def take(self, items: Sequence[InputItem]) -> None:
@@ -244,13 +268,16 @@ class Dispatcher:
     def _dispatch_run(self, run: list[RawMessage]) -> None:
         first = run[0]
         topic = self._topic(first)
+        counters = self._count(run)
+        if not topic.enabled:
+            counters.skipped += len(run)
+            return
+        spec = self.registry.get(first.msgtype, first.topic)
+        if spec.convert_columns is not None and self._convert_columns(run, topic, spec, counters):
+            return
         robot_state = self.robot_state(first.robot)
         decoded: list[tuple[Any, ConvertContext, RawMessage]] = []
         for raw in run:
-            counters = self._count(raw)
-            if not topic.enabled:
-                counters.skipped += 1
-                continue
             try:
                 msg = self.decoder.decode(raw)
             except HostError as err:
@@ -266,10 +293,65 @@ class Dispatcher:
                 times=message_times(msg, raw, restamp=topic.restamp),
                 topic_state=topic.state,
                 robot_state=robot_state,
+                restamp=topic.restamp,
             )
             decoded.append((msg, ctx, raw))
         if decoded:
             self._convert(decoded)
+
+    def _convert_columns(
+        self, run: list[RawMessage], topic: _Topic, spec: ConverterSpec, counters: TopicCounters
+    ) -> bool:
+        """Convert the run through its columns, no Python per message; False when the run needs
+        the message path: columns refuse it (a payload rosbags would refuse: that path names it
+        and converts the others), its arrival times or definitions differ between messages, or
+        the converter declines or fails on the run as a whole."""
+        assert spec.convert_columns is not None
+        first = run[0]
+        definition = first.definition
+        if any(raw.definition is not definition and raw.definition != definition for raw in run):
+            return False
+        arrivals = run_arrivals(run)
+        if arrivals is None:
+            return False
+        receive_ns, log_ns = arrivals
+        try:
+            store = self.decoder.typestore_for(first.msgtype, definition)
+        except HostError:
+            return False  # the message path warns about the type
+        started = time.perf_counter()
+        columns = read_columns([raw.data for raw in run], first.msgtype, store)
+        if columns is None:
+            return False
+        ctx = RunContext(
+            robot=first.robot,
+            topic=first.topic,
+            entity_path=topic.entity_path,
+            size=len(run),
+            receive_ns=receive_ns,
+            log_ns=log_ns,
+            restamp=topic.restamp,
+            topic_state=topic.state,
+            robot_state=self.robot_state(first.robot),
+        )
+        try:
+            entries = spec.convert_columns(columns, ctx)
+        except PartialConvertError as err:
+            if self.strict:
+                raise
+            # As for a run of messages (see _convert): log what converted, warn once.
+            entries = err.items
+            self.warn(first.robot, first.topic, err, ctx.last_times())
+        except Exception:
+            if self.strict:
+                raise
+            return False  # message by message, so only a bad message is lost
+        if entries is None:
+            return False
+        self.log(first.robot, entries, ctx.last_times())
+        counters.converted += len(run)
+        counters.convert_seconds += time.perf_counter() - started
+        return True
 
     def _convert(self, decoded: list[tuple[Any, ConvertContext, RawMessage]]) -> None:
         msgtype = decoded[0][2].msgtype

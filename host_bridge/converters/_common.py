@@ -9,12 +9,25 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
+from host_bridge.columns import Columns
 from host_bridge.contract import ConvertContext
 
 
 def stamp_ns(stamp: Any) -> int:
     """builtin_interfaces/Time (or a ROS 1 time) as integer nanoseconds."""
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def stamps_ns(columns: Columns, prefix: str = "header.stamp") -> npt.NDArray[np.int64]:
+    """A Time field's columns as integer nanoseconds, shaped like its ``sec`` column."""
+    seconds = columns[f"{prefix}.sec"].astype(np.int64)
+    stamps: npt.NDArray[np.int64] = seconds * 1_000_000_000 + columns[f"{prefix}.nanosec"]
+    return stamps
+
+
+def vectors(columns: Columns, path: str, axes: str = "xyz") -> npt.NDArray[np.float64]:
+    """The ``axes`` of a Vector3/Point/Quaternion field as float64, shape (..., len(axes))."""
+    return np.stack([columns[f"{path}.{axis}"] for axis in axes], axis=-1).astype(np.float64)
 
 
 def header_frame(msg: Any, ctx: ConvertContext) -> str | None:

@@ -25,8 +25,9 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
-from host_bridge.converters._common import time_columns, xyz
+from host_bridge.columns import Columns
+from host_bridge.contract import ColumnsItem, LogEntry, LogItem, RunContext, columnar
+from host_bridge.converters._common import stamps_ns, vectors, xyz
 from host_bridge.converters.scalars import (
     SubPath,
     Values,
@@ -56,11 +57,6 @@ def orientations(
     return np.where(valid[:, None], quaternions / safe, _IDENTITY)
 
 
-def _parent_frame(msg: Any, ctx: ConvertContext) -> str:
-    # Without a frame id the orientation hangs under the topic entity, as Rerun would default.
-    return ctx.frame(msg.header.frame_id) or f"tf#{ctx.entity_path}"
-
-
 @dataclass(slots=True)
 class _ImuTopic:
     """Per Imu topic: whether its orientation's axes (static) were logged."""
@@ -68,49 +64,43 @@ class _ImuTopic:
     logged: bool = False
 
 
-def convert_imu_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-    ctx0 = ctxs[0]
-    n = len(msgs)
-    times = time_columns(ctxs)
-    quaternions = np.array(
-        [
-            (m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w)
-            for m in msgs
-        ],
-        dtype=np.float64,
-    ).reshape(n, 4)
-    covariance0 = np.array([m.orientation_covariance[0] for m in msgs], dtype=np.float64)
-    vectors = {
-        name: np.array([xyz(getattr(m, name)) for m in msgs], dtype=np.float64).reshape(n, 3)
-        for name in _VECTORS
-    }
-    options = ctx0.options(ImuOptions)
+def convert_imu_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+    """One row per message: the orientation transform with its two arrows, one block of rows
+    per frame id, and the two vectors' scalars."""
+    quaternions = vectors(columns, "orientation", "xyzw")
+    covariance0 = columns["orientation_covariance"][:, 0].astype(np.float64)
+    values = {name: vectors(columns, name) for name in _VECTORS}
+    options = ctx.options(ImuOptions)
     scales = np.array([options.acceleration_scale, options.angular_velocity_scale])
-    arrows = np.stack([vectors[name] for name in _VECTORS], axis=1) * scales[None, :, None]
-    orientation_path = ctx0.child_path("orientation")
-    transform = rr.Transform3D.columns(
-        quaternion=orientations(quaternions, covariance0),
-        parent_frame=[_parent_frame(m, ctx) for m, ctx in zip(msgs, ctxs, strict=True)],
-    )
-    arrow_columns = rr.Arrows3D.columns(
-        vectors=arrows.reshape(-1, 3),
-        colors=np.tile(_ARROW_COLORS, (n, 1)),
-        labels=_ARROW_LABELS * n,
-    ).partition(np.full(n, len(_VECTORS)))
-    items: list[LogEntry] = series_names_once(ctx0, _LEGENDS)
-    axes = ctx0.state(_ImuTopic)
+    arrows = np.stack([values[name] for name in _VECTORS], axis=1) * scales[None, :, None]
+    unit = orientations(quaternions, covariance0)
+    stamps = stamps_ns(columns)
+    orientation_path = ctx.child_path("orientation")
+    items: list[LogEntry] = series_names_once(ctx, _LEGENDS)
+    axes = ctx.state(_ImuTopic)
     if not axes.logged:
         axes.logged = True
         items.append(
             LogItem(orientation_path, (rr.TransformAxes3D(options.axis_length),), static=True)
         )
-    items.append(ColumnsItem(orientation_path, [*transform, *arrow_columns], times))
-    items.extend(scalar_columns(ctx0.child_path(name), vectors[name], times) for name in _VECTORS)
+    for frame_id, frame_rows in columns.groups("header.frame_id"):
+        # Without a frame id the orientation hangs under the topic entity, as Rerun would default.
+        parent = ctx.frame(str(frame_id)) or f"tf#{ctx.entity_path}"
+        for entries, times in ctx.stamped(stamps[frame_rows], frame_rows):
+            rows = frame_rows[entries]
+            n = len(rows)
+            transform = rr.Transform3D.columns(quaternion=unit[rows], parent_frame=[parent] * n)
+            arrow_columns = rr.Arrows3D.columns(
+                vectors=arrows[rows].reshape(-1, 3),
+                colors=np.tile(_ARROW_COLORS, (n, 1)),
+                labels=_ARROW_LABELS * n,
+            ).partition(np.full(n, len(_VECTORS)))
+            items.append(ColumnsItem(orientation_path, [*transform, *arrow_columns], times))
+    for rows, times in ctx.stamped(stamps):
+        items.extend(
+            scalar_columns(ctx.child_path(name), values[name][rows], times) for name in _VECTORS
+        )
     return items
-
-
-def convert_imu(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    return convert_imu_run([msg], [ctx])
 
 
 def _magnetic_field(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
@@ -121,5 +111,5 @@ def _magnetic_field(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
     return {} if all(math.isnan(v) for v in field) else {(): field}
 
 
-IMU = ConverterSpec(convert_imu_run, single=convert_imu)
+IMU = columnar(convert_imu_columns)
 MAGNETIC_FIELD = series_spec(_magnetic_field, {(): XYZ})

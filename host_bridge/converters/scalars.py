@@ -16,7 +16,14 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import (
+    ColumnsItem,
+    ConvertContext,
+    ConverterSpec,
+    LogEntry,
+    LogItem,
+    TopicContext,
+)
 from host_bridge.converters._common import time_columns
 from host_bridge.errors import ConvertError
 
@@ -35,7 +42,7 @@ class _Legends:
 
 
 def series_names_once(
-    ctx: ConvertContext, names: Mapping[SubPath, Sequence[str]]
+    ctx: TopicContext, names: Mapping[SubPath, Sequence[str]]
 ) -> list[LogEntry]:
     """Static ``SeriesLines`` legends (x, y, z, ...), sent with the first message of a topic."""
     legends = ctx.state(_Legends)

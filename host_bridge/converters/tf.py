@@ -8,26 +8,35 @@ because a static entity keeps only its last value.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Iterable
+from typing import cast
 
 import numpy as np
+import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
-from host_bridge.converters._common import stamp_ns, time_columns, xyz, xyzw
+from host_bridge.columns import Columns
+from host_bridge.contract import (
+    ColumnsItem,
+    LogEntry,
+    LogItem,
+    RunContext,
+    TopicContext,
+    columnar,
+)
+from host_bridge.converters._common import stamps_ns, vectors
 from host_bridge.options import TfOptions
 from host_bridge.state import RobotState
 
 
-def _is_static(ctx: ConvertContext) -> bool:
+def _is_static(ctx: TopicContext) -> bool:
     static = ctx.options(TfOptions).static
     return ctx.topic.endswith("/tf_static") if static is None else static
 
 
-def _remember_children(ctx: ConvertContext, transforms: Sequence[Any]) -> None:
+def _remember_children(ctx: TopicContext, children: Iterable[str]) -> None:
     # The joint-state kinematics leave frames alone that TF already drives (see joints.py).
-    ctx.robot_state.tf_children.update(t.child_frame_id.strip("/") for t in transforms)
+    ctx.robot_state.tf_children.update(child.strip("/") for child in children)
 
 
 def static_transform_path(robot: str, robot_state: RobotState, child_frame_id: str) -> str:
@@ -42,51 +51,74 @@ def static_transform_path(robot: str, robot_state: RobotState, child_frame_id: s
     return f"{root}/{rr.escape_entity_path_part(child_frame_id.strip('/'))}"
 
 
-def _static_items(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    _remember_children(ctx, msg.transforms)
+def _transforms(columns: Columns) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Translations (n, k, 3) and xyzw quaternions (n, k, 4); the all-zero (invalid) quaternion
+    becomes the identity, as :func:`~host_bridge.converters._common.xyzw` does."""
+    translations = vectors(columns, "transforms.transform.translation")
+    quaternions = vectors(columns, "transforms.transform.rotation", "xyzw")
+    quaternions[~quaternions.any(axis=-1), 3] = 1.0
+    return translations, quaternions
+
+
+def _static_items(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+    """One static entity per child frame; a later message's relation replaces an earlier one,
+    so the items keep the run's order (/tf_static sends few messages: a loop is fine)."""
     ctx.robot_state.static_tf_root = ctx.entity_path
+    translations, quaternions = _transforms(columns)
+    ordered: list[tuple[int, int, LogItem]] = []
+    for block in columns.blocks:
+        children = cast(tuple[str, ...], block.strings["transforms.child_frame_id"])
+        parents = cast(tuple[str, ...], block.strings["transforms.header.frame_id"])
+        _remember_children(ctx, children)
+        for j, (child_id, parent_id) in enumerate(zip(children, parents, strict=True)):
+            child, parent = ctx.frame(child_id), ctx.frame(parent_id)
+            if child is None or parent is None:
+                continue
+            path = static_transform_path(ctx.robot, ctx.robot_state, child_id)
+            for row in block.rows.tolist():
+                transform = rr.Transform3D(
+                    translation=translations[row, j],
+                    quaternion=rr.Quaternion(xyzw=quaternions[row, j]),
+                    parent_frame=parent,
+                    child_frame=child,
+                )
+                ordered.append((row, j, LogItem(path, (transform,), static=True)))
+    return [item for _, _, item in sorted(ordered, key=lambda entry: entry[:2])]
+
+
+def convert_tf_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+    """/tf: one row per transform on the topic entity, at its own header stamp; a block of
+    messages with the same frames at a time (TF of k transforms each is k columns wide)."""
+    if _is_static(ctx):
+        return _static_items(columns, ctx)
+    translations, quaternions = _transforms(columns)
+    stamps = stamps_ns(columns, "transforms.header.stamp")
     items: list[LogEntry] = []
-    for t in msg.transforms:
-        child = ctx.frame(t.child_frame_id)
-        parent = ctx.frame(t.header.frame_id)
-        if child is None or parent is None:
+    for block in columns.blocks:
+        children = cast(tuple[str, ...], block.strings["transforms.child_frame_id"])
+        parents = cast(tuple[str, ...], block.strings["transforms.header.frame_id"])
+        kept = [
+            j for j, (child, parent) in enumerate(zip(children, parents, strict=True))
+            if child.strip("/") and parent.strip("/")
+        ]
+        if not kept or not len(block.rows):
             continue
-        path = static_transform_path(ctx.robot, ctx.robot_state, t.child_frame_id)
-        transform = rr.Transform3D(
-            translation=xyz(t.transform.translation),
-            quaternion=rr.Quaternion(xyzw=xyzw(t.transform.rotation)),
-            parent_frame=parent,
-            child_frame=child,
-        )
-        items.append(LogItem(path, (transform,), static=True))
+        _remember_children(ctx, (children[j] for j in kept))
+        # Rows message by message, transform by transform, as the messages list them.
+        rows = np.repeat(block.rows, len(kept))
+        which = np.tile(kept, len(block.rows))
+        parent_frames = np.array([ctx.frame(parents[j]) for j in kept], dtype=object)
+        child_frames = np.array([ctx.frame(children[j]) for j in kept], dtype=object)
+        for entries, times in ctx.stamped(stamps[rows, which], rows):
+            picked = which[entries]
+            columns_of_rows = rr.Transform3D.columns(
+                translation=translations[rows[entries], picked],
+                quaternion=quaternions[rows[entries], picked],
+                parent_frame=parent_frames[np.searchsorted(kept, picked)].tolist(),
+                child_frame=child_frames[np.searchsorted(kept, picked)].tolist(),
+            )
+            items.append(ColumnsItem(ctx.entity_path, columns_of_rows, times))
     return items
 
 
-def convert_tf_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-    if _is_static(ctxs[0]):
-        return [item for msg, ctx in zip(msgs, ctxs, strict=False) for item in _static_items(msg, ctx)]
-    rows = [
-        (t, ctx)
-        for msg, ctx in zip(msgs, ctxs, strict=False)
-        for t in msg.transforms
-        if t.child_frame_id.strip("/") and t.header.frame_id.strip("/")
-    ]
-    if not rows:
-        return []
-    ctx0 = ctxs[0]
-    _remember_children(ctx0, [t for t, _ in rows])
-    columns = rr.Transform3D.columns(
-        translation=np.array([xyz(t.transform.translation) for t, _ in rows], dtype=np.float64),
-        quaternion=np.array([xyzw(t.transform.rotation) for t, _ in rows], dtype=np.float64),
-        parent_frame=[ctx0.frame(t.header.frame_id) or "" for t, _ in rows],
-        child_frame=[ctx0.frame(t.child_frame_id) or "" for t, _ in rows],
-    )
-    times = time_columns([c for _, c in rows], ros_ns=[stamp_ns(t.header.stamp) for t, _ in rows])
-    return [ColumnsItem(ctx0.entity_path, columns, times)]
-
-
-def convert_tf(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    return convert_tf_run([msg], [ctx])
-
-
-SPEC = ConverterSpec(convert_tf_run, single=convert_tf)
+SPEC = columnar(convert_tf_columns)

@@ -13,7 +13,7 @@ from host_bridge.contract import ColumnsItem, ConvertContext, LogItem
 from host_bridge.converters.generic import convert_generic
 from host_bridge.converters.laser import convert_scan
 from host_bridge.converters.odometry import convert_odometry_run
-from host_bridge.converters.tf import convert_tf, convert_tf_run
+from host_bridge.converters.tf import SPEC as TF
 from host_bridge.registry import Row, default_registry
 from tests.host_bridge.sensor_test_support import make_ctx
 
@@ -63,7 +63,7 @@ def test_dynamic_tf_is_one_row_per_transform_with_prefixed_frames_and_own_stamps
         transform("odom", "base_link", 1.5, math.pi / 2, 10),
         transform("/base_link", "wheel", 0.1, 0.0, 20),
     ])
-    [item] = convert_tf(msg, ctx("/tf"))
+    [item] = TF.convert(msg, ctx("/tf"))
     assert isinstance(item, ColumnsItem)
     assert item.path == "/tb3/tf"
     assert column(item, "Transform3D:parent_frame") == [["tb3/odom"], ["tb3/base_link"]]
@@ -79,10 +79,10 @@ def test_dynamic_tf_is_one_row_per_transform_with_prefixed_frames_and_own_stamps
 
 def test_tf_runs_concatenate_and_two_robots_never_share_frames() -> None:
     one = T["tf2_msgs/msg/TFMessage"](transforms=[transform("odom", "base_link", 1.0, 0, 1)])
-    [item] = convert_tf_run([one, one], [ctx("/tf", "tb1"), ctx("/tf", "tb1")])
+    [item] = TF.convert_run([one, one], [ctx("/tf", "tb1"), ctx("/tf", "tb1")])
     assert isinstance(item, ColumnsItem)
     assert len(item.times["ros_time"]) == 2
-    [other] = convert_tf(one, ctx("/tf", "tb2"))
+    [other] = TF.convert(one, ctx("/tf", "tb2"))
     assert isinstance(other, ColumnsItem)
     assert column(other, "Transform3D:child_frame") == [["tb2/base_link"]]
 
@@ -92,7 +92,7 @@ def test_static_tf_is_static_one_entity_per_child_frame() -> None:
         transform("base_link", "laser", 0.2, 0.0, 0), transform("base_link", "imu", 0.0, 0.0, 0),
     ])
     state = ctx("/tf_static")
-    items = convert_tf(msg, state)
+    items = TF.convert(msg, state)
     assert [i.path for i in items] == ["/tb3/tf_static/laser", "/tb3/tf_static/imu"]
     assert all(isinstance(i, LogItem) and i.static for i in items)
     assert state.robot_state.tf_children == {"laser", "imu"}

@@ -12,7 +12,7 @@ import pytest
 import rerun as rr
 
 from host_bridge.contract import ColumnsItem, LogItem
-from host_bridge.converters.imu import MAGNETIC_FIELD, convert_imu, convert_imu_run
+from host_bridge.converters.imu import IMU, MAGNETIC_FIELD
 from tests.host_bridge.sensor_test_support import (
     archetype,
     column_rows,
@@ -68,7 +68,7 @@ def test_real_zero_quaternion_run_has_no_nan_and_keeps_scalars(
     assert all(m.orientation.w == 0.0 for m in msgs[:10])  # the bag's invalid orientation
     ctxs = [make_ctx("/imu/data_raw", stamp_ns=stamp_ns(m)) for m in msgs]
     started = time.perf_counter()
-    entries = convert_imu_run(msgs, ctxs)
+    entries = IMU.convert_run(msgs, ctxs)
     assert time.perf_counter() - started < 5.0
     orientation = columns_item(entries, "/r/imu/data_raw/orientation")
     quaternions = np.concatenate(column_rows(orientation, "Transform3D:quaternion", 4))
@@ -121,7 +121,7 @@ def test_real_magnetic_field_run(phidgets: dict[str, list[Any]]) -> None:
 def test_valid_orientation_is_normalised_and_arrows_scaled() -> None:
     half = math.sqrt(0.5)
     ctx = make_ctx("/imu", {"acceleration_scale": 0.5, "angular_velocity_scale": 2.0})
-    entries = convert_imu(imu((0.0, 0.0, 2 * half, 2 * half)), ctx)  # 90 deg yaw, norm 2
+    entries = IMU.convert(imu((0.0, 0.0, 2 * half, 2 * half)), ctx)  # 90 deg yaw, norm 2
     orientation = columns_item(entries, "/r/imu/orientation")
     (q,) = column_rows(orientation, "Transform3D:quaternion", 4)
     np.testing.assert_allclose(q, [[0.0, 0.0, half, half]], rtol=1e-6)
@@ -133,7 +133,7 @@ def test_valid_orientation_is_normalised_and_arrows_scaled() -> None:
     axes = [e for e in statics if e.path == "/r/imu/orientation"]
     assert len(axes) == 1
     # Legends and axes are sent once per topic, not with every message.
-    again = convert_imu(imu((0.0, 0.0, 0.0, 1.0)), ctx)
+    again = IMU.convert(imu((0.0, 0.0, 0.0, 1.0)), ctx)
     assert not [e for e in again if isinstance(e, LogItem)]
     assert all(isinstance(e, ColumnsItem) for e in again)
 
@@ -150,7 +150,7 @@ def test_valid_orientation_is_normalised_and_arrows_scaled() -> None:
 def test_missing_orientation_becomes_identity_not_nan(
     q: tuple[float, float, float, float], covariance0: float
 ) -> None:
-    entries = convert_imu(imu(q, covariance0=covariance0), make_ctx("/imu"))
+    entries = IMU.convert(imu(q, covariance0=covariance0), make_ctx("/imu"))
     orientation = columns_item(entries, "/r/imu/orientation")
     (quaternion,) = column_rows(orientation, "Transform3D:quaternion", 4)
     np.testing.assert_array_equal(quaternion, [[0.0, 0.0, 0.0, 1.0]])
@@ -163,7 +163,7 @@ def test_run_with_mixed_orientations_and_empty_frame_id() -> None:
         imu((0.0, 0.0, 0.0, 0.0), frame_id="", stamp=1),
         imu((0.0, 1.0, 0.0, 0.0), frame_id="", stamp=2),
     ]
-    entries = convert_imu_run(msgs, [make_ctx("/imu", stamp_ns=1), make_ctx("/imu", stamp_ns=2)])
+    entries = IMU.convert_run(msgs, [make_ctx("/imu", stamp_ns=1), make_ctx("/imu", stamp_ns=2)])
     orientation = columns_item(entries, "/r/imu/orientation")
     quaternions = np.concatenate(column_rows(orientation, "Transform3D:quaternion", 4))
     np.testing.assert_array_equal(quaternions, [[0, 0, 0, 1], [0, 1, 0, 0]])
