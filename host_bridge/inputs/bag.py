@@ -1,11 +1,16 @@
 """Offline input: a bag straight into the host pipeline, no Zenoh, in runs for batching.
 
 It reuses the relay's raw bag source, so a bag converted here and one replayed through a relay
-give the host the same RawMessages (same CDR, same definitions, same log times).
+give the host the same RawMessages (same CDR, same definitions, same log times). A rosbag2 in
+MCAP storage is read in bulk by :mod:`host_bridge.inputs.mcap` instead (the same RawMessages in
+the same order, payloads sliced out of whole chunks); a file it does not take is read by the
+source.
 """
 
 from __future__ import annotations
 
+import itertools
+import logging
 import threading
 import time
 from collections.abc import Iterator
@@ -13,9 +18,12 @@ from pathlib import Path
 
 from host_bridge.errors import InputError
 from host_bridge.inputs.base import Deliver
+from host_bridge.inputs.mcap import McapFile, NotIndexedError
 from robot_relay.errors import SourceError
 from robot_relay.sources.bag import BagSource
 from robot_relay.wire import RawMessage
+
+log = logging.getLogger("swanky.host")
 
 
 def bag_runs(path: Path, robot: str, run_size: int = 2048) -> Iterator[list[RawMessage]]:
@@ -23,15 +31,45 @@ def bag_runs(path: Path, robot: str, run_size: int = 2048) -> Iterator[list[RawM
     try:
         with BagSource(path, robot) as source:
             run: list[RawMessage] = []
-            for raw in source.messages():
-                run.append(raw)
-                if len(run) >= run_size:
-                    yield run
-                    run = []
+            for batch in bag_batches(source, run_size):
+                at = 0
+                while at < len(batch):
+                    taken = run_size - len(run)
+                    run.extend(batch[at : at + taken])
+                    at += taken
+                    if len(run) == run_size:
+                        yield run
+                        run = []
             if run:
                 yield run
     except SourceError as err:
         raise InputError(str(err)) from err
+
+
+def bag_batches(source: BagSource, size: int) -> Iterator[list[RawMessage]]:
+    """What ``source.messages()`` yields, at most ``size`` a list; read in bulk
+    (:mod:`host_bridge.inputs.mcap`) where every file of the bag is an indexed MCAP."""
+    storages = source.mcap_storages() if source.connections else None
+    files: list[McapFile] = []
+    try:
+        for path, channels in storages or ():
+            files.append(McapFile(path, channels))
+    except NotIndexedError as why:
+        log.debug("%s: %s; reading the bag with rosbags", path, why)
+        for opened in files:
+            opened.close()
+        storages = None
+    if storages is None:
+        messages = source.messages()
+        while batch := list(itertools.islice(messages, size)):
+            yield batch
+        return
+    source.log_undefined()
+    for opened in files:
+        try:
+            yield from opened.batches(source.robot, size)
+        finally:
+            opened.close()
 
 
 class BagInput:

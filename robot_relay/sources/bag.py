@@ -274,10 +274,39 @@ class BagSource:
                 )
             return None
 
-    def messages(self) -> Iterator[RawMessage]:
-        """Every message once (or forever with ``loop``), paced by ``rate`` (0: no pacing)."""
-        if not self.connections:
-            return
+    def mcap_storages(self) -> list[tuple[Path, dict[int, TopicInfo]]] | None:
+        """A rosbag2 stored as MCAP (neither file nor message compression): its storage files in
+        the order :meth:`messages` reads them, each with the info of every channel id read from
+        it, as rosbags matches them to the bag's connections. None for any other bag.
+
+        For readers of their own (the host's bulk MCAP reader) that must yield what
+        :meth:`messages` would."""
+        from rosbags.rosbag2.storage_mcap import McapReader
+
+        if self.is_ros1 or self._reader.compression_mode:
+            return None
+        storage = self._reader.storage
+        if isinstance(storage, McapReader):  # a bare .mcap: the file's channels are the connections
+            return [(Path(str(storage.path)), {c.id: self._infos[c.id] for c in self._asked})]
+        files = []
+        for stored in getattr(storage, "storages", ()):
+            if not isinstance(stored, McapReader):
+                return None
+            channels = {}
+            for channel in stored.connections:  # rosbags' DirectoryReader.messages match
+                asked = next((
+                    c for c in self._asked
+                    if c.topic == channel.topic and c.msgtype == channel.msgtype
+                    and c.ext == channel.ext
+                    and (not channel.digest or not c.digest or c.digest == channel.digest)
+                ), None)
+                if asked is not None:
+                    channels[channel.id] = self._infos[asked.id]
+            files.append((Path(str(stored.path)), channels))
+        return files or None
+
+    def log_undefined(self) -> None:
+        """Say once which topics come without a message definition (Humble's sqlite3 bags)."""
         undefined = sorted({i.topic for i in self._infos.values() if i.definition is None})
         if undefined:
             log.info(
@@ -285,6 +314,12 @@ class BagSource:
                 "on): the host decodes them with its bundled ROS 2 Humble types",
                 self.paths[0], ", ".join(undefined),
             )
+
+    def messages(self) -> Iterator[RawMessage]:
+        """Every message once (or forever with ``loop``), paced by ``rate`` (0: no pacing)."""
+        if not self.connections:
+            return
+        self.log_undefined()
         while True:
             started = time.monotonic()
             first_ns: int | None = None
