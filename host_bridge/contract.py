@@ -130,10 +130,13 @@ class RunContext(TopicContext):
     ) -> list[tuple[RowIndex, dict[str, Int64Array]]]:
         """The timelines of entries made from the run's messages ``rows`` (default: one entry
         per message), ``stamps`` their header stamps in ns (None: a type without a header), in
-        groups ``(entry indices, times)``: one group, or two when some stamps are zero. A zero
+        groups ``(entry indices, times)``: one group, two when some stamps are zero, none
+        without rows. A zero
         stamp means "no stamp", as one message gets no ros_time then (``message_times``), and
         one send_columns call cannot leave a timeline out for some rows only."""
         rows = np.arange(self.size) if rows is None else rows
+        if not len(rows):
+            return []
         arrivals = {
             name: values[rows]
             for name, values in ((TIMELINE_RECEIVE, self.receive_ns), (TIMELINE_LOG, self.log_ns))
@@ -154,7 +157,7 @@ class RunContext(TopicContext):
             times = {name: values[stamped_rows] for name, values in arrivals.items()}
             groups.append((stamped_rows, {TIMELINE_ROS: stamps[stamped_rows], **times}))
         unstamped_rows = np.flatnonzero(unstamped)
-        if arrivals:  # a row with no time at all would be static
+        if unstamped_rows.size:
             groups.append(
                 (unstamped_rows, {name: values[unstamped_rows] for name, values in arrivals.items()})
             )

@@ -30,13 +30,24 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem, per_message
+from host_bridge.columns import Columns
+from host_bridge.contract import (
+    ColumnsItem,
+    ConvertContext,
+    LogEntry,
+    LogItem,
+    RunContext,
+    TopicContext,
+    columnar,
+    per_message,
+)
+from host_bridge.converters._common import stamps_ns
 from host_bridge.errors import ConvertError, PartialConvertError
 
 MOVABLE_TYPES = frozenset({"revolute", "continuous", "prismatic"})
@@ -130,7 +141,7 @@ def joint_entity_path(robot: str, joint: str) -> str:
     return f"/{robot}/robot_model/joints/{rr.escape_entity_path_part(joint)}"
 
 
-def link_frame(ctx: ConvertContext, link: str) -> str:
+def link_frame(ctx: TopicContext, link: str) -> str:
     frame = ctx.frame(link)
     if frame is None:
         msg = f"{ctx.topic}: the robot model has a link with an empty name; name every link"
@@ -138,7 +149,7 @@ def link_frame(ctx: ConvertContext, link: str) -> str:
     return frame
 
 
-def tf_carries(ctx: ConvertContext, link: str) -> bool:
+def tf_carries(ctx: TopicContext, link: str) -> bool:
     children = ctx.robot_state.tf_children
     return link in children or ctx.frame(link) in children
 
@@ -171,7 +182,7 @@ def _quaternion_product(a: FloatArray, b: FloatArray) -> FloatArray:
     )
 
 
-def joint_transform(ctx: ConvertContext, joint: JointModel, value: float) -> rr.Transform3D:
+def joint_transform(ctx: TopicContext, joint: JointModel, value: float) -> rr.Transform3D:
     translations, quaternions = joint_motion(joint, np.array([value]))
     return rr.Transform3D(
         translation=translations[0],
@@ -197,7 +208,7 @@ def zero_positions(model: RobotModel) -> dict[str, float]:
     return values
 
 
-def _require_model(ctx: ConvertContext) -> RobotModel:
+def _require_model(ctx: TopicContext) -> RobotModel:
     model = ctx.robot_state.model
     if model is None:
         msg = (
@@ -244,7 +255,7 @@ class _ReportedJoints:
 
 
 def _report_unknown(
-    ctx: ConvertContext, model: RobotModel, unknown: Iterable[str], items: list[LogEntry]
+    ctx: TopicContext, model: RobotModel, unknown: Iterable[str], items: list[LogEntry]
 ) -> list[LogEntry]:
     reported = ctx.state(_ReportedJoints).names
     new = sorted(set(unknown) - reported)
@@ -269,44 +280,71 @@ def _transform_items(ctx: ConvertContext, model: RobotModel, values: Mapping[str
     ]
 
 
-def convert_joint_state(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    model = _require_model(ctx)
-    values, unknown = _joint_values(model, msg.name, msg.position, ctx, "position")
-    return _report_unknown(ctx, model, unknown, _transform_items(ctx, model, values))
+def _block_values(
+    model: RobotModel, names: Sequence[str], positions: FloatArray, ctx: TopicContext
+) -> tuple[dict[str, FloatArray], list[str]]:
+    """Per joint of the model a column of a block's positions, NaN where a message gives none
+    (or a non-finite one), mimic joints following their drivers row by row; and the names the
+    model lacks. The columnar counterpart of :func:`_joint_values`, with the same rules."""
+    if positions.shape[1] == 0:
+        return {}, []
+    if positions.shape[1] != len(names):
+        msg = (
+            f"{ctx.topic}: position has {positions.shape[1]} values for {len(names)} joint "
+            "names; the publisher must give one position per name"
+        )
+        raise ConvertError(msg)
+    columns = {
+        name: np.where(np.isfinite(positions[:, i]), positions[:, i], np.nan)
+        for i, name in enumerate(names)
+        if name in model.joints
+    }
+    for name in model.mimic_order:
+        mimic = model.joints[name].mimic
+        if mimic is None or mimic.joint not in columns:
+            continue
+        driver = columns[mimic.joint]
+        own = columns.get(name, np.full(len(driver), np.nan))
+        columns[name] = np.where(np.isnan(driver), own, mimic.multiplier * driver + mimic.offset)
+    unknown = [name for name in names if name not in model.joints]
+    return columns, unknown
 
 
-def convert_joint_state_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-    """One Transform3D column per joint over the run; a row per message that moves the joint."""
-    ctx = ctxs[0]
+def convert_joint_state_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+    """One Transform3D column per joint over the run; a row per message that moves the joint.
+    Without a robot model this costs one check per run, not one per message."""
     model = _require_model(ctx)
-    rows: dict[str, tuple[list[int], list[float]]] = {}
+    stamps = stamps_ns(columns)
+    moved: dict[str, list[tuple[npt.NDArray[np.intp], FloatArray]]] = {}
     unknown: set[str] = set()
-    for row, (msg, msg_ctx) in enumerate(zip(msgs, ctxs, strict=True)):
-        values, missing = _joint_values(model, msg.name, msg.position, msg_ctx, "position")
+    for block in columns.blocks:
+        names = cast(tuple[str, ...], block.strings["name"])
+        values, missing = _block_values(model, names, block.numbers["position"], ctx)
         unknown.update(missing)
-        for name, value in values.items():
-            indices, joint_values = rows.setdefault(name, ([], []))
-            indices.append(row)
-            joint_values.append(value)
-    timelines = set.intersection(*(set(c.times) for c in ctxs))
-    times = {name: np.array([c.times[name] for c in ctxs], dtype=np.int64) for name in timelines}
+        for name, column in values.items():
+            joint = model.joints[name]
+            if joint.type not in MOVABLE_TYPES or tf_carries(ctx, joint.child):
+                continue
+            given = ~np.isnan(column)
+            if given.any():
+                moved.setdefault(name, []).append((block.rows[given], column[given]))
     items: list[LogEntry] = []
-    for name, (indices, joint_values) in rows.items():
+    for name, parts in moved.items():
+        rows = np.concatenate([part_rows for part_rows, _ in parts])
+        joint_values = np.concatenate([part_values for _, part_values in parts])
+        order = np.argsort(rows, kind="stable")
+        rows, joint_values = rows[order], joint_values[order]
         joint = model.joints[name]
-        translations, quaternions = joint_motion(joint, np.array(joint_values))
-        columns = rr.Transform3D.columns(
-            translation=translations,
-            quaternion=quaternions,
-            parent_frame=[link_frame(ctx, joint.parent)] * len(indices),
-            child_frame=[link_frame(ctx, joint.child)] * len(indices),
-        )
-        items.append(
-            ColumnsItem(
-                joint_entity_path(ctx.robot, name),
-                list(columns),
-                {timeline: stamps[indices] for timeline, stamps in times.items()},
+        parent, child = link_frame(ctx, joint.parent), link_frame(ctx, joint.child)
+        for entries, times in ctx.stamped(stamps[rows], rows):
+            translations, quaternions = joint_motion(joint, joint_values[entries])
+            transforms = rr.Transform3D.columns(
+                translation=translations,
+                quaternion=quaternions,
+                parent_frame=[parent] * len(entries),
+                child_frame=[child] * len(entries),
             )
-        )
+            items.append(ColumnsItem(joint_entity_path(ctx.robot, name), list(transforms), times))
     return _report_unknown(ctx, model, unknown, items)
 
 
@@ -321,5 +359,5 @@ def convert_joint_trajectory(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
 
 
 # JointState's row combines this (the robot model moves) with scalars.JOINT_STATE (plots).
-JOINT_STATE = ConverterSpec(convert_joint_state_run, single=convert_joint_state)
+JOINT_STATE = columnar(convert_joint_state_columns)
 JOINT_TRAJECTORY = per_message(convert_joint_trajectory)

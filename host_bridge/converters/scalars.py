@@ -10,21 +10,24 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
+from host_bridge.columns import Columns
 from host_bridge.contract import (
     ColumnsItem,
     ConvertContext,
     ConverterSpec,
     LogEntry,
     LogItem,
+    RunContext,
     TopicContext,
+    columnar,
 )
-from host_bridge.converters._common import time_columns
+from host_bridge.converters._common import stamps_ns, time_columns
 from host_bridge.errors import ConvertError
 
 SubPath = tuple[str, ...]
@@ -141,22 +144,31 @@ def _battery(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
 JOINT_QUANTITIES = ("position", "velocity", "effort")
 
 
-def _joints(msg: Any, topic: str) -> Mapping[SubPath, Values]:
-    names = [rr.escape_entity_path_part(name) for name in msg.name]
-    series: dict[SubPath, Values] = {}
-    for quantity in JOINT_QUANTITIES:
-        values = np.asarray(getattr(msg, quantity), np.float64)
-        if values.size == 0:
-            continue  # JointState leaves a quantity empty when the driver does not measure it
-        if values.size != len(names):
-            msg_ = (
-                f"{topic}: JointState has {len(names)} names but {values.size} {quantity} "
-                f"values; each of position/velocity/effort must be empty or one per name"
-            )
-            raise ConvertError(msg_)
-        pairs = zip(names, values.tolist(), strict=True)
-        series.update(((name, quantity), value) for name, value in pairs)
-    return series
+def convert_joint_state_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+    """``<topic>/<joint>/<quantity>`` per joint and quantity of each block of messages naming
+    the same joints; a quantity a driver does not measure is empty and left out."""
+    stamps = stamps_ns(columns)
+    items: list[LogEntry] = []
+    for block in columns.blocks:
+        names = [rr.escape_entity_path_part(name) for name in cast(tuple[str, ...], block.strings["name"])]
+        groups = ctx.stamped(stamps[block.rows], block.rows)
+        for quantity in JOINT_QUANTITIES:
+            values = block.numbers[quantity]
+            if values.shape[1] == 0:
+                continue
+            if values.shape[1] != len(names):
+                msg = (
+                    f"{ctx.topic}: JointState has {len(names)} names but {values.shape[1]} "
+                    f"{quantity} values; each of position/velocity/effort must be empty or one "
+                    "per name"
+                )
+                raise ConvertError(msg)
+            for entries, times in groups:
+                items.extend(
+                    scalar_columns(ctx.child_path(name, quantity), values[entries, i], times)
+                    for i, name in enumerate(names)
+                )
+    return items
 
 
 NUMBER = series_spec(_data)
@@ -170,5 +182,5 @@ FLUID_PRESSURE = series_spec(_field("fluid_pressure"))
 ILLUMINANCE = series_spec(_field("illuminance"))
 RELATIVE_HUMIDITY = series_spec(_field("relative_humidity"))
 BATTERY = series_spec(_battery)
-JOINT_STATE = series_spec(_joints)
+JOINT_STATE = columnar(convert_joint_state_columns)
 """JointState's plots; its row combines them with joints.JOINT_STATE (the model moves)."""

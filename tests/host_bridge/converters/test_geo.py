@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from host_bridge.converters.geo import SPEC, convert_navsatfix, convert_navsatfix_run
+from host_bridge.converters.geo import SPEC
 from tests.host_bridge.sensor_test_support import (
     column_rows,
     columns_item,
@@ -46,7 +46,7 @@ def test_real_track_first_fix_and_radii(shared_data: Path) -> None:
     msgs = list(read_topic(shared_data / "gps_fix_rviz_satellite" / "sample.bag", "/gps/fix"))
     assert len(msgs) == 151
     ctxs = [make_ctx("/gps/fix", stamp_ns=stamp_ns(m)) for m in msgs]
-    entries = convert_navsatfix_run(msgs, ctxs)
+    entries = SPEC.convert_run(msgs, ctxs)
     points = columns_item(entries, "/r/gps/fix")
     positions = np.concatenate(column_rows(points, "GeoPoints:positions", 2))
     assert positions.shape == (151, 2)
@@ -71,7 +71,7 @@ def test_no_fix_and_nan_are_skipped_unknown_covariance_is_ui_points() -> None:
         fix(59.5, 18.3, alt=math.nan, covariance_type=0, stamp=4),
     ]
     ctxs = [make_ctx("/fix", {"radius": 7.0}, stamp_ns=i + 1) for i in range(4)]
-    entries = convert_navsatfix_run(msgs, ctxs)
+    entries = SPEC.convert_run(msgs, ctxs)
     points = columns_item(entries, "/r/fix")
     np.testing.assert_allclose(
         np.concatenate(column_rows(points, "GeoPoints:positions", 2)), [[59.3, 18.0], [59.5, 18.3]]
@@ -87,8 +87,7 @@ def test_no_fix_and_nan_are_skipped_unknown_covariance_is_ui_points() -> None:
 
 
 def test_single_fix_and_no_fix_message() -> None:
-    entries = convert_navsatfix(fix(40.0, -75.0, alt=3.5), make_ctx("/fix"))
+    entries = SPEC.convert(fix(40.0, -75.0, alt=3.5), make_ctx("/fix"))
     assert [e.path for e in entries] == ["/r/fix", "/r/fix/altitude"]
-    assert convert_navsatfix(fix(40.0, -75.0, status=-1), make_ctx("/fix")) == []
-    spec = SPEC
-    assert spec.convert_run is convert_navsatfix_run
+    assert SPEC.convert(fix(40.0, -75.0, status=-1), make_ctx("/fix")) == []
+    assert SPEC.convert_columns is not None

@@ -181,11 +181,12 @@ def test_real_battery_and_float32_runs(shared_data: Path) -> None:
 
 
 def joint_state(
-    names: list[str], position: list[float], velocity: list[float], effort: list[float]
+    names: list[str], position: list[float], velocity: list[float], effort: list[float],
+    stamp: int = 1_000_000_000,
 ) -> Any:
     return msg(
         "sensor_msgs/msg/JointState",
-        header=header(),
+        header=header(stamp_ns=stamp),
         name=names,
         position=np.array(position),
         velocity=np.array(velocity),
@@ -195,7 +196,7 @@ def joint_state(
 
 def test_joint_state_run_gives_one_column_per_joint_and_quantity() -> None:
     names = ["wheel_left_joint", "arm/elbow"]
-    msgs = [joint_state(names, [0.1 * i, -0.2 * i], [1.0 + i, 2.0 + i], []) for i in range(3)]
+    msgs = [joint_state(names, [0.1 * i, -0.2 * i], [1.0 + i, 2.0 + i], [], 100 + i) for i in range(3)]
     ctxs = [make_ctx("/joint_states", stamp_ns=100 + i) for i in range(3)]
     entries = convert_run("sensor_msgs/msg/JointState", msgs, ctxs)
     paths = sorted(e.path for e in entries)
@@ -215,16 +216,16 @@ def test_joint_state_run_gives_one_column_per_joint_and_quantity() -> None:
         np.concatenate(column_rows(elbow, "Scalars:scalars")), [2.0, 3.0, 4.0]
     )
     single = convert("sensor_msgs/msg/JointState", msgs[2], ctxs[2])
-    np.testing.assert_allclose(
-        scalars_of(log_item(single, "/r/joint_states/arm\\/elbow/position")), [-0.4]
-    )
+    elbow = columns_item(single, "/r/joint_states/arm\\/elbow/position")
+    np.testing.assert_allclose(np.concatenate(column_rows(elbow, "Scalars:scalars")), [-0.4])
+    np.testing.assert_array_equal(elbow.times["ros_time"], [102])
 
 
 def test_joint_state_run_with_changing_joint_sets() -> None:
     msgs = [
-        joint_state(["a"], [1.0], [], []),
-        joint_state(["b"], [2.0], [], []),
-        joint_state(["a"], [3.0], [], []),
+        joint_state(["a"], [1.0], [], [], 1),
+        joint_state(["b"], [2.0], [], [], 2),
+        joint_state(["a"], [3.0], [], [], 3),
     ]
     ctxs = [make_ctx("/js", stamp_ns=t) for t in (1, 2, 3)]
     entries = convert_run("sensor_msgs/msg/JointState", msgs, ctxs)
