@@ -121,7 +121,8 @@ def watch_connection(
     def check() -> None:
         time.sleep(after)
         try:
-            connected = session.info.peers_zid() or session.info.routers_zid()
+            # A session closed meanwhile has no peers either: nothing to say then.
+            connected = session.is_closed() or session.info.peers_zid() or session.info.routers_zid()
         except Exception:  # the session closed meanwhile
             return
         if not connected:
