@@ -3,11 +3,11 @@ deploy/make-certs.sh, and access control by certificate common name.
 
 On loopback: the router runs deploy/zenoh-router-tls.json5 (certificate paths pointed at the
 test's own, made by the script), a real ``swanky-relay --config relay.yaml`` (whose
-``zenoh.config`` is deploy/zenoh-relay-tls.json5) replays a bag, and clients open sessions
-through the commands' own flags (``--zenoh-config deploy/zenoh-host-tls.json5``, ``--cfg`` for
-another certificate) as ``swanky-host`` does. The listed host gets every byte; a client without
-a certificate, with one from another CA, or with one the access list does not name, gets none
-and reaches nobody.
+``zenoh.config`` is deploy/zenoh-relay-tls.json5) replays a bag, clients open sessions through
+the commands' own flags (``--zenoh-config deploy/zenoh-host-tls.json5``, ``--cfg`` for another
+certificate) as ``swanky-host`` does, and ``swanky-host --list`` runs with that file. The listed
+host gets every byte; a client without a certificate, with one from another CA, or with one the
+access list does not name, gets none and reaches nobody.
 """
 
 from __future__ import annotations
@@ -207,6 +207,11 @@ def test_listed_host_gets_the_relay_data_and_no_one_else_reads_or_writes(
             description_key = data_key(ROBOT, "/robot_description")
             late_got.wait_for(lambda: bool(late_got.on(description_key)), "the latched model")
 
+            # The host command itself, through the same configuration file.
+            listing = subprocess.run(
+                command("host_bridge.cli", "--zenoh-config", str(lab.config("zenoh-host-tls.json5")),
+                        "-e", lab.endpoint, "--list", "--duration", "2"),
+                check=False, capture_output=True, text=True, timeout=60)
             # Writes by clients that may not publish; the catalog replies that follow travel the
             # same route, and GRACE_S more is given.
             for session, name in ((intruder, INTRUDER), (other_host, HOST)):
@@ -226,6 +231,11 @@ def test_listed_host_gets_the_relay_data_and_no_one_else_reads_or_writes(
     assert late_got.on(description_key) == [
         bytes(STORE.serialize_cdr(string(URDF), "std_msgs/msg/String"))]
     assert sorted(t.topic for t in catalog.topics) == ["/chatter", "/robot_description"]
+    assert listing.returncode == 0, listing.stderr
+    assert [line.split()[:4] for line in listing.stdout.splitlines()[1:]] == [
+        [ROBOT, "/chatter", "std_msgs/msg/String", "reliable"],
+        [ROBOT, "/robot_description", "std_msgs/msg/String", "reliable,"],  # ", latched"
+    ], listing.stdout
     # Its own puts, which its session delivers to its own subscriber without the router.
     assert intruder_got.samples == [(chatter_key, forged(INTRUDER))] * CHATTER
     assert relay_cert_got.samples == []
