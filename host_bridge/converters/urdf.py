@@ -47,14 +47,11 @@ import xml.etree.ElementTree as ET
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
-import PIL.Image
 import rerun as rr
-import trimesh
-import yourdfpy
 
 from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters.joints import (
@@ -71,6 +68,12 @@ from host_bridge.converters.joints import (
 from host_bridge.converters.tf import static_transform_path
 from host_bridge.errors import ConvertError, MissingResourceError, PartialConvertError
 from host_bridge.resources import ResourceResolver
+
+if TYPE_CHECKING:
+    # Imported where a model is built: trimesh (with scipy) and yourdfpy take about a second to
+    # import, which every --bag run without a robot description paid.
+    import trimesh
+    import yourdfpy
 
 log = logging.getLogger("swanky.host")
 
@@ -205,6 +208,8 @@ def _parse(xml: str, source: str) -> yourdfpy.URDF:
     if root.tag != "robot":
         msg = f"{source}: the robot description's root element is <{root.tag}>, not <robot>"
         raise ConvertError(msg)
+    import yourdfpy
+
     try:
         return yourdfpy.URDF.load(io.BytesIO(data), build_scene_graph=False, load_meshes=False)
     except (AttributeError, KeyError, ValueError, TypeError) as err:
@@ -327,6 +332,8 @@ def _mesh(
     resolver: ResourceResolver,
     base: Path | None,
 ) -> rr.Mesh3D:
+    import trimesh
+
     uri = mesh.filename
     data = resolver.read(uri, base)
     file_type = PurePosixPath(uri).suffix.lstrip(".").lower()
@@ -371,6 +378,8 @@ def _base_colour(material: Any, linear: bool) -> npt.NDArray[np.uint8]:
     rgba = np.asarray(material.main_color, np.uint8)
     if not linear:
         return rgba
+    import trimesh
+
     srgb = trimesh.visual.color.linear_to_srgb(rgba[:3] / 255.0)
     return np.append(np.round(np.asarray(srgb) * 255.0), rgba[3]).astype(np.uint8)
 
@@ -389,6 +398,9 @@ def _uniform_visuals(parts: Sequence[trimesh.Trimesh], linear: bool) -> list[tri
     its base colour or, when another part has a texture, a small image of it (trimesh misplaces
     the one-pixel ones it makes itself); a textured one keeps just its image, the one texture a
     Mesh3D has (trimesh's packing fails on a mix of material kinds)."""
+    import PIL.Image
+    import trimesh
+
     textured = any(_image_of(part) is not None for part in parts)
     for part in parts:
         visual: Any = part.visual
