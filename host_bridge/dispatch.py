@@ -320,7 +320,8 @@ class Dispatcher:
         except HostError:
             return False  # the message path warns about the type
         started = time.perf_counter()
-        columns = read_columns([raw.data for raw in run], first.msgtype, store)
+        # Any number of blocks: the message path would read its messages as columns anyway.
+        columns = read_columns([raw.data for raw in run], first.msgtype, store, max_blocks=len(run))
         if columns is None:
             return False
         ctx = RunContext(
