@@ -56,15 +56,20 @@ def colormap_index(
     vmax: float | npt.NDArray[np.float64] | None = None,
 ) -> npt.NDArray[np.uint8]:
     """Table index 0..255 of each value scaled from [vmin, vmax] (default: the data's range,
-    NaNs ignored; NaN values get 0). ``vmin``/``vmax`` may be arrays, one bound per value."""
-    v = np.asarray(values, dtype=np.float64).ravel()
+    NaNs ignored; NaN values get 0), in the shape of ``values``. ``vmin``/``vmax`` may be
+    arrays broadcasting against ``values`` (one bound per row of a scan grid). The scaling is
+    done in float64 whatever the values' type."""
+    v = np.asarray(values)
     if v.size == 0:
-        return np.zeros(0, dtype=np.uint8)
+        return np.zeros(v.shape, dtype=np.uint8)
     lo = np.float64(np.nanmin(v)) if vmin is None else np.asarray(vmin, dtype=np.float64)
     hi = np.float64(np.nanmax(v)) if vmax is None else np.asarray(vmax, dtype=np.float64)
-    span = np.where(hi > lo, hi - lo, 1.0)
-    scaled = np.nan_to_num((v - lo) / span, nan=0.0)
-    index: npt.NDArray[np.uint8] = (np.clip(scaled, 0.0, 1.0) * 255.0).astype(np.uint8)
+    scaled = v - lo  # float64, a new array: the steps below work in place
+    scaled /= np.where(hi > lo, hi - lo, 1.0)
+    np.fmax(scaled, 0.0, out=scaled)  # fmax takes 0 over NaN: NaN values get index 0
+    np.fmin(scaled, 1.0, out=scaled)
+    scaled *= 255.0
+    index: npt.NDArray[np.uint8] = scaled.astype(np.uint8)
     return index
 
 
@@ -74,7 +79,7 @@ def apply_colormap(
 ) -> npt.NDArray[np.uint8]:
     """RGB uint8 colours, shape (N, 3), for ``values`` scaled from [vmin, vmax] (default: data range)."""
     table = colormap_table(name)
-    colors: npt.NDArray[np.uint8] = table[colormap_index(values, vmin, vmax)]
+    colors: npt.NDArray[np.uint8] = table[colormap_index(values, vmin, vmax).ravel()]
     return colors
 
 
@@ -84,7 +89,8 @@ def colormap_packed(
     vmax: float | npt.NDArray[np.float64] | None = None,
     name: str = "turbo",
 ) -> npt.NDArray[np.uint32]:
-    """The colours of :func:`apply_colormap` as opaque ``0xRRGGBBAA`` words, shape (N,)."""
+    """The colours of :func:`apply_colormap` as opaque ``0xRRGGBBAA`` words, in the shape of
+    ``values``."""
     table = _packed_table(name)
-    colors: npt.NDArray[np.uint32] = table[colormap_index(values, vmin, vmax)]
+    colors: npt.NDArray[np.uint32] = table.take(colormap_index(values, vmin, vmax))
     return colors
