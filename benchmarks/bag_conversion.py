@@ -221,6 +221,138 @@ def message_count(bag: Path) -> int:
         return int(reader.message_count)
 
 
+@dataclass(frozen=True, slots=True)
+class Pair:
+    """One thing both tools log for the same messages: Rerun's importer's (entity, component,
+    columns of its value) and Swanky's (entity, component) parts, side by side."""
+
+    what: str
+    theirs: tuple[str, str]
+    ours: tuple[tuple[str, str], ...]
+    their_columns: tuple[int, int] | None = None  # [start, stop) of Rerun's value, else all
+    tolerance: float = 1e-6  # float32 in one tool, float64 in the other
+    as_colour: bool = False  # Rerun keeps PointCloud2's packed rgb field as a float
+
+
+def _joints(field: str) -> tuple[tuple[str, str], ...]:
+    return tuple((f"/robot/joint_states/{joint}/{field}", "Scalars:scalars") for joint in JOINTS)
+
+
+# Rerun's importer logs a topic at its name with its own archetypes; Swanky at /robot/<topic>.
+PAIRS = [
+    Pair("Imu angular_velocity", ("/imu", "Scalars:scalars"),
+         (("/robot/imu/angular_velocity", "Scalars:scalars"),), (0, 3)),
+    Pair("Imu linear_acceleration", ("/imu", "Scalars:scalars"),
+         (("/robot/imu/linear_acceleration", "Scalars:scalars"),), (3, 6)),
+    Pair("Imu orientation", ("/imu", "sensor_msgs.msg.Imu:orientation"),
+         (("/robot/imu/orientation", "Transform3D:quaternion"),)),
+    Pair("TFMessage translation", ("/tf", "Transform3D:translation"),
+         (("/robot/tf", "Transform3D:translation"),)),
+    Pair("TFMessage rotation", ("/tf", "Transform3D:quaternion"),
+         (("/robot/tf", "Transform3D:quaternion"),)),
+    Pair("JointState position", ("/joint_states/position", "Scalars:scalars"), _joints("position")),
+    Pair("JointState velocity", ("/joint_states/velocity", "Scalars:scalars"), _joints("velocity")),
+    Pair("JointState effort", ("/joint_states/effort", "Scalars:scalars"), _joints("effort")),
+    Pair("NavSatFix latitude, longitude", ("/gps/fix", "GeoPoints:positions"),
+         (("/robot/gps/fix", "GeoPoints:positions"),)),
+    Pair("NavSatFix altitude", ("/gps/fix", "altitude"),
+         (("/robot/gps/fix/altitude", "Scalars:scalars"),)),
+    Pair("Image pixels", ("/camera/image_raw", "Image:buffer"),
+         (("/robot/camera/image_raw", "Image:buffer"),), tolerance=0.0),
+    Pair("PointCloud2 positions", ("/points", "Points3D:positions"),
+         (("/robot/points", "Points3D:positions"),), tolerance=0.0),
+    Pair("PointCloud2 colours", ("/points", "Points3D:rgb"),
+         (("/robot/points", "Points3D:colors"),), tolerance=0.0, as_colour=True),
+]
+NOT_COMPARED = (
+    "not compared: what one tool logs and the other does not (Swanky's IMU arrows and GPS radii, "
+    "Rerun's McapChannel/McapSchema rows and raw PointCloud2 fields), frame names (Swanky "
+    "prefixes them with the robot: robot/odom), the image format and the header-stamp timeline"
+)
+
+
+def _rows(column: Any) -> npt.NDArray[Any] | None:
+    """A list column of valid rows as one row of primitive values per row; None when the rows
+    hold different numbers of values."""
+    import pyarrow as pa
+
+    lengths = column.value_lengths().to_numpy(zero_copy_only=False)
+    if len(lengths) and (lengths != lengths[0]).any():
+        return None
+    values = column.flatten()
+    while pa.types.is_list(values.type) or pa.types.is_fixed_size_list(values.type):
+        values = values.flatten()
+    return values.to_numpy(zero_copy_only=False).reshape(len(column), -1)  # type: ignore[no-any-return]
+
+
+def rrd_values(path: Path, wanted: set[tuple[str, str]], time_column: str) -> dict[
+        tuple[str, str], tuple[npt.NDArray[np.int64], npt.NDArray[Any]]]:
+    """(log times, one row of values per row) of each wanted (entity, component) of a .rrd, rows
+    sorted by log time then value; chunks whose rows differ in length are left out."""
+    import pyarrow as pa
+    from rerun.chunk import RrdReader
+
+    parts: dict[tuple[str, str], list[tuple[npt.NDArray[np.int64], npt.NDArray[Any]]]] = {}
+    for chunk in RrdReader(path).stream():
+        if chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        for name in batch.schema.names:
+            if (chunk.entity_path, name) not in wanted:
+                continue
+            column = batch.column(name)
+            valid = column.is_valid()
+            values = _rows(column.filter(valid))
+            if values is not None:
+                times = batch.column(time_column).cast(pa.int64()).filter(valid).to_numpy()
+                parts.setdefault((chunk.entity_path, name), []).append((times, values))
+    found = {}
+    for key, pieces in parts.items():
+        width = max(values.shape[1] for _, values in pieces)
+        times = np.concatenate([t for t, v in pieces if v.shape[1] == width])
+        values = np.concatenate([v for _, v in pieces if v.shape[1] == width])
+        order = np.lexsort((*values.T[::-1], times)) if width <= 8 else np.argsort(times, kind="stable")
+        found[key] = (times[order], values[order])
+    return found
+
+
+def compare_outputs(theirs_path: Path, ours_path: Path) -> None:
+    """Print, per thing both tools convert, whether both .rrd files hold the same rows (by log
+    time) and the same values; what only one tool logs is not compared (said so)."""
+    theirs = rrd_values(theirs_path, {pair.theirs for pair in PAIRS}, "message_log_time")
+    ours = rrd_values(ours_path, {part for pair in PAIRS for part in pair.ours}, "log_time")
+    print("  same rows and values in both .rrd files (rows matched by log time):")
+    for pair in PAIRS:
+        if pair.theirs not in theirs:
+            if any(part in ours for part in pair.ours):
+                print(f"    {pair.what:32s} Rerun none, Swanky {len(ours[pair.ours[0]][0]):>9,} rows")
+            continue  # else the topic is not in this bag
+        their_times, their_values = theirs[pair.theirs]
+        if pair.their_columns is not None:
+            their_values = their_values[:, slice(*pair.their_columns)]
+        pieces = [ours[part] for part in pair.ours if part in ours]
+        if len(pieces) < len(pair.ours):
+            print(f"    {pair.what:32s} Rerun {len(their_times):>9,} rows, Swanky none: DIFFER")
+            continue
+        our_times = pieces[0][0]
+        our_values = np.hstack([values for _, values in pieces])
+        rows = f"rows Rerun {len(their_times):>9,} Swanky {len(our_times):>9,}"
+        if their_values.shape != our_values.shape or not np.array_equal(their_times, our_times):
+            print(f"    {pair.what:32s} {rows}, values {their_values.shape} vs {our_values.shape}: "
+                  "DIFFER")
+            continue
+        if pair.as_colour:
+            packed = np.ascontiguousarray(their_values, np.float32).view(np.uint32)
+            their_values = (packed << 8) | 0xFF
+        difference = np.abs(their_values.astype(np.float64) - our_values.astype(np.float64))
+        worst = float(difference.max()) if difference.size else 0.0
+        scale = max(float(np.abs(their_values).max()) if their_values.size else 0.0, 1.0)
+        verdict = "match" if worst <= pair.tolerance * scale else "DIFFER"
+        print(f"    {pair.what:32s} {rows}, {our_values.size:>11,} values, max |difference| "
+              f"{worst:.3g}: {verdict}")
+    print(f"  {NOT_COMPARED}", flush=True)
+
+
 def timed(command: list[str]) -> float:
     started = time.perf_counter()
     done = subprocess.run(command, capture_output=True, text=True, check=False)
@@ -252,6 +384,7 @@ def compare(label: str, bag: Path, rounds: int, tools: dict[str, str], out: Path
           f"runs {', '.join(f'{t:.2f}' for t in ours_runs)}")
     print(f"  ratio {label} rerun/swanky wall time, median of {rounds}: {ratio:.3f}{verdict}",
           flush=True)
+    compare_outputs(out / "rerun.rrd", out / "swanky.rrd")
 
 
 def main() -> int:
