@@ -16,10 +16,8 @@ m/s^2), ``angular_velocity_scale`` (m per rad/s), ``axis_length`` (m).
 
 from __future__ import annotations
 
-import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -27,13 +25,12 @@ import rerun as rr
 
 from host_bridge.columns import Columns
 from host_bridge.contract import ColumnsItem, LogEntry, LogItem, RunContext, columnar
-from host_bridge.converters._common import stamps_ns, vectors, xyz
+from host_bridge.converters._common import stamps_ns, vectors
 from host_bridge.converters.scalars import (
     SubPath,
-    Values,
+    columns_series,
     scalar_columns,
     series_names_once,
-    series_spec,
 )
 from host_bridge.options import ImuOptions
 
@@ -103,13 +100,12 @@ def convert_imu_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
     return items
 
 
-def _magnetic_field(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
-    # Drivers publish NaN for "no new reading" (the phidgets magnetometer samples at half the IMU
-    # rate, so every other message is NaN); such a message has nothing to plot, and NaN rows
-    # would only cut the plotted line into pieces.
-    field = xyz(msg.magnetic_field)
-    return {} if all(math.isnan(v) for v in field) else {(): field}
+def _magnetic_field(columns: Columns) -> npt.NDArray[np.float64]:
+    return vectors(columns, "magnetic_field")
 
 
 IMU = columnar(convert_imu_columns)
-MAGNETIC_FIELD = series_spec(_magnetic_field, {(): XYZ})
+# Drivers publish NaN for "no new reading" (the phidgets magnetometer samples at half the IMU
+# rate, so every other message is NaN); such a message has nothing to plot, and NaN rows would
+# only cut the plotted line into pieces.
+MAGNETIC_FIELD = columns_series(_magnetic_field, {(): XYZ}, skip_unread=True)

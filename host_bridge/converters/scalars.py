@@ -108,23 +108,50 @@ def series_spec(
     return ConverterSpec(convert_run, single=convert)
 
 
-def _data(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
-    return {(): float(msg.data)}
+ColumnsExtractor = Callable[[Columns], npt.NDArray[Any]]
+"""A run's columns -> its values, shape (n,) for one series or (n, series)."""
+
+
+def columns_series(
+    extract: ColumnsExtractor,
+    names: Mapping[SubPath, Sequence[str]] | None = None,
+    *,
+    skip_unread: bool = False,
+) -> ConverterSpec:
+    """A plot at the topic entity of the values ``extract`` reads from a run's columns, one row
+    per message at its header stamp (a type without a header: its arrival times).
+    ``skip_unread``: a message whose values are all NaN ("no new reading") logs no row."""
+    legends = names or {}
+
+    def convert_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+        values = np.asarray(extract(columns), np.float64)
+        stamps = stamps_ns(columns) if "header.stamp.sec" in columns.paths else None
+        rows = np.arange(len(values))
+        if skip_unread:
+            read = ~np.isnan(values.reshape(len(values), -1)).all(axis=1)
+            rows = rows[read]
+        items = series_names_once(ctx, legends)
+        for entries, times in ctx.stamped(None if stamps is None else stamps[rows], rows):
+            items.append(scalar_columns(ctx.entity_path, values[rows[entries]], times))
+        return items
+
+    return columnar(convert_columns)
+
+
+def _column(path: str) -> ColumnsExtractor:
+    def extract(columns: Columns) -> npt.NDArray[Any]:
+        return columns[path]
+
+    return extract
+
+
+def _seconds(columns: Columns) -> npt.NDArray[np.float64]:
+    seconds: npt.NDArray[np.float64] = columns["sec"].astype(np.float64)
+    return seconds + columns["nanosec"].astype(np.float64) * 1e-9
 
 
 def _array(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
     return {(): msg.data}
-
-
-def _seconds(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
-    return {(): float(msg.sec) + float(msg.nanosec) * 1e-9}
-
-
-def _field(name: str) -> Extractor:
-    def extract(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
-        return {(): float(getattr(msg, name))}
-
-    return extract
 
 
 def _battery(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
@@ -171,16 +198,16 @@ def convert_joint_state_columns(columns: Columns, ctx: RunContext) -> list[LogEn
     return items
 
 
-NUMBER = series_spec(_data)
+NUMBER = columns_series(_column("data"))
 """std_msgs' single numbers (``data``: Bool, Byte, Char, Int8 ... Float64)."""
 NUMBER_ARRAY = series_spec(_array)
-"""std_msgs' ``*MultiArray``: one multi-series plot."""
-SECONDS = series_spec(_seconds)
+"""std_msgs' ``*MultiArray``: one multi-series plot (message by message: lengths vary)."""
+SECONDS = columns_series(_seconds)
 """builtin_interfaces Time and Duration."""
-TEMPERATURE = series_spec(_field("temperature"))
-FLUID_PRESSURE = series_spec(_field("fluid_pressure"))
-ILLUMINANCE = series_spec(_field("illuminance"))
-RELATIVE_HUMIDITY = series_spec(_field("relative_humidity"))
+TEMPERATURE = columns_series(_column("temperature"))
+FLUID_PRESSURE = columns_series(_column("fluid_pressure"))
+ILLUMINANCE = columns_series(_column("illuminance"))
+RELATIVE_HUMIDITY = columns_series(_column("relative_humidity"))
 BATTERY = series_spec(_battery)
 JOINT_STATE = columnar(convert_joint_state_columns)
 """JointState's plots; its row combines them with joints.JOINT_STATE (the model moves)."""

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters import scalars
 from host_bridge.errors import ConvertError
 from host_bridge.registry import default_registry
@@ -47,7 +47,7 @@ def convert_run(msgtype: str, msgs: list[Any], ctxs: list[ConvertContext]) -> li
     ("name", "value", "expected"),
     [
         ("Bool", True, 1.0),
-        ("Byte", 200, 200.0),
+        ("Byte", -56, -56.0),  # rosbags reads a CDR byte as int8
         ("Char", 65, 65.0),
         ("Int8", -5, -5.0),
         ("UInt8", 255, 255.0),
@@ -64,20 +64,22 @@ def convert_run(msgtype: str, msgs: list[Any], ctxs: list[ConvertContext]) -> li
 def test_std_numbers(name: str, value: Any, expected: float) -> None:
     msgtype = f"std_msgs/msg/{name}"
     (item,) = convert(msgtype, msg(msgtype, data=value), make_ctx("/n"))
-    assert isinstance(item, LogItem)
+    assert isinstance(item, ColumnsItem)
     assert item.path == "/r/n"
-    np.testing.assert_array_equal(scalars_of(item), [expected])
+    np.testing.assert_array_equal(np.concatenate(column_rows(item, "Scalars:scalars")), [expected])
 
 
 def test_timer_named_float32_is_a_plain_time_series() -> None:
     msgs = [msg("std_msgs/msg/Float32", data=v) for v in (0.5, 0.25, 2.0)]
-    ctxs = [make_ctx("/instrumentation/timer/foo", stamp_ns=t) for t in (10, 20, 30)]
+    # No header: the arrival times are the message's times.
+    ctxs = [make_ctx("/instrumentation/timer/foo", times={"log_time": t}) for t in (10, 20, 30)]
     (item,) = convert_run("std_msgs/msg/Float32", msgs, ctxs)
     column = columns_item([item], "/r/instrumentation/timer/foo")
     np.testing.assert_array_equal(
         np.concatenate(column_rows(column, "Scalars:scalars")), [0.5, 0.25, 2.0]
     )
-    np.testing.assert_array_equal(column.times["ros_time"], [10, 20, 30])
+    assert list(column.times) == ["log_time"]
+    np.testing.assert_array_equal(column.times["log_time"], [10, 20, 30])
 
 
 def test_multiarray_is_multi_series_and_runs_allow_varying_length() -> None:
@@ -98,8 +100,8 @@ def test_multiarray_is_multi_series_and_runs_allow_varying_length() -> None:
 def test_time_and_duration_as_seconds() -> None:
     for msgtype in ("builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration"):
         (item,) = convert(msgtype, msg(msgtype, sec=12, nanosec=500_000_000), make_ctx("/t"))
-        assert isinstance(item, LogItem)
-        np.testing.assert_allclose(scalars_of(item), [12.5])
+        assert isinstance(item, ColumnsItem)
+        np.testing.assert_array_equal(np.concatenate(column_rows(item, "Scalars:scalars")), [12.5])
 
 
 @pytest.mark.parametrize(
@@ -113,11 +115,12 @@ def test_time_and_duration_as_seconds() -> None:
 )
 def test_environment_sensors(name: str, field: str) -> None:
     msgtype = f"sensor_msgs/msg/{name}"
-    message = msg(msgtype, header=header("env"), variance=0.0, **{field: 21.75})
+    message = msg(msgtype, header=header("env", 5_000_000_007), variance=0.0, **{field: 21.75})
     (item,) = convert(msgtype, message, make_ctx("/env"))
-    assert isinstance(item, LogItem)
+    assert isinstance(item, ColumnsItem)
     assert item.path == "/r/env"
-    np.testing.assert_array_equal(scalars_of(item), [21.75])
+    np.testing.assert_array_equal(np.concatenate(column_rows(item, "Scalars:scalars")), [21.75])
+    assert item.times == {"ros_time": [5_000_000_007]}
 
 
 def battery(voltage: float, cells: list[float]) -> Any:
@@ -241,8 +244,16 @@ def test_joint_state_length_mismatch_names_topic() -> None:
         convert("sensor_msgs/msg/JointState", bad, make_ctx("/js"))
 
 
-def test_every_type_has_a_run_form() -> None:
-    plotted = [row for row in REGISTRY.rows() if row.spec.convert_run.__module__ == scalars.__name__]
-    assert len(plotted) == 13 + 11 + 2 + 4 + 1 + 1  # numbers, arrays, times, sensors, battery, imu's field
+def test_every_type_has_a_run_form_and_the_fixed_layouts_a_columnar_one() -> None:
+    plotted = [row for row in REGISTRY.rows() if row.spec in (
+        scalars.NUMBER, scalars.NUMBER_ARRAY, scalars.SECONDS, scalars.TEMPERATURE,
+        scalars.FLUID_PRESSURE, scalars.ILLUMINANCE, scalars.RELATIVE_HUMIDITY, scalars.BATTERY,
+    )]
+    assert len(plotted) == 13 + 11 + 2 + 4 + 1  # numbers, arrays, times, sensors, battery
     assert not any(row.spec.message_by_message for row in plotted)
-    assert not scalars.JOINT_STATE.message_by_message
+    # MultiArrays vary in length and BatteryState differs between ROS 1 and 2: messages.
+    message_path = {row.msgtype for row in plotted if row.spec.convert_columns is None}
+    assert message_path == {row.msgtype for row in plotted if row.msgtype.endswith("MultiArray")} | {
+        "sensor_msgs/msg/BatteryState"
+    }
+    assert scalars.JOINT_STATE.convert_columns is not None
