@@ -28,6 +28,7 @@ from typing import Any
 from robot_relay.errors import SourceError
 from robot_relay.sources.base import Outlet, SourceThread, TopicFilter
 from robot_relay.sources.qos import adapted_qos
+from robot_relay.sources.salvage import McapSalvage
 from robot_relay.wire import (
     Catalog,
     MessageDefinition,
@@ -123,6 +124,93 @@ def _open_reader(paths: Sequence[Path], stack: ExitStack) -> Any:
         raise SourceError(msg) from err
 
 
+def _mcap_files(paths: Sequence[Path]) -> list[Path]:
+    """The MCAP files of a bag: a bare .mcap, or those of a rosbag2 directory."""
+    if paths[0].is_dir():
+        return sorted(paths[0].glob("*.mcap"))
+    return [paths[0]] if paths[0].suffix == ".mcap" else []
+
+
+class _SalvagedReader:
+    """A damaged MCAP bag that rosbags refuses, read by :class:`McapSalvage` (everything up to
+    the damage, and the intact chunks after it), shaped like the rosbags reader BagSource uses.
+    Its messages come in file order; QoS come from the channels' metadata."""
+
+    storage = None
+    compression_mode = ""
+
+    def __init__(self, files: Sequence[Path], refusal: SourceError) -> None:
+        from rosbags.interfaces import (
+            Connection,
+            ConnectionExtRosbag2,
+            MessageDefinitionFormat,
+        )
+        from rosbags.interfaces import MessageDefinition as RosbagsDefinition
+        from rosbags.rosbag2.metadata import parse_qos
+
+        self.refusal = str(refusal)
+        self.files = [McapSalvage(path) for path in files]
+        self.connections: list[Any] = []
+        self._connections: dict[tuple[int, int], Any] = {}
+        scans = [salvage.scan() for salvage in self.files]
+        formats = {"ros2msg": MessageDefinitionFormat.MSG, "ros2idl": MessageDefinitionFormat.IDL}
+        for index, salvage in enumerate(self.files):
+            for channel in salvage.channels.values():
+                schema = channel.schema
+                fmt = formats.get(schema.encoding) if schema is not None else None
+                try:
+                    qos = parse_qos(channel.metadata.get("offered_qos_profiles", ""))
+                except Exception:  # whatever a damaged YAML makes rosbags' parser raise
+                    qos = []
+                connection = Connection(
+                    id=len(self.connections) + 1,
+                    topic=channel.topic,
+                    msgtype=schema.name if schema is not None else "",
+                    msgdef=RosbagsDefinition(
+                        fmt or MessageDefinitionFormat.NONE,
+                        schema.data.decode("utf-8", errors="replace") if fmt and schema else "",
+                    ),
+                    digest="",
+                    msgcount=0,
+                    ext=ConnectionExtRosbag2("cdr", qos),
+                    owner=None,
+                )
+                self.connections.append(connection)
+                self._connections[(index, channel.id)] = connection
+        self.message_count = sum(count for count, _, _ in scans)
+        self.start_time = min((first for count, first, _ in scans if count), default=0)
+        self.end_time = max((last for count, _, last in scans if count), default=0)
+        self.topics = {c.topic for c in self.connections}
+
+    def messages(self, connections: Sequence[Any]) -> Iterator[tuple[Any, int, bytes]]:
+        wanted = {c.id for c in connections}
+        for index, salvage in enumerate(self.files):
+            for channel, log_ns, data in salvage.messages():
+                connection = self._connections.get((index, channel))
+                if connection is not None and connection.id in wanted:
+                    yield connection, log_ns, data
+
+    def damage(self) -> str:
+        """What of the bag could not be read, file by file."""
+        return "; ".join(
+            f"{salvage.path.name}: {salvage.damage.describe()}"
+            for salvage in self.files if salvage.damage
+        )
+
+
+def _open_damaged(paths: Sequence[Path], refusal: SourceError) -> _SalvagedReader:
+    """The readable part of an MCAP bag rosbags refuses (``refusal``, raised again when the
+    bag is not MCAP or nothing of it can be read)."""
+    files = _mcap_files(paths)
+    if not files:
+        raise refusal
+    reader = _SalvagedReader(files, refusal)
+    if not reader.message_count:
+        msg = f"{refusal}; nothing of it can be read ({reader.damage() or 'no messages'})"
+        raise SourceError(msg) from refusal
+    return reader
+
+
 def _storage_connections(reader: Any, wanted: Sequence[Any]) -> list[Any]:
     """The connections to ask a rosbag2 directory for, carrying each storage file's own QoS.
 
@@ -132,7 +220,7 @@ def _storage_connections(reader: Any, wanted: Sequence[Any]) -> list[Any]:
     one and as INT_MAX in the other), which would read no message at all: match by topic and type.
     """
     storages = getattr(reader.storage, "storages", None)
-    if storages is None:  # a bare .mcap/.db3: its connections are the file's own
+    if storages is None:  # a bare .mcap/.db3 or a salvaged bag: its connections are its own
         return list(wanted)
     asked: list[Any] = []
     for connection in wanted:
@@ -177,6 +265,7 @@ class BagSource:
         self._replay: SourceThread | None = None
         self._stack = ExitStack()
         self._reader: Any = None
+        self._malformed = 0
         self._ros1_store: Any = None
         self._warned: set[str] = set()
 
@@ -185,7 +274,10 @@ class BagSource:
 
     def open(self) -> BagSource:
         """Open the bag and read its connections (nothing of the messages yet)."""
-        self._reader = _open_reader(self.paths, self._stack)
+        try:
+            self._reader = _open_reader(self.paths, self._stack)
+        except SourceError as refusal:
+            self._reader = _open_damaged(self.paths, refusal)
         self.is_ros1 = self.paths[0].suffix == ".bag"
         self.connections = [c for c in self._reader.connections if self.topics(c.topic)]
         if self.is_ros1:
@@ -283,7 +375,7 @@ class BagSource:
         :meth:`messages` would."""
         from rosbags.rosbag2.storage_mcap import McapReader
 
-        if self.is_ros1 or self._reader.compression_mode:
+        if self.is_ros1 or self._reader.compression_mode or self._reader.storage is None:
             return None
         storage = self._reader.storage
         if isinstance(storage, McapReader):  # a bare .mcap: the file's channels are the connections
@@ -323,7 +415,7 @@ class BagSource:
         while True:
             started = time.monotonic()
             first_ns: int | None = None
-            for connection, log_ns, raw in self._reader.messages(connections=self._asked):
+            for connection, log_ns, raw in self._read():
                 if first_ns is None:
                     first_ns = log_ns
                 if self.rate > 0:
@@ -342,5 +434,44 @@ class BagSource:
                     definition=info.definition,
                     log_ns=log_ns,
                 )
+            self._name_damage()
             if not self.loop:
                 return
+
+    def _name_damage(self) -> None:
+        """Say once per pass what of a damaged bag was lost (the rest was read)."""
+        lost = []
+        if isinstance(self._reader, _SalvagedReader):
+            lost.append(self._reader.damage() or "no message (every chunk read)")
+        if self._malformed:
+            lost.append(f"{self._malformed} messages whose log time or payload is malformed")
+        if lost:
+            read = (
+                f"{self._reader.refusal}; " if isinstance(self._reader, _SalvagedReader) else ""
+            )
+            log.warning(
+                "bag %s is damaged (%sthe readable part was read); lost: %s",
+                self.paths[0], read, "; ".join(lost),
+            )
+
+    def _read(self) -> Iterator[tuple[Any, int, bytes]]:
+        """The reader's messages; a read error in the middle of the bag (a corrupt sqlite3 row or
+        chunk) ends it with a SourceError naming the file and what was read up to there."""
+        count, last_ns = 0, None
+        self._malformed = 0
+        try:
+            for connection, log_ns, raw in self._reader.messages(connections=self._asked):
+                if not isinstance(log_ns, int) or not isinstance(raw, bytes | memoryview):
+                    # A sqlite3 row whose timestamp or data is not what rosbag2 writes.
+                    self._malformed += 1
+                    continue
+                count += 1
+                last_ns = log_ns
+                yield connection, log_ns, raw
+        except Exception as err:  # rosbags' readers raise whatever their storage hits
+            where = "at its start" if last_ns is None else f"after log time {last_ns} ns"
+            msg = (
+                f"bag {self.paths[0]} is damaged: reading stopped {where}, after {count} "
+                f"messages ({type(err).__name__}: {err}); the rest of the bag is lost"
+            )
+            raise SourceError(msg) from err
