@@ -13,8 +13,7 @@ Options (:class:`~host_bridge.options.PoseOptions` and its kin): ``trail_length`
 
 from __future__ import annotations
 
-import operator
-from collections.abc import Callable, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,8 +21,19 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem, per_message
-from host_bridge.converters._common import frame_components, time_columns
+from host_bridge.columns import Columns
+from host_bridge.contract import (
+    ColumnsItem,
+    ConvertContext,
+    ConverterSpec,
+    LogEntry,
+    LogItem,
+    RunContext,
+    TopicContext,
+    columnar,
+    per_message,
+)
+from host_bridge.converters._common import frame_components, stamps_ns, vectors
 from host_bridge.options import PoseArrayOptions, PoseCovarianceOptions, PoseOptions
 
 Float64Array = npt.NDArray[np.float64]
@@ -74,7 +84,7 @@ def pose_arrows(positions: Float64Array, quats_xyzw: Float64Array, length: float
     return rr.Arrows3D(origins=positions, vectors=x_axes(quats_xyzw) * length)
 
 
-def fixed_frame(ctx: ConvertContext, frame: str | None) -> str:
+def fixed_frame(ctx: TopicContext, frame: str | None) -> str:
     """The frame a pose is expressed in, also when its frame_id is empty.
 
     With an empty frame_id the pose transform hangs under the implicit frame of the topic
@@ -99,7 +109,7 @@ class _Trail:
 
 
 def _advance_trail(
-    ctx: ConvertContext, limit: int, positions: Float64Array, frames: Sequence[str | None],
+    ctx: TopicContext, limit: int, positions: Float64Array, frames: Sequence[str | None],
 ) -> list[tuple[int, Float64Array]]:
     """(row, trail after that row) for every row that moved the ``limit`` points long trail;
     keeps it in the topic's state.
@@ -125,55 +135,62 @@ def _advance_trail(
     return grown
 
 
-def _group_rows(frames: Sequence[str | None]) -> list[tuple[str | None, RowIndex]]:
-    """Rows of a run per frame: a column cannot mix rows with and without a parent frame."""
-    index = {frame: i for i, frame in enumerate(dict.fromkeys(frames))}
-    labels = np.array([index[frame] for frame in frames])
-    return [(frame, np.flatnonzero(labels == i)) for frame, i in index.items()]
+def _frame_rows(ctx: TopicContext, columns: Columns) -> list[tuple[str | None, RowIndex]]:
+    """Rows of a run per header frame: a column cannot mix rows with and without a parent."""
+    return [(ctx.frame(str(frame_id)), rows) for frame_id, rows in columns.groups("header.frame_id")]
 
 
-def pose_run(
-    poses: Sequence[Any], headers: Sequence[Any], ctxs: Sequence[ConvertContext],
-    options: PoseOptions | None = None,
+def pose_columns_arrays(columns: Columns, path: str) -> tuple[Float64Array, Float64Array]:
+    """Positions (n, 3) and xyzw quaternions (n, 4) of a run's geometry_msgs/Pose at ``path``,
+    the all-zero (invalid) quaternion as identity, as :func:`pose_arrays`."""
+    positions = vectors(columns, f"{path}.position")
+    quats = vectors(columns, f"{path}.orientation", "xyzw")
+    quats[~quats.any(axis=1), 3] = 1.0
+    return positions, quats
+
+
+def pose_columns(
+    columns: Columns, ctx: RunContext, path: str, options: PoseOptions | None = None,
 ) -> list[LogEntry]:
-    """Pose transforms with axes, and the trail rows the run grew; ``options`` are the topic's
-    (a covariance topic's record holds more than PoseOptions)."""
-    ctx = ctxs[0]
+    """The pose at ``path`` of each message of a run: transforms with axes, and the trail rows
+    the run grew; ``options`` are the topic's (a covariance topic's record holds more)."""
     options = ctx.options(PoseOptions) if options is None else options
-    frames = [ctx.frame(h.frame_id) for h in headers]
-    positions, quats = pose_arrays(poses)
-    axis_length = options.axis_length
+    positions, quats = pose_columns_arrays(columns, path)
+    stamps = stamps_ns(columns)
+    frame_rows = _frame_rows(ctx, columns)
     entries: list[LogEntry] = []
-    for frame, rows in _group_rows(frames):
-        columns = [
-            *rr.Transform3D.columns(
-                translation=positions[rows],
-                quaternion=quats[rows],
-                parent_frame=[frame] * len(rows) if frame else None,
-            ),
-            *rr.TransformAxes3D.columns(axis_length=np.full(len(rows), axis_length)),
-        ]
-        times = time_columns([ctxs[i] for i in rows])
-        entries.append(ColumnsItem(ctx.entity_path, columns, times))
+    for frame, rows in frame_rows:
+        for picked, times in ctx.stamped(stamps[rows], rows):
+            chosen = rows[picked]
+            pose = [
+                *rr.Transform3D.columns(
+                    translation=positions[chosen],
+                    quaternion=quats[chosen],
+                    parent_frame=[frame] * len(chosen) if frame else None,
+                ),
+                *rr.TransformAxes3D.columns(axis_length=np.full(len(chosen), options.axis_length)),
+            ]
+            entries.append(ColumnsItem(ctx.entity_path, pose, times))
+    frames: list[str | None] = [None] * ctx.size
+    for frame, rows in frame_rows:
+        for row in rows.tolist():
+            frames[row] = frame
     grown = _advance_trail(ctx, options.trail_length, positions, frames)
     if grown:
-        columns = [
-            *rr.LineStrips3D.columns(strips=[trail for _, trail in grown]),
-            *rr.CoordinateFrame.columns(frame=[fixed_frame(ctx, frames[row]) for row, _ in grown]),
-        ]
-        times = time_columns([ctxs[row] for row, _ in grown])
-        entries.append(ColumnsItem(ctx.child_path("trail"), columns, times))
+        grown_rows = np.array([row for row, _ in grown], dtype=np.intp)
+        for picked, times in ctx.stamped(stamps[grown_rows], grown_rows):
+            trail = [
+                *rr.LineStrips3D.columns(strips=[grown[i][1] for i in picked.tolist()]),
+                *rr.CoordinateFrame.columns(
+                    frame=[fixed_frame(ctx, frames[row]) for row in grown_rows[picked].tolist()]
+                ),
+            ]
+            entries.append(ColumnsItem(ctx.child_path("trail"), trail, times))
     return entries
 
 
-def _pose_stamped(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    return pose_run([msg.pose], [msg.header], [ctx])
-
-
-def _pose_stamped_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-    if not msgs:
-        return []
-    return pose_run([m.pose for m in msgs], [m.header for m in msgs], ctxs)
+def _pose_stamped(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+    return pose_columns(columns, ctx, "pose")
 
 
 def _quats_from_matrices(m: Float64Array) -> Float64Array:
@@ -205,35 +222,45 @@ def _quats_from_matrices(m: Float64Array) -> Float64Array:
 
 
 def covariance_ellipsoids(
-    centers: Float64Array, covariances: Float64Array, sigma: float,
-) -> rr.Ellipsoids3D:
-    """Ellipsoids of 3x3 position covariances (N, 3, 3): half sizes are sigma * sqrt(eigenvalue).
+    covariances: Float64Array, sigma: float,
+) -> tuple[Float64Array, Float64Array]:
+    """Half sizes (N, 3) and xyzw rotations (N, 4) of the ellipsoids of 3x3 position covariances
+    (N, 3, 3): half sizes are sigma * sqrt(eigenvalue).
 
     Axes are sorted largest first so an axis-aligned covariance gets the identity rotation.
     """
     sym = 0.5 * (covariances + np.swapaxes(covariances, 1, 2))
-    values, vectors = np.linalg.eigh(sym)
-    values, vectors = values[:, ::-1], vectors[:, :, ::-1]
+    values, vectors_ = np.linalg.eigh(sym)
+    values, vectors_ = values[:, ::-1], vectors_[:, :, ::-1]
     # eigh may return a reflection; flipping one eigenvector keeps the same ellipsoid.
-    vectors[:, :, 2] *= np.sign(np.linalg.det(vectors))[:, None]
+    vectors_[:, :, 2] *= np.sign(np.linalg.det(vectors_))[:, None]
     half_sizes = sigma * np.sqrt(np.clip(values, 0.0, None))
-    return rr.Ellipsoids3D(
-        centers=centers, half_sizes=half_sizes, quaternions=_quats_from_matrices(vectors),
-    )
+    return half_sizes, _quats_from_matrices(vectors_)
 
 
-def _pose_with_covariance(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
+def _pose_with_covariance(columns: Columns, ctx: RunContext) -> list[LogEntry]:
     options = ctx.options(PoseCovarianceOptions)
-    entries = pose_run([msg.pose.pose], [msg.header], [ctx], options)
-    covariance = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)[:3, :3]
+    entries = pose_columns(columns, ctx, "pose.pose", options)
+    covariance = columns["pose.covariance"].astype(np.float64).reshape(-1, 6, 6)[:, :3, :3]
     # A non-finite covariance says nothing about the spread; the pose itself is still valid.
-    if np.isfinite(covariance).all():
-        position, _ = pose_arrays([msg.pose.pose])
-        ellipsoid = covariance_ellipsoids(
-            position, covariance[None], options.sigma,
-        )
-        frame = rr.CoordinateFrame(fixed_frame(ctx, ctx.frame(msg.header.frame_id)))
-        entries.append(LogItem(ctx.child_path("covariance"), (ellipsoid, frame)))
+    finite = np.all(np.isfinite(covariance.reshape(len(covariance), -1)), axis=1)
+    positions, _ = pose_columns_arrays(columns, "pose.pose")
+    stamps = stamps_ns(columns)
+    for frame, frame_rows in _frame_rows(ctx, columns):
+        rows = frame_rows[finite[frame_rows]]
+        if not len(rows):
+            continue
+        half_sizes, rotations = covariance_ellipsoids(covariance[rows], options.sigma)
+        for picked, times in ctx.stamped(stamps[rows], rows):
+            ellipsoids = [
+                *rr.Ellipsoids3D.columns(
+                    centers=positions[rows[picked]],
+                    half_sizes=half_sizes[picked],
+                    quaternions=rotations[picked],
+                ),
+                *rr.CoordinateFrame.columns(frame=[fixed_frame(ctx, frame)] * len(picked)),
+            ]
+            entries.append(ColumnsItem(ctx.child_path("covariance"), ellipsoids, times))
     return entries
 
 
@@ -246,79 +273,45 @@ def _pose_array(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
 # --- vectors: twist, wrench, vector3 ------------------------------------------------------------
 
 
-@dataclass(frozen=True, slots=True)
-class _VectorSet:
-    """Named Vector3 fields of a stamped message, each drawn as an arrow and plotted per axis."""
+def _vector_converter(fields: Mapping[str, str], colors: list[tuple[int, int, int]]) -> ConverterSpec:
+    """Named Vector3 fields of a stamped message (``name: path``), each drawn as an arrow from
+    the origin of the header frame and plotted per axis."""
+    names = list(fields)
+    palette = np.array(colors, dtype=np.uint8)
 
-    names: tuple[str, ...]
-    getters: tuple[Callable[[Any], Any], ...]
-    colors: npt.NDArray[np.uint8]
+    def convert_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+        values = np.stack([vectors(columns, path) for path in fields.values()], axis=1)  # (n, k, 3)
+        stamps = stamps_ns(columns)
+        entries: list[LogEntry] = []
+        for frame, frame_rows in _frame_rows(ctx, columns):
+            for picked, times in ctx.stamped(stamps[frame_rows], frame_rows):
+                rows = frame_rows[picked]
+                flat = values[rows].reshape(-1, 3)
+                arrows = rr.Arrows3D.columns(
+                    vectors=flat,
+                    origins=np.zeros_like(flat),
+                    labels=names * len(rows),
+                    colors=np.tile(palette, (len(rows), 1)),
+                ).partition(np.full(len(rows), len(names)))
+                frame_columns = rr.CoordinateFrame.columns(frame=[frame] * len(rows)) if frame else []
+                entries.append(ColumnsItem(ctx.entity_path, [*arrows, *frame_columns], times))
+        for picked, times in ctx.stamped(stamps):
+            entries.extend(
+                ColumnsItem(
+                    ctx.child_path(name, axis),
+                    list(rr.Scalars.columns(scalars=values[picked, j, a])),
+                    times,
+                )
+                for j, name in enumerate(names)
+                for a, axis in enumerate(_COMPONENTS)
+            )
+        return entries
 
-    def values(self, msgs: Sequence[Any]) -> Float64Array:
-        """(N, len(names), 3)."""
-        vectors = points_array([get(m) for m in msgs for get in self.getters])
-        return vectors.reshape(len(msgs), -1, 3)
-
-    def scalar_paths(self, ctx: ConvertContext) -> list[list[str]]:
-        return [[ctx.child_path(name, axis) for axis in _COMPONENTS] for name in self.names]
-
-
-def _vector_set(fields: dict[str, str], colors: list[tuple[int, int, int]]) -> _VectorSet:
-    return _VectorSet(
-        names=tuple(fields),
-        getters=tuple(operator.attrgetter(path) for path in fields.values()),
-        colors=np.array(colors, dtype=np.uint8),
-    )
+    return columnar(convert_columns)
 
 
 _LINEAR_COLOR = (60, 140, 255)
 _ANGULAR_COLOR = (255, 140, 30)
-_TWIST = _vector_set(
-    {"linear": "twist.linear", "angular": "twist.angular"}, [_LINEAR_COLOR, _ANGULAR_COLOR],
-)
-_WRENCH = _vector_set(
-    {"force": "wrench.force", "torque": "wrench.torque"}, [_LINEAR_COLOR, _ANGULAR_COLOR],
-)
-_VECTOR3 = _vector_set({"vector": "vector"}, [_LINEAR_COLOR])
-
-
-def _vector_converter(spec: _VectorSet) -> ConverterSpec:
-    def convert_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-        if not msgs:
-            return []
-        ctx = ctxs[0]
-        values = spec.values(msgs)
-        n, k = values.shape[:2]
-        flat = values.reshape(-1, 3)
-        arrows = rr.Arrows3D.columns(
-            vectors=flat,
-            origins=np.zeros_like(flat),
-            labels=list(spec.names) * n,
-            colors=np.tile(spec.colors, (n, 1)),
-        ).partition(np.full(n, k))
-        times = time_columns(ctxs)
-        entries: list[LogEntry] = [ColumnsItem(ctx.entity_path, list(arrows), times)]
-        frames = [ctx.frame(m.header.frame_id) for m in msgs]
-        entries.extend(
-            ColumnsItem(
-                ctx.entity_path,
-                list(rr.CoordinateFrame.columns(frame=[frame] * len(rows))),
-                time_columns([ctxs[i] for i in rows]),
-            )
-            for frame, rows in _group_rows(frames)
-            if frame
-        )
-        for j, paths in enumerate(spec.scalar_paths(ctx)):
-            entries.extend(
-                ColumnsItem(path, list(rr.Scalars.columns(scalars=values[:, j, axis])), times)
-                for axis, path in enumerate(paths)
-            )
-        return entries
-
-    def convert(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-        return convert_run([msg], [ctx])
-
-    return ConverterSpec(convert_run, single=convert)
 
 
 # --- points and polygons ------------------------------------------------------------------------
@@ -337,11 +330,15 @@ def _polygon_stamped(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return [LogItem(ctx.entity_path, (lines, *frame_components(ctx.frame(msg.header.frame_id))))]
 
 
-POSE_STAMPED = ConverterSpec(_pose_stamped_run, single=_pose_stamped)
-POSE_WITH_COVARIANCE = per_message(_pose_with_covariance)
+POSE_STAMPED = columnar(_pose_stamped)
+POSE_WITH_COVARIANCE = columnar(_pose_with_covariance)
 POSE_ARRAY = per_message(_pose_array)
-TWIST = _vector_converter(_TWIST)
-WRENCH = _vector_converter(_WRENCH)
-VECTOR3 = _vector_converter(_VECTOR3)
+TWIST = _vector_converter(
+    {"linear": "twist.linear", "angular": "twist.angular"}, [_LINEAR_COLOR, _ANGULAR_COLOR]
+)
+WRENCH = _vector_converter(
+    {"force": "wrench.force", "torque": "wrench.torque"}, [_LINEAR_COLOR, _ANGULAR_COLOR]
+)
+VECTOR3 = _vector_converter({"vector": "vector"}, [_LINEAR_COLOR])
 POINT = per_message(_point_stamped)
 POLYGON = per_message(_polygon_stamped)

@@ -8,34 +8,28 @@ frame relation on two entities. Options as for poses (``trail_length``, ``axis_l
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any
-
-import numpy as np
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry
-from host_bridge.converters._common import time_columns, xyz
-from host_bridge.converters.geometry import pose_run
+from host_bridge.columns import Columns
+from host_bridge.contract import ColumnsItem, LogEntry, RunContext, columnar
+from host_bridge.converters._common import stamps_ns, vectors
+from host_bridge.converters.geometry import pose_columns
 
 TWIST_SERIES = ("linear/x", "linear/y", "linear/z", "angular/x", "angular/y", "angular/z")
 
 
-def convert_odometry_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-    items = pose_run([m.pose.pose for m in msgs], [m.header for m in msgs], ctxs)
-    times = time_columns(ctxs)
-    twist = np.array(
-        [xyz(m.twist.twist.linear) + xyz(m.twist.twist.angular) for m in msgs], dtype=np.float64
-    )
-    items.extend(
-        ColumnsItem(ctxs[0].child_path("twist", name), rr.Scalars.columns(scalars=twist[:, i]), times)
-        for i, name in enumerate(TWIST_SERIES)
-    )
+def convert_odometry_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+    items = pose_columns(columns, ctx, "pose.pose")
+    twist = [
+        *vectors(columns, "twist.twist.linear").T,
+        *vectors(columns, "twist.twist.angular").T,
+    ]
+    for rows, times in ctx.stamped(stamps_ns(columns)):
+        items.extend(
+            ColumnsItem(ctx.child_path("twist", name), rr.Scalars.columns(scalars=values[rows]), times)
+            for name, values in zip(TWIST_SERIES, twist, strict=True)
+        )
     return items
 
 
-def convert_odometry(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    return convert_odometry_run([msg], [ctx])
-
-
-SPEC = ConverterSpec(convert_odometry_run, single=convert_odometry)
+SPEC = columnar(convert_odometry_columns)

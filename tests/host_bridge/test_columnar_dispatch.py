@@ -143,6 +143,43 @@ def nav_sat_fix(i: int, ns: int) -> Any:
     )
 
 
+def pose(i: int) -> Any:
+    return T["geometry_msgs/msg/Pose"](
+        position=T["geometry_msgs/msg/Point"](x=0.05 * i, y=1.0, z=0.0),
+        orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=0.0 if i == 2 else 1.0),
+    )
+
+
+def odometry(i: int, ns: int) -> Any:
+    return T["nav_msgs/msg/Odometry"](
+        header=header(ns, "odom"), child_frame_id="base_link",
+        pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose(i), covariance=np.zeros(36)),
+        twist=T["geometry_msgs/msg/TwistWithCovariance"](
+            twist=T["geometry_msgs/msg/Twist"](linear=vector3(0.2 * i, 0.0, 0.0),
+                                               angular=vector3(0.0, 0.0, -0.1)),
+            covariance=np.zeros(36)),
+    )
+
+
+def pose_stamped(i: int, ns: int) -> Any:
+    return T["geometry_msgs/msg/PoseStamped"](header=header(ns, "map" if i % 5 else ""), pose=pose(i))
+
+
+def twist_stamped(i: int, ns: int) -> Any:
+    return T["geometry_msgs/msg/TwistStamped"](
+        header=header(ns, "base_link"),
+        twist=T["geometry_msgs/msg/Twist"](linear=vector3(0.1 * i, 0.0, 0.0), angular=vector3(0.0, 0.0, 1.0)),
+    )
+
+
+def temperature(i: int, ns: int) -> Any:
+    return T["sensor_msgs/msg/Temperature"](header=header(ns, "cpu"), temperature=40.0 + i, variance=0.0)
+
+
+def float64(i: int, _ns: int) -> Any:
+    return T["std_msgs/msg/Float64"](data=0.5 * i)
+
+
 def payloads(msgtype: str, messages: Sequence[Any]) -> list[bytes]:
     return [bytes(STORE.serialize_cdr(message, msgtype)) for message in messages]
 
@@ -228,6 +265,11 @@ CASES: dict[str, tuple[str, str, Callable[[int, int], Any]]] = {
     "tf": ("/tf", TF, tf),
     "joint_state": ("/joint_states", JOINT_STATE, joint_state),
     "nav_sat_fix": ("/gps/fix", NAV_SAT_FIX, nav_sat_fix),
+    "odometry": ("/odom", "nav_msgs/msg/Odometry", odometry),
+    "pose_stamped": ("/goal", "geometry_msgs/msg/PoseStamped", pose_stamped),
+    "twist_stamped": ("/cmd_vel", "geometry_msgs/msg/TwistStamped", twist_stamped),
+    "temperature": ("/cpu_temp", "sensor_msgs/msg/Temperature", temperature),
+    "float64": ("/battery_runtime", "std_msgs/msg/Float64", float64),
 }
 
 

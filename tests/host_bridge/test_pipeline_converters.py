@@ -12,7 +12,7 @@ from rosbags.typesys import Stores, get_typestore
 from host_bridge.contract import ColumnsItem, ConvertContext, LogItem
 from host_bridge.converters.generic import convert_generic
 from host_bridge.converters.laser import convert_scan
-from host_bridge.converters.odometry import convert_odometry_run
+from host_bridge.converters.odometry import SPEC as ODOMETRY
 from host_bridge.converters.tf import SPEC as TF
 from host_bridge.registry import Row, default_registry
 from tests.host_bridge.sensor_test_support import make_ctx
@@ -135,7 +135,7 @@ def test_odometry_pose_twist_and_trail() -> None:
         )
 
     c = ctx("/odom")
-    items = convert_odometry_run([odom(0.0), odom(0.001), odom(1.0)], [c, c, c])
+    items = ODOMETRY.convert_run([odom(0.0), odom(0.001), odom(1.0)], [c, c, c])
     by_path = {i.path: i for i in items if isinstance(i, ColumnsItem)}
     pose = by_path["/tb3/odom"]
     assert column(pose, "Transform3D:translation")[2] == [[1.0, 2.0, 0.0]]

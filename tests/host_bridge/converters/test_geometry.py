@@ -161,26 +161,25 @@ def test_trail_length_zero_disables_the_trail() -> None:
 
 def test_pose_run_splits_rows_by_frame_and_stamps_trail_rows() -> None:
     assert not POSE_STAMPED.message_by_message
+    frames = ("map", "", "", "map")
     msgs = [
-        _pose_stamped((0.0, 0.0, 0.0), "map"),
-        _pose_stamped((1.0, 0.0, 0.0), ""),
-        _pose_stamped((1.001, 0.0, 0.0), ""),
-        _pose_stamped((2.0, 0.0, 0.0), "map"),
+        _pose_stamped((x, 0.0, 0.0), frame, i * NS)
+        for i, (x, frame) in enumerate(zip((0.0, 1.0, 1.001, 2.0), frames, strict=True), start=1)
     ]
     state = TopicState()
-    ctxs = [_ctx(ns=i * NS, state=state) for i in range(len(msgs))]
+    ctxs = [_ctx(ns=i * NS, state=state) for i in range(1, len(msgs) + 1)]
     entries = POSE_STAMPED.convert_run(msgs, ctxs)
     with_frame, without_frame = _at(entries, "/tb3/goal")
     assert isinstance(with_frame, ColumnsItem)
     assert isinstance(without_frame, ColumnsItem)
-    assert with_frame.times["ros_time"].tolist() == [0, 3 * NS]
+    assert with_frame.times["ros_time"].tolist() == [NS, 4 * NS]
     assert _column(with_frame, "Transform3D:parent_frame") == [["tb3/map"], ["tb3/map"]]
-    assert without_frame.times["ros_time"].tolist() == [NS, 2 * NS]
+    assert without_frame.times["ros_time"].tolist() == [2 * NS, 3 * NS]
     assert _column(without_frame, "Transform3D:parent_frame") is None
     (trail,) = _at(entries, "/tb3/goal/trail")
     assert isinstance(trail, ColumnsItem)
     # The frame changes twice (trail restarts), the 1 mm step is ignored.
-    assert trail.times["ros_time"].tolist() == [0, NS, 3 * NS]
+    assert trail.times["ros_time"].tolist() == [NS, 2 * NS, 4 * NS]
     assert _column(trail, "CoordinateFrame:frame") == [["tb3/map"], ["tf#/tb3"], ["tb3/map"]]
     assert _column(trail, "LineStrips3D:strips") == [
         [[[0.0, 0.0, 0.0]]],
@@ -204,10 +203,14 @@ def _with_covariance(position: Sequence[float], cov3: npt.NDArray[np.float64]) -
 
 
 def _ellipsoid(entries: Sequence[LogEntry], path: str = "/tb3/goal/covariance") -> Any:
-    item = log_item(entries, path)
-    frame = archetype(item, rr.CoordinateFrame)
-    assert frame.frame.as_arrow_array().to_pylist() == ["tb3/map"]
-    return archetype(item, rr.Ellipsoids3D)
+    """The one message's ellipsoid: its columns' single row, as Ellipsoids3D would hold it."""
+    (item,) = _at(entries, path)
+    assert _column(item, "CoordinateFrame:frame") == [["tb3/map"]]
+    rows = {
+        name: (_column(item, f"Ellipsoids3D:{name}") or [None])[0]
+        for name in ("centers", "half_sizes", "quaternions")
+    }
+    return rr.Ellipsoids3D(**rows)
 
 
 def _rotation(xyzw: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
@@ -293,7 +296,8 @@ def _twist(linear: Sequence[float], angular: Sequence[float], frame_id: str = "b
 def test_twist_stamped_arrows_and_per_component_scalars() -> None:
     spec = TWIST
     entries = spec.convert(_twist((0.5, 0.0, 0.0), (0.0, 0.0, -0.25)), _ctx("/cmd"))
-    arrows, frame = _at(entries, "/tb3/cmd")
+    (arrows,) = _at(entries, "/tb3/cmd")
+    frame = arrows
     assert _column(arrows, "Arrows3D:vectors") == [[[0.5, 0.0, 0.0], [0.0, 0.0, -0.25]]]
     assert _column(arrows, "Arrows3D:origins") == [[[0.0, 0.0, 0.0]] * 2]
     assert _column(arrows, "Arrows3D:labels") == [["linear", "angular"]]
