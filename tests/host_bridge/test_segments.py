@@ -9,6 +9,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
+from host_bridge.converters.walls import wall_segments
 from host_bridge.segments import (
     FREE,
     OCCUPIED,
@@ -19,7 +20,7 @@ from host_bridge.segments import (
     merge_segments,
     segments_to_mesh,
 )
-from tests.host_bridge.converters.test_walls import RES, floor_plan
+from tests.host_bridge.converters.test_walls import RES, as_grid, default_options, floor_plan
 
 Float64Array = npt.NDArray[np.float64]
 
@@ -150,3 +151,23 @@ def test_grid_to_image_keeps_unknown_free_and_occupied_apart() -> None:
     expected = [UNKNOWN, FREE, FREE, OCCUPIED, OCCUPIED, UNKNOWN, UNKNOWN]
     assert grid_to_image(cells).tolist() == [expected]
     assert len({UNKNOWN, FREE, OCCUPIED}) == 3
+
+
+def test_walls_of_a_plan_inside_a_large_unknown_map_are_found_where_it_lies() -> None:
+    # Detection works on the part of the image around occupied cells only; a small plan at an
+    # odd place of a mostly unknown 1500x1300 map must give its walls there, as it does alone.
+    plan = floor_plan()
+    row, col = 1031, 517
+    large = np.full((1500, 1300), -1, dtype=np.int8)
+    large[row : row + plan.shape[0], col : col + plan.shape[1]] = plan
+    alone = wall_segments(as_grid(plan), default_options())
+    placed = wall_segments(as_grid(large), default_options()) - np.array([col, row, col, row]) * RES
+    assert placed.shape == alone.shape == (6, 4)
+    for segment in alone:
+        errors = [max(np.hypot(*(segment[:2] - p[:2])), np.hypot(*(segment[2:] - p[2:]))) for p in placed]
+        assert min(errors) <= RES  # the same wall, within a cell
+
+
+def test_an_image_without_occupied_cells_has_no_segments() -> None:
+    image = grid_to_image(np.array([[-1, 0, 0], [0, -1, 50]], dtype=np.int8))
+    assert detect_segments(image).shape == (0, 4)
