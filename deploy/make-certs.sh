@@ -26,22 +26,33 @@ dir=certs
 days=365
 new_ca=no
 routers=""
-usage() {
-    sed -n '6,16p' "$0" | sed 's/^# \{0,1\}//' >&2
-    exit 2
+usage() {  # $1: exit status (0: asked for with --help, to stdout)
+    if [ "$1" = 0 ]; then
+        sed -n '6,17p' "$0" | sed 's/^# \{0,1\}//'
+    else
+        sed -n '6,17p' "$0" | sed 's/^# \{0,1\}//' >&2
+    fi
+    exit "$1"
 }
 while [ $# -gt 0 ]; do
     case "$1" in
-        -d) [ $# -ge 2 ] || usage; dir=$2; shift 2 ;;
-        -r) [ $# -ge 2 ] || usage; routers="$routers $2"; shift 2 ;;
-        --days) [ $# -ge 2 ] || usage; days=$2; shift 2 ;;
+        -d) [ $# -ge 2 ] || usage 2; dir=$2; shift 2 ;;
+        -r) [ $# -ge 2 ] || usage 2; routers="$routers $2"; shift 2 ;;
+        --days) [ $# -ge 2 ] || usage 2; days=$2; shift 2 ;;
         --new-ca) new_ca=yes; shift ;;
-        -h|--help) usage ;;
-        -*) echo "make-certs.sh: unknown option $1" >&2; usage ;;
+        -h|--help) usage 0 ;;
+        -*) echo "make-certs.sh: unknown option $1" >&2; usage 2 ;;
         *) break ;;
     esac
 done
 [ -n "$routers" ] || routers="localhost 127.0.0.1"
+for name in "$@"; do
+    case "$name" in
+        ''|*[!A-Za-z0-9._-]*|router|ca)
+            echo "make-certs.sh: client name '$name': use letters, digits, '.', '_', '-' (not router or ca)" >&2
+            exit 2 ;;
+    esac
+done
 command -v openssl >/dev/null || { echo "make-certs.sh: openssl is not installed" >&2; exit 1; }
 
 umask 077
@@ -115,10 +126,5 @@ done
 issue router "$first" "serverAuth, clientAuth" "$alt"
 
 for name in "$@"; do
-    case "$name" in
-        ''|*[!A-Za-z0-9._-]*|router|ca)
-            echo "make-certs.sh: client name '$name': use letters, digits, '.', '_', '-' (not router or ca)" >&2
-            exit 2 ;;
-    esac
     issue "$name" "$name" "clientAuth" "DNS:$name"
 done
