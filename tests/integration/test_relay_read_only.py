@@ -222,9 +222,11 @@ def test_zenoh_clients_cannot_write_into_the_ros_graph(
             session.declare_subscriber(data_key(ROBOT, "/chatter"),
                                        lambda s: forwarded.append(s.payload.to_bytes()))
             wait_until(lambda: len(forwarded) >= 3, "/chatter forwarded by the relay")
+            # Once discovery has shown all of the relay's node.
             before = wait_until(
                 lambda: (g := observer.relay_graph()).publishers == NODE_PUBLISHERS
-                and "/chatter" in g.subscriptions and g, "the relay's node in the graph")
+                and g.services == NODE_SERVICES and "/chatter" in g.subscriptions and g,
+                "the relay's node in the graph")
             cmd_vel = bytes(serialize_message(Twist()))
             tried = attack(session, cmd_vel)
             forwarded_at_attack = len(forwarded)
