@@ -121,7 +121,7 @@ class Received:
         with self.lock:
             return [payload for k, payload in self.samples if k == key]
 
-    def wait_for(self, condition: Callable[[], bool], what: str, timeout: float = 30) -> None:
+    def wait_for(self, condition: Callable[[], bool], what: str, timeout: float = 60) -> None:
         deadline = time.monotonic() + timeout
         while not condition():
             assert time.monotonic() < deadline, f"{what} within {timeout} s; got {self.samples}"
