@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -12,21 +12,27 @@ import rerun as rr
 from host_bridge.columns import Columns
 from host_bridge.contract import ConvertContext
 
+# A block's number columns (columns.Block.numbers): read directly where a run's blocks differ in
+# shape (TF messages of one and of two transforms).
+Numbers = Mapping[str, npt.NDArray[Any]]
+
 
 def stamp_ns(stamp: Any) -> int:
     """builtin_interfaces/Time (or a ROS 1 time) as integer nanoseconds."""
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-def stamps_ns(columns: Columns, prefix: str = "header.stamp") -> npt.NDArray[np.int64]:
-    """A Time field's columns as integer nanoseconds, shaped like its ``sec`` column."""
+def stamps_ns(columns: Columns | Numbers, prefix: str = "header.stamp") -> npt.NDArray[np.int64]:
+    """A Time field's columns (of a run, or of one of its blocks) as integer nanoseconds, shaped
+    like its ``sec`` column."""
     seconds = columns[f"{prefix}.sec"].astype(np.int64)
     stamps: npt.NDArray[np.int64] = seconds * 1_000_000_000 + columns[f"{prefix}.nanosec"]
     return stamps
 
 
-def vectors(columns: Columns, path: str, axes: str = "xyz") -> npt.NDArray[np.float64]:
-    """The ``axes`` of a Vector3/Point/Quaternion field as float64, shape (..., len(axes))."""
+def vectors(columns: Columns | Numbers, path: str, axes: str = "xyz") -> npt.NDArray[np.float64]:
+    """The ``axes`` of a Vector3/Point/Quaternion field (of a run, or of one of its blocks) as
+    float64, shape (..., len(axes))."""
     return np.stack([columns[f"{path}.{axis}"] for axis in axes], axis=-1).astype(np.float64)
 
 

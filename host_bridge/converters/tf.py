@@ -15,7 +15,7 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.columns import Columns
+from host_bridge.columns import Block, Columns
 from host_bridge.contract import (
     ColumnsItem,
     LogEntry,
@@ -51,11 +51,12 @@ def static_transform_path(robot: str, robot_state: RobotState, child_frame_id: s
     return f"{root}/{rr.escape_entity_path_part(child_frame_id.strip('/'))}"
 
 
-def _transforms(columns: Columns) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """Translations (n, k, 3) and xyzw quaternions (n, k, 4); the all-zero (invalid) quaternion
+def _transforms(block: Block) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """A block's translations (m, k, 3) and xyzw quaternions (m, k, 4), per block since the
+    number of transforms k may differ between blocks; the all-zero (invalid) quaternion
     becomes the identity, as :func:`~host_bridge.converters._common.xyzw` does."""
-    translations = vectors(columns, "transforms.transform.translation")
-    quaternions = vectors(columns, "transforms.transform.rotation", "xyzw")
+    translations = vectors(block.numbers, "transforms.transform.translation")
+    quaternions = vectors(block.numbers, "transforms.transform.rotation", "xyzw")
     quaternions[~quaternions.any(axis=-1), 3] = 1.0
     return translations, quaternions
 
@@ -64,9 +65,9 @@ def _static_items(columns: Columns, ctx: RunContext) -> list[LogEntry]:
     """One static entity per child frame; a later message's relation replaces an earlier one,
     so the items keep the run's order (/tf_static sends few messages: a loop is fine)."""
     ctx.robot_state.static_tf_root = ctx.entity_path
-    translations, quaternions = _transforms(columns)
     ordered: list[tuple[int, int, LogItem]] = []
     for block in columns.blocks:
+        translations, quaternions = _transforms(block)
         children = cast(tuple[str, ...], block.strings["transforms.child_frame_id"])
         parents = cast(tuple[str, ...], block.strings["transforms.header.frame_id"])
         _remember_children(ctx, children)
@@ -75,10 +76,10 @@ def _static_items(columns: Columns, ctx: RunContext) -> list[LogEntry]:
             if child is None or parent is None:
                 continue
             path = static_transform_path(ctx.robot, ctx.robot_state, child_id)
-            for row in block.rows.tolist():
+            for local, row in enumerate(block.rows.tolist()):
                 transform = rr.Transform3D(
-                    translation=translations[row, j],
-                    quaternion=rr.Quaternion(xyzw=quaternions[row, j]),
+                    translation=translations[local, j],
+                    quaternion=rr.Quaternion(xyzw=quaternions[local, j]),
                     parent_frame=parent,
                     child_frame=child,
                 )
@@ -91,10 +92,10 @@ def convert_tf_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
     messages with the same frames at a time (TF of k transforms each is k columns wide)."""
     if _is_static(ctx):
         return _static_items(columns, ctx)
-    translations, quaternions = _transforms(columns)
-    stamps = stamps_ns(columns, "transforms.header.stamp")
     items: list[LogEntry] = []
     for block in columns.blocks:
+        translations, quaternions = _transforms(block)
+        stamps = stamps_ns(block.numbers, "transforms.header.stamp")
         children = cast(tuple[str, ...], block.strings["transforms.child_frame_id"])
         parents = cast(tuple[str, ...], block.strings["transforms.header.frame_id"])
         kept = [
@@ -105,15 +106,16 @@ def convert_tf_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
             continue
         _remember_children(ctx, (children[j] for j in kept))
         # Rows message by message, transform by transform, as the messages list them.
-        rows = np.repeat(block.rows, len(kept))
+        local = np.repeat(np.arange(len(block.rows)), len(kept))
+        rows = block.rows[local]
         which = np.tile(kept, len(block.rows))
         parent_frames = np.array([ctx.frame(parents[j]) for j in kept], dtype=object)
         child_frames = np.array([ctx.frame(children[j]) for j in kept], dtype=object)
-        for entries, times in ctx.stamped(stamps[rows, which], rows):
+        for entries, times in ctx.stamped(stamps[local, which], rows):
             picked = which[entries]
             columns_of_rows = rr.Transform3D.columns(
-                translation=translations[rows[entries], picked],
-                quaternion=quaternions[rows[entries], picked],
+                translation=translations[local[entries], picked],
+                quaternion=quaternions[local[entries], picked],
                 parent_frame=parent_frames[np.searchsorted(kept, picked)].tolist(),
                 child_frame=child_frames[np.searchsorted(kept, picked)].tolist(),
             )

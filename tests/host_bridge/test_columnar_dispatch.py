@@ -323,6 +323,19 @@ def test_a_tf_frame_changing_mid_run_keeps_each_message_with_its_frames() -> Non
     assert ("tb3/base_footprint", "tb3/odom") in relations
 
 
+def test_tf_messages_of_one_and_of_two_transforms_in_one_run() -> None:
+    # robot_state_publisher's wheels: a message per wheel and one with both, in one run; the
+    # run's blocks differ in width, each is read on its own.
+    messages = [tf(i, 100 * SECOND + 10_000_000 * i) for i in range(6)]
+    for i in (1, 4):
+        messages[i].transforms = messages[i].transforms[1:]
+    found, _ = assert_same_rows(raws("/tf", TF, payloads(TF, messages)))
+    children = values_at(found, "/tb3/tf", "Transform3D:child_frame")
+    assert Counter(v for _, v in children) == {repr(["tb3/odom"]): 4, repr(["tb3/base_link"]): 6}
+    translations = [v for _, v in values_at(found, "/tb3/tf", "Transform3D:translation")]
+    np.testing.assert_allclose(eval(translations[-1]), [[0.5, 1.0, 0.0]], rtol=1e-6)
+
+
 def test_imu_frame_changing_mid_run_gives_a_block_per_frame() -> None:
     messages = [imu(i, 100 * SECOND + i, "imu_a" if i % 3 else "imu_b") for i in range(12)]
     found, _ = assert_same_rows(raws("/imu", IMU, payloads(IMU, messages)))
