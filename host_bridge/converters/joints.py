@@ -119,21 +119,23 @@ def robot_model(name: str, joints: Iterable[JointModel], root: str | None = None
 
 
 def _mimic_order(joints: Mapping[str, JointModel]) -> tuple[str, ...]:
-    """Mimic joints with each driver before the joints that follow it (mimic chains)."""
+    """Mimic joints with each driver before the joints that follow it (mimic chains). A loop
+    is followed once round. Iterative: a chain of thousands of mimic joints listed followers
+    first exceeded Python's recursion limit and lost the whole model."""
     order: list[str] = []
     placed: set[str] = set()
-
-    def place(name: str, seen: frozenset[str]) -> None:
-        mimic = joints[name].mimic
-        if name in placed or mimic is None or name in seen:
-            return
-        if mimic.joint in joints:
-            place(mimic.joint, seen | {name})
-        placed.add(name)
-        order.append(name)
-
-    for name in joints:
-        place(name, frozenset())
+    for start in joints:
+        chain: dict[str, None] = {}  # ordered: ``start`` and the mimic drivers it follows
+        name = start
+        while name in joints and name not in placed and name not in chain:
+            mimic = joints[name].mimic
+            if mimic is None:
+                break
+            chain[name] = None
+            name = mimic.joint
+        for follower in reversed(chain):
+            placed.add(follower)
+            order.append(follower)
     return tuple(order)
 
 

@@ -265,13 +265,14 @@ def test_primitives_colours_and_origins() -> None:
 
 
 def mesh_urdf(*meshes: tuple[str, str]) -> str:
-    """One link per (filename, scale)."""
+    """One link per (filename, scale), each fixed to a bare root link (one root, as URDF has)."""
     links = "".join(
         f'<link name="l{i}"><visual><geometry><mesh filename="{name}" scale="{scale}"/>'
-        "</geometry></visual></link>"
+        f'</geometry></visual></link><joint name="j{i}" type="fixed"><parent link="base"/>'
+        f'<child link="l{i}"/></joint>'
         for i, (name, scale) in enumerate(meshes)
     )
-    return f'<robot name="meshes">{links}</robot>'
+    return f'<robot name="meshes"><link name="base"/>{links}</robot>'
 
 
 def write_box(path: Path) -> None:
