@@ -29,7 +29,7 @@ from host_bridge.registry import default_registry
 from host_bridge.resources import ResourceResolver, RobotFetch, parse_package_path
 from host_bridge.robot_files import RobotFiles
 from host_bridge.sink import APPLICATION_ID, RerunSink
-from robot_relay.session import ZenohOptions
+from robot_relay.session import ZenohOptions, close_session
 from robot_relay.wire import check_robot_name
 
 if TYPE_CHECKING:
@@ -150,7 +150,7 @@ def open_input(
     if demo is not None:
         zenoh, robots = demo.host_zenoh(zenoh), demo.robot_filter
     session = open_host_session(zenoh)
-    closing.callback(session.close)
+    closing.callback(close_session, session)
     if robot_files is not None:
         robot_files.attach(session)
         closing.callback(robot_files.detach)

@@ -20,7 +20,7 @@ from robot_relay.config import DEFAULT_ALLOW, DEFAULT_DENY
 from robot_relay.files import FileService, serve_files
 from robot_relay.policy import PolicyTable
 from robot_relay.relay import Relay
-from robot_relay.session import ZenohOptions, open_session
+from robot_relay.session import ZenohOptions, close_session, open_session
 from robot_relay.sources.base import Source, topic_filter
 from robot_relay.wire import Catalog, RawMessage, check_robot_name
 
@@ -105,7 +105,7 @@ def relay_source(options: RelayOptions, source: Source, stop: threading.Event) -
         return 1
     with ExitStack() as closing:  # closes in reverse: the source, files, relay, session
         session = open_session(options.zenoh)
-        closing.callback(session.close)
+        closing.callback(close_session, session)
         relay = Relay(session, catalog, options.policies, demand=source,
                       source_drops=source.drop_counts)
         closing.callback(relay.close)

@@ -113,6 +113,17 @@ def open_session(options: ZenohOptions) -> zenoh.Session:
     return session
 
 
+
+def close_session(session: zenoh.Session) -> None:
+    """Close ``session``. Zenoh gives up closing after a timeout when a peer stopped answering
+    (a link cut, Wi-Fi out of range) and raises; that is said, not raised, so the command still
+    ends cleanly and whatever it saved is complete."""
+    try:
+        session.close()
+    except zenoh.ZError as err:
+        log.warning("the zenoh session did not close cleanly (%s): a peer stopped answering", err)
+
+
 def watch_connection(
     session: zenoh.Session, endpoints: Sequence[str], after: float = 3.0
 ) -> threading.Thread:
