@@ -28,7 +28,7 @@ from typing import Any
 from robot_relay.errors import SourceError
 from robot_relay.sources.base import Outlet, SourceThread, TopicFilter
 from robot_relay.sources.qos import adapted_qos
-from robot_relay.sources.salvage import McapSalvage
+from robot_relay.sources.salvage import McapSalvage, Ros1Salvage
 from robot_relay.wire import (
     Catalog,
     MessageDefinition,
@@ -131,13 +131,48 @@ def _mcap_files(paths: Sequence[Path]) -> list[Path]:
     return [paths[0]] if paths[0].suffix == ".mcap" else []
 
 
-class _SalvagedReader:
-    """A damaged MCAP bag that rosbags refuses, read by :class:`McapSalvage` (everything up to
-    the damage, and the intact chunks after it), shaped like the rosbags reader BagSource uses.
-    Its messages come in file order; QoS come from the channels' metadata."""
+class _SalvagedBag:
+    """A damaged bag that rosbags refuses, read from its start by the salvagers of
+    :mod:`~robot_relay.sources.salvage` (everything up to the damage, and the intact chunks
+    after it), shaped like the rosbags reader BagSource uses. Its messages come file by file in
+    file order. Subclasses fill ``connections`` and ``_connections``."""
 
     storage = None
     compression_mode = ""
+
+    def __init__(self, files: Sequence[McapSalvage | Ros1Salvage], refusal: SourceError) -> None:
+        self.refusal = str(refusal)
+        self.files = files
+        self.connections: list[Any] = []
+        # (file index, the file's own connection or channel id) -> connection
+        self._connections: dict[tuple[int, int], Any] = {}
+        scans = [salvage.scan() for salvage in self.files]
+        self.message_count = sum(count for count, _, _ in scans)
+        self.start_time = min((first for count, first, _ in scans if count), default=0)
+        self.end_time = max((last for count, _, last in scans if count), default=0)
+
+    @property
+    def topics(self) -> set[str]:
+        return {c.topic for c in self.connections}
+
+    def messages(self, connections: Sequence[Any]) -> Iterator[tuple[Any, int, bytes]]:
+        wanted = {c.id for c in connections}
+        for index, salvage in enumerate(self.files):
+            for channel, log_ns, data in salvage.messages():
+                connection = self._connections.get((index, channel))
+                if connection is not None and connection.id in wanted:
+                    yield connection, log_ns, data
+
+    def damage(self) -> str:
+        """What of the bag could not be read, file by file."""
+        return "; ".join(
+            f"{salvage.path.name}: {salvage.damage.describe()}"
+            for salvage in self.files if salvage.damage
+        )
+
+
+class _SalvagedReader(_SalvagedBag):
+    """A damaged MCAP bag; QoS come from the channels' metadata."""
 
     def __init__(self, files: Sequence[Path], refusal: SourceError) -> None:
         from rosbags.interfaces import (
@@ -148,13 +183,10 @@ class _SalvagedReader:
         from rosbags.interfaces import MessageDefinition as RosbagsDefinition
         from rosbags.rosbag2.metadata import parse_qos
 
-        self.refusal = str(refusal)
-        self.files = [McapSalvage(path) for path in files]
-        self.connections: list[Any] = []
-        self._connections: dict[tuple[int, int], Any] = {}
-        scans = [salvage.scan() for salvage in self.files]
+        salvages = [McapSalvage(path) for path in files]
+        super().__init__(salvages, refusal)
         formats = {"ros2msg": MessageDefinitionFormat.MSG, "ros2idl": MessageDefinitionFormat.IDL}
-        for index, salvage in enumerate(self.files):
+        for index, salvage in enumerate(salvages):
             for channel in salvage.channels.values():
                 schema = channel.schema
                 fmt = formats.get(schema.encoding) if schema is not None else None
@@ -177,34 +209,68 @@ class _SalvagedReader:
                 )
                 self.connections.append(connection)
                 self._connections[(index, channel.id)] = connection
-        self.message_count = sum(count for count, _, _ in scans)
-        self.start_time = min((first for count, first, _ in scans if count), default=0)
-        self.end_time = max((last for count, _, last in scans if count), default=0)
-        self.topics = {c.topic for c in self.connections}
 
-    def messages(self, connections: Sequence[Any]) -> Iterator[tuple[Any, int, bytes]]:
-        wanted = {c.id for c in connections}
-        for index, salvage in enumerate(self.files):
-            for channel, log_ns, data in salvage.messages():
-                connection = self._connections.get((index, channel))
-                if connection is not None and connection.id in wanted:
-                    yield connection, log_ns, data
+
+class _SalvagedRos1Reader(_SalvagedBag):
+    """Damaged ROS 1 bags, with the typestore of their own definitions as AnyReader builds it
+    (BagSource turns their payloads into CDR with it). A connection whose definition does not
+    parse is left out and named with the damage."""
+
+    def __init__(self, files: Sequence[Path], refusal: SourceError) -> None:
+        from rosbags.interfaces import Connection, ConnectionExtRosbag1, MessageDefinitionFormat
+        from rosbags.interfaces import MessageDefinition as RosbagsDefinition
+        from rosbags.rosbag1.reader import normalize
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+        from rosbags.typesys.msg import normalize_msgtype
+
+        salvages = [Ros1Salvage(path) for path in files]
+        super().__init__(salvages, refusal)
+        types: dict[str, Any] = {}
+        self._undefined: list[str] = []
+        for index, salvage in enumerate(salvages):
+            for found in salvage.connections.values():
+                msgtype = normalize_msgtype(found.msgtype)
+                try:
+                    types.update(get_types_from_msg(found.definition, msgtype))
+                except Exception as err:  # rosbags' parser on a damaged definition
+                    self._undefined.append(f"{found.topic} ({found.msgtype}: {err})")
+                    continue
+                latching = found.latching
+                connection = Connection(
+                    id=len(self.connections) + 1,
+                    topic=normalize(found.topic),
+                    msgtype=msgtype,
+                    msgdef=RosbagsDefinition(MessageDefinitionFormat.MSG, found.definition),
+                    digest=found.md5sum,
+                    msgcount=0,
+                    ext=ConnectionExtRosbag1(
+                        found.callerid, int(latching) if latching and latching.isdigit() else None
+                    ),
+                    owner=None,
+                )
+                self.connections.append(connection)
+                self._connections[(index, found.id)] = connection
+        self.typestore = get_typestore(Stores.EMPTY)
+        self.typestore.register(types)
 
     def damage(self) -> str:
-        """What of the bag could not be read, file by file."""
-        return "; ".join(
-            f"{salvage.path.name}: {salvage.damage.describe()}"
-            for salvage in self.files if salvage.damage
-        )
+        lost = [super().damage()] if any(salvage.damage for salvage in self.files) else []
+        if self._undefined:
+            lost.append(f"topics whose definition does not parse: {', '.join(self._undefined)}")
+        return "; ".join(lost)
 
 
-def _open_damaged(paths: Sequence[Path], refusal: SourceError) -> _SalvagedReader:
-    """The readable part of an MCAP bag rosbags refuses (``refusal``, raised again when the
-    bag is not MCAP or nothing of it can be read)."""
-    files = _mcap_files(paths)
-    if not files:
-        raise refusal
-    reader = _SalvagedReader(files, refusal)
+def _open_damaged(paths: Sequence[Path], refusal: SourceError) -> _SalvagedBag:
+    """The readable part of an MCAP or ROS 1 bag rosbags refuses (``refusal``, raised again
+    when the bag is neither or nothing of it can be read)."""
+    reader: _SalvagedBag
+    if paths[0].suffix == ".bag":
+        reader = _SalvagedRos1Reader(paths, refusal)
+    else:
+        files = _mcap_files(paths)
+        if not files:
+            raise refusal
+        reader = _SalvagedReader(files, refusal)
     if not reader.message_count:
         msg = f"{refusal}; nothing of it can be read ({reader.damage() or 'no messages'})"
         raise SourceError(msg) from refusal
@@ -441,13 +507,13 @@ class BagSource:
     def _name_damage(self) -> None:
         """Say once per pass what of a damaged bag was lost (the rest was read)."""
         lost = []
-        if isinstance(self._reader, _SalvagedReader):
+        if isinstance(self._reader, _SalvagedBag):
             lost.append(self._reader.damage() or "no message (every chunk read)")
         if self._malformed:
             lost.append(f"{self._malformed} messages whose log time or payload is malformed")
         if lost:
             read = (
-                f"{self._reader.refusal}; " if isinstance(self._reader, _SalvagedReader) else ""
+                f"{self._reader.refusal}; " if isinstance(self._reader, _SalvagedBag) else ""
             )
             log.warning(
                 "bag %s is damaged (%sthe readable part was read); lost: %s",

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from rosbags.rosbag1 import Reader as Ros1Reader
 from rosbags.rosbag1 import Writer as Ros1Writer
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
@@ -79,7 +80,8 @@ def write_db3(path: Path) -> Path:
 
 def write_ros1(path: Path, compression: str) -> Path:
     writer = Ros1Writer(path)
-    writer.set_compression(Ros1Writer.CompressionFormat[compression.upper()])
+    if compression != "none":
+        writer.set_compression(Ros1Writer.CompressionFormat[compression.upper()])
     writer.chunk_threshold = 1024
     with writer:
         speed = writer.add_connection("/speed", FLOAT64, typestore=ROS1)
@@ -222,23 +224,109 @@ def test_a_db3_with_nothing_readable_is_one_error_naming_the_file(
                 lost=f"the bag ({COUNT * 2} messages; sqlite cannot open it)")
 
 
-@pytest.mark.parametrize("compression", ["bz2", "lz4"])
-def test_a_ros1_bag_cut_mid_chunk_is_one_error_naming_the_file(
-    compression: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], reliability: Record
+def intact_speeds(bag: Path, cut_at: int, compression: str) -> int:
+    """How many /speed messages of the whole ROS 1 ``bag`` lie before byte ``cut_at``, from
+    rosbags' own index of it: those of chunks that end before the cut and, in an uncompressed
+    chunk, each message record that does (its bytes are in the file as written)."""
+    data = bag.read_bytes()
+    with Ros1Reader(bag) as reader:
+        (speed,) = [c for c in reader.connections if c.topic == "/speed"]
+        kept = 0
+        for entry in reader.indexes[speed.id]:
+            chunk = reader.chunks[entry.chunk_pos]
+            end = chunk.datapos + chunk.datasize
+            if compression == "none":
+                at = chunk.datapos + entry.offset
+                (header,) = struct.unpack_from("<I", data, at)
+                (size,) = struct.unpack_from("<I", data, at + 4 + header)
+                end = at + 8 + header + size
+            kept += end <= cut_at
+    return kept
+
+
+@pytest.mark.parametrize("compression", ["bz2", "lz4", "none"])
+def test_a_ros1_bag_cut_mid_chunk_converts_what_was_written(
+    compression: str, tmp_path: Path, caplog: pytest.LogCaptureFixture, reliability: Record
 ) -> None:
-    """rosbags reads a ROS 1 bag from its index, at the end of the file: a cut bag has none.
-    Not salvaged yet (the chunks before the cut are whole): one clear error, exit 2."""
-    bag = cut(write_ros1(tmp_path / f"{compression}.bag", compression), 0.6)
+    """rosbags reads a ROS 1 bag from its index, at the end of the file: a cut bag has none
+    (it was exit 2, nothing converted). Read from the start, every whole chunk converts, and
+    of an uncompressed chunk the cut falls in, every whole message record."""
+    whole = write_ros1(tmp_path / f"{compression}.bag", compression)
+    cut_at = int(whole.stat().st_size * 0.6)
+    expected = intact_speeds(whole, cut_at, compression)
+    assert 0 < expected < COUNT
+    bag = cut(whole, 0.6)
+    with caplog.at_level(logging.WARNING):
+        code, speeds = convert(bag, tmp_path / "out.rrd")
+    assert code == 0
+    assert speeds == [float(i) for i in range(expected)]
+    [warning] = damage_warnings(caplog, bag)
+    assert warning.startswith(
+        f"bag {bag} is damaged (bag {bag} cannot be opened: Bag index looks damaged: ('Header "
+        "could not be read from file.',); the readable part was read); lost: "
+        f"{bag.name}: ")
+    assert warning.endswith(" (cut short): nothing after it")
+    with BagSource(bag, "tb3") as source:
+        assert source.message_count == len(list(source.messages()))
+        modes = [m for m in source.messages() if m.topic == "/mode"]
+    assert [STORE.deserialize_cdr(bytes(m.data), STRING).data for m in modes] == [
+        f"m{i}" for i in range(len(modes))]
+    assert len(modes) in (expected, expected - 1)  # /mode i is written after /speed i
+    reliability("Damaged bags", f"ROS 1 .bag ({compression} chunks) cut at 60 %, mid-chunk",
+                tried="1 bag", survived=f"{len(speeds)} of {COUNT} /speed messages (all "
+                f"{expected} before the cut, by rosbags' index of the whole bag), exit 0, one "
+                "warning naming the file", lost=f"{COUNT - len(speeds)} /speed messages after "
+                "the cut (before: all 600 messages, exit 2)")
+
+
+def test_a_ros1_bag_with_a_corrupt_chunk_and_index_loses_that_chunk_only(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, reliability: Record
+) -> None:
+    bag = write_ros1(tmp_path / "flipped.bag", "bz2")
+    with Ros1Reader(bag) as reader:
+        (speed,) = [c for c in reader.connections if c.topic == "/speed"]
+        infos = sorted(reader.chunk_infos, key=lambda info: info.pos)
+        third = reader.chunks[infos[2].pos]
+        before = sum(info.connection_counts.get(speed.id, 0) for info in infos[:2])
+        in_third = infos[2].connection_counts[speed.id]
+    data = bytearray(bag.read_bytes())
+    for at in range(third.datapos + 20, third.datapos + 60):  # the third chunk's bz2 stream
+        data[at] ^= 0xFF
+    for at in range(len(data) - 300, len(data), 7):  # the chunk infos of the index
+        data[at] ^= 0x5A
+    bag.write_bytes(bytes(data))
+    with caplog.at_level(logging.WARNING):
+        code, speeds = convert(bag, tmp_path / "out.rrd")
+    assert code == 0
+    lost = range(before, before + in_third)
+    assert speeds == [float(i) for i in range(COUNT) if i not in lost]
+    [warning] = damage_warnings(caplog, bag)
+    assert "cannot be opened: Bag index looks damaged" in warning
+    assert f"the chunk at byte {infos[2].pos} does not decompress (bz2: Invalid data stream), " \
+        "skipped" in warning
+    reliability("Damaged bags", "ROS 1 .bag (bz2) with 40 bytes flipped in a chunk and 43 in "
+                "its index", tried="1 bag", survived=f"{len(speeds)} of {COUNT} /speed messages "
+                "(every other chunk), exit 0, one warning naming the file and the chunk",
+                lost=f"the {in_third} /speed messages of the corrupt chunk")
+
+
+def test_a_zero_length_ros1_bag_is_one_error_naming_the_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], reliability: Record
+) -> None:
+    bag = tmp_path / "empty.bag"
+    bag.write_bytes(b"")
     code, speeds = convert(bag, tmp_path / "out.rrd")
     err = capsys.readouterr().err
-    assert code == 2
-    assert speeds == []
+    assert (code, speeds) == (2, [])
     errors = [line for line in err.splitlines() if line.startswith("swanky-host: error:")]
-    assert errors == [f"swanky-host: error: bag {bag} cannot be opened: Bag index looks damaged: "
-                      "('Header could not be read from file.',)"]
-    reliability("Damaged bags", f"ROS 1 .bag ({compression} chunks) cut at 60 %, mid-chunk",
-                tried="1 bag", survived="host: one error naming the file, exit 2",
-                lost=f"all {COUNT * 2} messages (ROS 1 bags are not salvaged yet)")
+    assert len(errors) == 1
+    assert errors[0].startswith(f"swanky-host: error: bag {bag} cannot be opened: ")
+    assert errors[0].endswith("nothing of it can be read (empty.bag: it does not start with the "
+                              "ROS 1 bag magic (#ROSBAG V2.0): nothing was read)")
+    assert "Traceback" not in err
+    reliability("Damaged bags", "ROS 1 .bag of zero length", tried="1 bag",
+                survived="host: one error naming the file, exit 2, no traceback",
+                lost="the bag (it holds nothing)")
 
 
 def test_the_relay_replays_a_cut_mcap_up_to_the_cut(tmp_path: Path) -> None:
