@@ -92,9 +92,10 @@ class _TopicPublisher:
             "encoding": zenoh.Encoding(cdr_encoding(info.msgtype)),
             "priority": getattr(zenoh.Priority, policy.priority.upper()),
             "congestion_control": _CONGESTION[policy.congestion],
-            # Each message goes out when it arrives instead of joining a batch: lower latency,
-            # and about 100 us less CPU per put (measured on loopback, 700-byte messages).
-            "express": True,
+            # Not express: zenoh batches what queues up while its link is busy. Express (one
+            # write per message) cost 27-32 us of CPU per 3 KB message at full rate instead of
+            # 3-4, and gained no latency at 200 Hz 3 KB or 30 Hz 1 MB (p50 0.3 ms and 1.8-2.0
+            # ms either way on loopback; benchmarks/relay_throughput.py, RESULTS.md notes).
         }
         self.publisher: Any
         if info.latched:
