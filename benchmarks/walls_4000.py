@@ -2,7 +2,10 @@
 
 The baseline is one ``cv2.Canny`` + ``cv2.HoughLinesP`` call on the same grid image, the part of
 the pipeline OpenCV does in C++; the ratio shows what the blur, the merge, the mesh and the
-Rerun archetype add on top. Run: ``.venv/bin/python benchmarks/walls_4000.py``.
+Rerun archetype add on top. Then each step of ``wall_items`` alone (medians), to show where the
+time goes: the occupancy image, edges + tiled Hough (``detect_segments``), the merge, corner
+joining, the box mesh + ``rr.Mesh3D``, and the digest that skips an unchanged map.
+Run: ``.venv/bin/python benchmarks/walls_4000.py``.
 """
 
 from __future__ import annotations
@@ -16,13 +19,20 @@ from typing import Any
 import cv2
 import numpy as np
 import numpy.typing as npt
+import rerun as rr
 from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.contract import ConvertContext, LogEntry
 from host_bridge.converters import walls
 from host_bridge.converters.occupancy import grid_from_msg
 from host_bridge.options import GridOptions
-from host_bridge.segments import grid_to_image
+from host_bridge.segments import (
+    detect_segments,
+    grid_to_image,
+    join_corners,
+    merge_segments,
+    segments_to_mesh,
+)
 
 SIZE = 4000
 RESOLUTION = 0.05
@@ -112,6 +122,46 @@ def main() -> None:
     print(f"baseline cv2.Canny + cv2.HoughLinesP: {base_s * 1e3:8.1f} ms")
     print(f"walls.wall_items (image, blur, Canny, Hough, merge, mesh, hash): {full_s * 1e3:8.1f} ms")
     print(f"ratio wall_items / baseline: {full_s / base_s:.2f}")
+    step_times(msg, context())
+
+
+def step_times(msg: Any, ctx: ConvertContext) -> None:
+    """Median time of each step of ``wall_items``, run one after the other on their own."""
+    grid = grid_from_msg(msg, ctx)
+    options = walls.WallOptions.from_options(grid.options, grid.resolution, grid.topic)
+    res = grid.resolution
+    image = grid_to_image(grid.cells, options.occupied_threshold)
+    pixels = detect_segments(
+        image, canny_low=options.canny_low, canny_high=options.canny_high,
+        votes=options.hough_votes, min_line_length=options.hough_min_length / res,
+        max_line_gap=options.hough_max_gap / res,
+    )
+    merged = merge_segments((pixels + 0.5) * res, angle_deg=options.merge_angle_deg,
+                            distance=options.merge_distance, gap=options.merge_gap,
+                            min_length=options.min_length)
+    joined = join_corners(merged, reach=options.join_reach)
+
+    def mesh() -> rr.Mesh3D:
+        boxes = segments_to_mesh(joined, grid.translation, grid.quaternion, options.height,
+                                 options.thickness)
+        return rr.Mesh3D(vertex_positions=boxes.vertices, triangle_indices=boxes.triangles,
+                         vertex_normals=boxes.normals, albedo_factor=options.color)
+
+    steps: dict[str, Callable[[], object]] = {
+        "occupancy image": lambda: grid_to_image(grid.cells, options.occupied_threshold),
+        f"edges + tiled Hough ({pixels.shape[0]} raw segments)": lambda: detect_segments(
+            image, canny_low=options.canny_low, canny_high=options.canny_high,
+            votes=options.hough_votes, min_line_length=options.hough_min_length / res,
+            max_line_gap=options.hough_max_gap / res),
+        f"merge ({merged.shape[0]} walls)": lambda: merge_segments(
+            (pixels + 0.5) * res, angle_deg=options.merge_angle_deg,
+            distance=options.merge_distance, gap=options.merge_gap, min_length=options.min_length),
+        "join corners": lambda: join_corners(merged, reach=options.join_reach),
+        "box mesh + rr.Mesh3D": mesh,
+        "digest of the cells": lambda: walls.grid_digest(grid, options),
+    }
+    for label, step in steps.items():
+        print(f"  step {label:<40} {median_time(step) * 1e3:8.1f} ms", flush=True)
 
 
 if __name__ == "__main__":

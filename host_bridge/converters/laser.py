@@ -83,8 +83,10 @@ def scan_returns(msgs: Sequence[Any]) -> ScanReturns:
     # Bounds as float32, the field type, so a return equal to range_max compares equal.
     low = np.array([m.range_min for m in msgs], dtype=np.float32)[:, None]
     high = np.array([m.range_max for m in msgs], dtype=np.float32)[:, None]
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(grid) & (grid >= low) & (grid < high)
+    # NaN compares false and +-inf falls outside finite bounds: the bounds alone drop them.
+    valid = (grid >= low) & (grid < high)
+    if not (np.isfinite(low).all() and np.isfinite(high).all()):
+        valid &= np.isfinite(grid)
     kept = grid[valid]
     points = np.zeros((kept.size, 3), dtype=np.float32)
     points[:, 0] = kept * directions[0][valid]

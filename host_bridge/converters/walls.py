@@ -147,7 +147,8 @@ def walls_enabled(grid: Grid) -> bool:
     return grid.topic.rstrip("/").rsplit("/", 1)[-1] == "map" if walls is None else walls
 
 
-def _digest(grid: Grid, options: WallOptions) -> bytes:
+def grid_digest(grid: Grid, options: WallOptions) -> bytes:
+    """What the walls of ``grid`` depend on, hashed: cells, geometry, frame and wall options."""
     h = hashlib.blake2b(digest_size=16)
     h.update(np.ascontiguousarray(grid.cells).data)
     geometry = (
@@ -165,7 +166,7 @@ def _grid_wall_items(grid: Grid, robot_state: RobotState) -> list[LogEntry]:
     path = f"{grid.entity_path}/{WALLS_CHILD}"
     # Keyed by wall entity, not per topic: a grid and its updates draw the same walls.
     digests = robot_state.wall_digests
-    digest = _digest(grid, options)
+    digest = grid_digest(grid, options)
     if digests.get(path) == digest:
         return []
     segments = wall_segments(grid, options)

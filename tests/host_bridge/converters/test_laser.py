@@ -198,3 +198,11 @@ def test_run_in_rays_mode_or_with_and_without_frame_ids_goes_scan_by_scan() -> N
     scans[1].header.frame_id = ""
     mixed = SPEC.convert_run(scans, [make_ctx("/scan") for _ in scans])
     assert [len(e.archetypes) for e in mixed] == [2, 1, 2]  # Points3D (+ CoordinateFrame)
+
+
+def test_infinite_bounds_still_drop_nan_and_infinite_ranges() -> None:
+    message = scan([float("nan"), float("inf"), float("-inf"), 1.0], range_min=-math.inf,
+                   range_max=math.inf)
+    points, valid = scan_points(message)
+    assert valid.tolist() == [False, False, False, True]
+    assert points.shape == (1, 3)
