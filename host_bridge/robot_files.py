@@ -4,7 +4,9 @@ the ``package://`` files the PC does not have, and keeps what it got.
 It is the :data:`host_bridge.resources.RobotFetch` of a live host. The session is attached once
 the host has opened it. Fetches run on the host's converting thread, so each is bounded by
 ``timeout``, and a robot that let one run out is not asked again for ``quiet`` seconds: a dead
-relay costs one timeout per model, not one per mesh.
+relay costs one timeout per model, not one per mesh. A reply over ``max_bytes`` (the relay's own
+limit, 64 MiB) is refused and not kept: a relay that is not Swanky's, or a hostile one, cannot
+fill the host's cache.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import zenoh
 
 from host_bridge.errors import ConvertError
 from host_bridge.resources import PACKAGE_SCHEME, split_package_uri
+from robot_relay.files import DEFAULT_MAX_BYTES
 from robot_relay.wire import files_key
 
 FETCH_TIMEOUT_S = 5.0
@@ -27,10 +30,14 @@ class RobotFiles:
     in memory per (robot, uri) for the host's lifetime (a URDF re-sent on reconnect is free)."""
 
     def __init__(
-        self, timeout: float = FETCH_TIMEOUT_S, quiet: float = QUIET_AFTER_TIMEOUT_S
+        self,
+        timeout: float = FETCH_TIMEOUT_S,
+        quiet: float = QUIET_AFTER_TIMEOUT_S,
+        max_bytes: int = DEFAULT_MAX_BYTES,
     ) -> None:
         self._timeout = timeout
         self._quiet = quiet
+        self._max_bytes = max_bytes
         self._session: zenoh.Session | None = None
         self._cache: dict[tuple[str, str], bytes] = {}
         self._timed_out: dict[str, float] = {}
@@ -71,6 +78,13 @@ class RobotFiles:
         for reply in replies:
             if reply.ok is not None:
                 self._timed_out.pop(robot, None)
+                size = len(reply.ok.payload)
+                if size > self._max_bytes:
+                    msg = (
+                        f"robot {robot} sent {size} bytes for {uri}, over the limit of "
+                        f"{self._max_bytes} bytes a relay serves; not kept"
+                    )
+                    raise ConvertError(msg)
                 data: bytes = reply.ok.payload.to_bytes()
                 return data
         for reply in replies:

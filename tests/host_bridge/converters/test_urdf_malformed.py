@@ -29,6 +29,7 @@ from host_bridge.cli import main as host_main
 from host_bridge.contract import ColumnsItem, LogItem
 from host_bridge.converters import urdf
 from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
+from host_bridge.errors import ConvertError
 from host_bridge.resources import ResourceResolver
 from robot_relay.wire import RawMessage
 from tests.host_bridge.test_config import RecordingSink
@@ -449,3 +450,45 @@ def test_swanky_host_bag_with_a_bad_description_draws_the_rest(
                 "a missing mesh", tried="1 bag (1 description, 10 /odom)",
                 survived="exit 0, 2 of 3 visuals and 2 of 3 joints in the .rrd, 10 of 10 /odom "
                 "rows, one warning", lost="the loop joint and the missing mesh's visual")
+
+
+def test_a_relay_reply_over_the_size_limit_is_refused_not_kept(
+    tmp_path: Path, reliability: Record
+) -> None:
+    """A relay that sends more than a relay may (not Swanky's, or hostile) costs that visual,
+    and its bytes are not cached for the host's lifetime."""
+    import zenoh
+
+    from host_bridge.robot_files import RobotFiles
+    from robot_relay.files import serve_files
+
+    big = trimesh.creation.icosphere(subdivisions=3).export(file_type="stl")
+    (tmp_path / "pkg" / "meshes").mkdir(parents=True)
+    (tmp_path / "pkg" / "meshes" / "big.stl").write_bytes(big)
+    config = zenoh.Config()
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("listen/endpoints", "[]")
+    with zenoh.open(config) as session:
+        service = serve_files(session, ROBOT, [f"pkg={tmp_path / 'pkg'}"], environ={})
+        files = RobotFiles(timeout=5.0, max_bytes=len(big) - 1)
+        files.attach(session)
+        try:
+            xml = robot(box_link("base"),
+                        '<link name="dome"><visual><geometry><mesh filename="package://pkg/'
+                        'meshes/big.stl"/></geometry></visual></link>', joint("j", "base", "dome"))
+            drawn = draw(xml, ResourceResolver(robot_fetch=files.fetch))
+            with pytest.raises(ConvertError, match="not kept"):
+                files.fetch(ROBOT, "package://pkg/meshes/big.stl")  # asked again: not cached
+        finally:
+            service.close()
+    assert one_warning(drawn) == (
+        "robot model 'bad': 1 of 2 visuals not drawn: mesh files not found: "
+        "package://pkg/meshes/big.stl for link 'dome'; looked in no --package-path and no "
+        f"ROS_PACKAGE_PATH/AMENT_PREFIX_PATH; robot r sent {len(big)} bytes for "
+        f"package://pkg/meshes/big.stl, over the limit of {len(big) - 1} bytes a relay serves; "
+        "not kept; pass --package-path pkg=DIR")
+    assert sorted(drawn.visuals) == ["base"]
+    assert drawn.relations["r/dome"] == at("base", [0, 0, 1])
+    reliability(AREA, "a relay answering a mesh request with more bytes than a relay serves",
+                tried="2 requests", survived="the rest of the model, one warning naming the "
+                "robot, file and size", lost="that visual; nothing cached")
