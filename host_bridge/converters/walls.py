@@ -6,10 +6,12 @@ Each wall segment is extruded into a box (``wall_thickness`` x ``wall_height``) 
 out as ONE ``rr.Mesh3D`` at ``<grid entity>/walls``, in the grid's header frame with the grid's
 full origin pose applied, so the boxes stand on the occupied cells of the GridMap.
 
-Cost (measured on a busy 2-core machine): 2-4 s for a 4000x4000 floor plan (16 M cells, 3000
-walls), 2.4-4x one bare Canny + HoughLinesP call on the same image (``benchmarks/walls_4000.py``);
-Hough, run per window and edge orientation, and the merge take most of it. A 400x400 part of
-that plan takes about 25 ms. That is too slow for the receive path, so this module offers
+Cost (measured on a busy 2-core machine): 1.3-2 s for a 4000x4000 floor plan (16 M cells, 3100
+walls), 2-3x one bare Canny + HoughLinesP call on the same image (``benchmarks/walls_4000.py``
+prints each step): Hough, run per window and edge orientation, about two thirds, the merge one
+third. Only the part of the grid around occupied cells is searched, so the unknown margin of a
+SLAM map costs nothing. A 400x400 part of that plan takes about 25 ms. That is too slow for the
+receive path, so this module offers
 :data:`GRID_WALLS` and :data:`UPDATE_WALLS` (the ``slow`` converters of the registry's
 OccupancyGrid and OccupancyGridUpdate rows) for the dispatcher to run in a latest-only worker
 thread after ``occupancy`` has converted the same message (an update's walls are built from the grid
