@@ -1,0 +1,133 @@
+"""A host whose output cannot keep up (issue 14): two robots on loopback, one ("flood")
+replaying its odometry as fast as its relay can send, the other ("calm") at its real 30 Hz.
+
+The host runs as ``python -m tests.integration.test_slow_consumer HOST-FLAGS``: the real
+``swanky-host`` with its dispatcher slowed down for the flood robot only (SLOW_S per message),
+as if its converters or its viewer were too slow for it. Ten times too slow is not asked for: a
+relay sends ~1,500 messages a second here, and a host that takes 150 a second needs 35 s at exit
+to convert the 5,000 its queue holds (a saved .rrd is complete); the figure measured goes into
+the table. The host's memory must stay flat (its per-robot queues are bounded), the
+messages it drops must be counted and shown, and the calm robot must not notice.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Sequence
+from contextlib import ExitStack
+from pathlib import Path
+
+import pytest
+
+from tests.integration.proc_sampler import Sampler
+from tests.integration.procs import command, free_port, running
+from tests.integration.robot_bags import Lines
+from tests.integration.robot_traffic import Traffic, odom_index, write_traffic_bag
+from tests.integration.test_bad_links import NO_SHM, arrival_order
+from tests.reliability import Record
+from tests.rrd import entity_rows
+
+pytestmark = pytest.mark.integration
+
+SLOW_S = 0.002
+"""The flood robot's output time per message: at most 500 a second."""
+FLOOD_MESSAGES = 18_000
+STARTUP_S = 90.0
+
+
+def slow_host(argv: Sequence[str]) -> int:
+    """swanky-host with the flood robot's messages held SLOW_S each on their way out."""
+    from host_bridge.cli import main
+    from host_bridge.dispatch import Dispatcher
+
+    dispatch = Dispatcher.dispatch
+
+    def slow_dispatch(self: Dispatcher, batch: Sequence[object]) -> None:
+        time.sleep(SLOW_S * sum(getattr(raw, "robot", "") == "flood" for raw in batch))
+        dispatch(self, batch)  # type: ignore[arg-type]
+
+    Dispatcher.dispatch = slow_dispatch  # type: ignore[method-assign]
+    return main(list(argv))
+
+
+def test_slow_output_drops_the_flooding_robots_oldest_and_spares_the_other(
+    tmp_path: Path, reliability: Record,
+) -> None:
+    calm = Traffic(seconds=12.0, image_size=(0, 0), scans=False, latched=False)
+    flood = Traffic(seconds=FLOOD_MESSAGES / 30, image_size=(0, 0), scans=False, latched=False)
+    bags = {"calm": write_traffic_bag(tmp_path / "calm", calm),
+            "flood": write_traffic_bag(tmp_path / "flood", flood)}
+    port = free_port()
+    out = tmp_path / "slow.rrd"
+    endpoint = ("-e", f"tcp/127.0.0.1:{port}", *NO_SHM, "--wait-for-host", "60")
+    with ExitStack() as stack:
+        host = stack.enter_context(running(command(
+            "tests.integration.test_slow_consumer", "-l", f"tcp/127.0.0.1:{port}", *NO_SHM,
+            "--save", str(out), "--until-idle", "4", "--duration", "180")))
+        host_lines = Lines(host)
+        sampler = Sampler(host.pid, period_s=0.1)
+        relays = {
+            robot: stack.enter_context(running(command(
+                "robot_relay.cli", "--robot", robot, "--bag", str(bags[robot]),
+                "--rate", "1" if robot == "calm" else "0", *endpoint)))
+            for robot in ("calm", "flood")
+        }
+        relay_lines = {robot: Lines(proc) for robot, proc in relays.items()}
+        relay_lines["flood"].wait_for("robot flood: 1 topics", timeout=STARTUP_S)
+        started = time.monotonic()
+        for robot, proc in relays.items():
+            assert proc.wait(timeout=STARTUP_S) == 0, relay_lines[robot].text
+            if robot == "flood":
+                flooded = time.monotonic()
+        assert host.wait(timeout=180) == 0, host_lines.text
+        sampler.stop()
+    rows = entity_rows(out)
+
+    # The calm robot: every message, in order, on time.
+    assert [odom_index(t) for t in arrival_order(out, "/calm/odom")] == list(calm.odom())
+    calm_latency_ms = max(row["Scalars:scalars"][0] for row in rows["/_stats/calm/odom/latency_ms"])
+    assert calm_latency_ms < 2000
+
+    # The flood robot: the host kept what it could, dropped its oldest, said so.
+    kept = arrival_order(out, "/flood/odom")
+    assert 0 < len(kept) < FLOOD_MESSAGES
+    assert kept == sorted(set(kept))
+    dropped = FLOOD_MESSAGES - len(kept)
+    assert f"[flood] /odom: {dropped} dropped (queue full)" in host_lines.text
+    assert "[flood] /odom: the host converts this robot's messages slower than they arrive" in \
+        host_lines.text
+    # In Rerun the queue's drops show as wire sequence gaps in /_stats, but only in periods
+    # that closed: when every kept message is from the flood's last second, that is none.
+    shown = sum(row["Scalars:scalars"][0] for row in rows["/_stats/flood/odom/drops"])
+    assert 0 <= shown <= dropped
+    flood_latency_ms = max(row["Scalars:scalars"][0] for row in rows["/_stats/flood/odom/latency_ms"])
+    sent_rate = FLOOD_MESSAGES / (flooded - started)
+
+    # Flat memory: the queue is full within the first second; from then on the host's
+    # resident memory must not grow with what keeps arriving.
+    middle = started + (flooded - started) / 2
+    first_half = sampler.peak_mb(started, middle)
+    second_half = sampler.peak_mb(middle, flooded)
+    assert second_half <= first_half + 30.0, (first_half, second_half)
+    assert sampler.peak_mb() < 600.0
+
+    reliability(
+        "Slow consumer",
+        "host output slower than one robot's data: 'flood' replays 18,000 odometry messages as "
+        f"fast as its relay sends them, its messages take {SLOW_S * 1000:.0f} ms each on the "
+        "way out; 'calm' sends 30 Hz odometry beside it (loopback)",
+        tried=f"1 run: flood sent {sent_rate:.0f} msg/s, the host could take "
+              f"{1 / SLOW_S:.0f}/s ({sent_rate * SLOW_S:.1f}x too slow)",
+        survived=f"calm: {len(calm.odom())}/{len(calm.odom())} in order, latency at most "
+                 f"{calm_latency_ms:.0f} ms; flood: {len(kept)} kept, in order (latency up to "
+                 f"{flood_latency_ms / 1000:.1f} s); host RSS {first_half:.0f} MB -> "
+                 f"{second_half:.0f} MB (peak {sampler.peak_mb():.0f} MB)",
+        lost=f"{dropped} flood messages, its oldest, counted in the host's drop summary and "
+             f"warned about once; {shown:.0f} of them in /_stats/flood/odom/drops (sequence gaps "
+             "of closed periods only); calm lost 0",
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(slow_host(sys.argv[1:]))
