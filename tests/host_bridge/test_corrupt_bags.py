@@ -272,7 +272,8 @@ def test_a_ros1_bag_cut_mid_chunk_converts_what_was_written(
     assert [STORE.deserialize_cdr(bytes(m.data), STRING).data for m in modes] == [
         f"m{i}" for i in range(len(modes))]
     assert len(modes) in (expected, expected - 1)  # /mode i is written after /speed i
-    reliability("Damaged bags", f"ROS 1 .bag ({compression} chunks) cut at 60 %, mid-chunk",
+    chunks = "uncompressed" if compression == "none" else f"{compression} chunks"
+    reliability("Damaged bags", f"ROS 1 .bag ({chunks}) cut at 60 %, mid-chunk",
                 tried="1 bag", survived=f"{len(speeds)} of {COUNT} /speed messages (all "
                 f"{expected} before the cut, by rosbags' index of the whole bag), exit 0, one "
                 "warning naming the file", lost=f"{COUNT - len(speeds)} /speed messages after "
