@@ -36,7 +36,13 @@ from host_bridge.contract import (
 from host_bridge.decode import Decoder
 from host_bridge.errors import ConfigError, HostError, PartialConvertError
 from host_bridge.frames import RobotFrames
-from host_bridge.inputs.base import InputItem, InputProblem, RobotEvent, presence_items
+from host_bridge.inputs.base import (
+    InputItem,
+    InputProblem,
+    MessageRun,
+    RobotEvent,
+    presence_items,
+)
 from host_bridge.registry import Registry, default_registry
 from host_bridge.resources import ResourceResolver
 from host_bridge.sink import Sink
@@ -99,6 +105,8 @@ Arrivals = tuple[npt.NDArray[np.int64] | None, npt.NDArray[np.int64] | None]
 def run_arrivals(run: Sequence[RawMessage]) -> Arrivals | None:
     """The run's receive and log times, one array each (None: no message has that time); None
     when some messages have a time and others not, which columns cannot say."""
+    if isinstance(run, MessageRun):
+        return run.receive_ns, run.log_ns
     found = []
     for values in ([raw.receive_ns for raw in run], [raw.log_ns for raw in run]):
         missing = values.count(None)
@@ -180,22 +188,22 @@ class Dispatcher:
         if updates:
             self.sink.log(updates, times)
 
-    def _topic(self, raw: RawMessage) -> _Topic:
-        key = (raw.robot, raw.topic)
+    def _topic(self, robot: str, name: str, msgtype: str) -> _Topic:
+        key = (robot, name)
         topic = self._topics.get(key)
         if topic is None:
-            settings = self.config.resolve(raw.robot, raw.topic, raw.msgtype)
+            settings = self.config.resolve(robot, name, msgtype)
             topic = _Topic(
                 settings.entity_path, TopicState(settings.options), settings.enabled, settings.restamp
             )
             self._topics[key] = topic
             if topic.enabled and self.on_new_topic is not None:
-                self.on_new_topic(raw.robot, raw.topic, raw.msgtype, topic.entity_path)
+                self.on_new_topic(robot, name, msgtype, topic.entity_path)
             if settings.problems:
                 err = ConfigError("\n".join(settings.problems) + " (ignored for this topic)")
                 if self.strict:
                     raise err
-                self.warn(raw.robot, raw.topic, err)
+                self.warn(robot, name, err)
         return topic
 
     def warn(
@@ -225,27 +233,31 @@ class Dispatcher:
             times or {TIMELINE_RECEIVE: time.time_ns()},
         )
 
-    def _count(self, run: Sequence[RawMessage]) -> TopicCounters:
+    def _count(self, run: Sequence[RawMessage], first: RawMessage) -> TopicCounters:
         """Counts a run of one topic as received, with the wire sequence gaps within it."""
-        first = run[0]
         key = (first.robot, first.topic)
         counters = self.counters.get(key)
         if counters is None:
             counters = self.counters[key] = TopicCounters(first.msgtype)
         counters.received += len(run)
-        if first.sequence is not None or run[-1].sequence is not None:
+        # A bag's runs carry no wire sequence.
+        if not isinstance(run, MessageRun) and (
+            first.sequence is not None or run[-1].sequence is not None
+        ):
             for raw in run:
                 if raw.sequence is not None:
                     counters.sequence_gaps += sequence_gap(counters.last_sequence, raw.sequence)
                     counters.last_sequence = raw.sequence
         return counters
 
-    def take(self, items: Sequence[InputItem]) -> None:
+    def take(self, items: Sequence[InputItem | MessageRun]) -> None:
         """A run from an input (inputs/base.py): problems warned about, robots joining or
         leaving logged under /_swanky/robots, messages dispatched."""
         batch = []
         for item in items:
-            if isinstance(item, InputProblem):
+            if isinstance(item, MessageRun):
+                self.dispatch(item)
+            elif isinstance(item, InputProblem):
                 self.warn(item.robot, item.topic, item.error)
             elif isinstance(item, RobotEvent):
                 log.info("%s", item.text)
@@ -259,16 +271,20 @@ class Dispatcher:
         """Convert and log a run of messages; messages of one topic keep their order."""
         for tap in self.taps:
             tap(batch)
+        if isinstance(batch, MessageRun):
+            if len(batch):
+                self._dispatch_run(batch)
+            return
         runs: dict[tuple[str, str], list[RawMessage]] = {}
         for raw in batch:
             runs.setdefault((raw.robot, raw.topic), []).append(raw)
         for run in runs.values():
             self._dispatch_run(run)
 
-    def _dispatch_run(self, run: list[RawMessage]) -> None:
+    def _dispatch_run(self, run: Sequence[RawMessage]) -> None:
         first = run[0]
-        topic = self._topic(first)
-        counters = self._count(run)
+        topic = self._topic(first.robot, first.topic, first.msgtype)
+        counters = self._count(run, first)
         if not topic.enabled:
             counters.skipped += len(run)
             return
@@ -300,7 +316,7 @@ class Dispatcher:
             self._convert(decoded)
 
     def _convert_columns(
-        self, run: list[RawMessage], topic: _Topic, spec: ConverterSpec, counters: TopicCounters
+        self, run: Sequence[RawMessage], topic: _Topic, spec: ConverterSpec, counters: TopicCounters
     ) -> bool:
         """Convert the run through its columns, no Python per message; False when the run needs
         the message path: columns refuse it (a payload rosbags would refuse: that path names it
@@ -309,7 +325,9 @@ class Dispatcher:
         assert spec.convert_columns is not None
         first = run[0]
         definition = first.definition
-        if any(raw.definition is not definition and raw.definition != definition for raw in run):
+        if not isinstance(run, MessageRun) and any(
+            raw.definition is not definition and raw.definition != definition for raw in run
+        ):
             return False
         arrivals = run_arrivals(run)
         if arrivals is None:
@@ -321,7 +339,8 @@ class Dispatcher:
             return False  # the message path warns about the type
         started = time.perf_counter()
         # Any number of blocks: the message path would read its messages as columns anyway.
-        columns = read_columns([raw.data for raw in run], first.msgtype, store, max_blocks=len(run))
+        payloads = run.payloads if isinstance(run, MessageRun) else [raw.data for raw in run]
+        columns = read_columns(payloads, first.msgtype, store, max_blocks=len(run))
         if columns is None:
             return False
         ctx = RunContext(

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TextIO
 
 from host_bridge.errors import InputError
+from host_bridge.inputs.base import MessageRun
 from robot_relay.errors import SourceError
 from robot_relay.sources.bag import BagSource
 from robot_relay.wire import RawMessage
@@ -92,7 +93,10 @@ class Progress:
 
     def __call__(self, batch: Sequence[RawMessage]) -> None:
         self.done += len(batch)
-        self._topics.update((raw.robot, raw.topic) for raw in batch)
+        if isinstance(batch, MessageRun):  # one topic: no RawMessage made per message
+            self._topics.add((batch.robot, batch.topic))
+        else:
+            self._topics.update((raw.robot, raw.topic) for raw in batch)
         if batch and batch[-1].log_ns is not None:
             self._log_ns = batch[-1].log_ns
         now = self._clock()

@@ -2,9 +2,10 @@
 
 It reuses the relay's raw bag source, so a bag converted here and one replayed through a relay
 give the host the same RawMessages (same CDR, same definitions, same log times). A rosbag2 in
-MCAP storage is read in bulk by :mod:`host_bridge.inputs.mcap` instead (the same RawMessages in
-the same order, payloads sliced out of whole chunks); a file it does not take is read by the
-source.
+MCAP storage is read in bulk by :mod:`host_bridge.inputs.mcap` instead (the same messages in
+the same order, payloads sliced out of whole chunks) and handed on as one
+:class:`~host_bridge.inputs.base.MessageRun` per topic, with no record per message; a file it
+does not take is read by the source.
 """
 
 from __future__ import annotations
@@ -13,11 +14,11 @@ import itertools
 import logging
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 from host_bridge.errors import InputError
-from host_bridge.inputs.base import Deliver
+from host_bridge.inputs.base import Deliver, MessageRun
 from host_bridge.inputs.mcap import McapFile, NotIndexedError
 from robot_relay.errors import SourceError
 from robot_relay.sources.bag import BagSource
@@ -26,29 +27,54 @@ from robot_relay.wire import RawMessage
 log = logging.getLogger("swanky.host")
 
 
-def bag_runs(path: Path, robot: str, run_size: int = 2048) -> Iterator[list[RawMessage]]:
-    """The bag's messages in log-time order, ``run_size`` at a time."""
+RUN_MESSAGES = 65536
+"""Messages read before they go on as runs: big runs amortise what each run costs (a
+send_columns call per plotted series, the frames' bookkeeping) ..."""
+RUN_BYTES = 64 * 1024 * 1024
+"""... but no more payload bytes than this: a run of images or clouds must not hold a whole bag."""
+
+
+def bag_runs(
+    path: Path, robot: str, run_size: int = RUN_MESSAGES, run_bytes: int = RUN_BYTES
+) -> Iterator[Sequence[RawMessage]]:
+    """The bag's messages, every topic's in log-time order, in windows of at most ``run_size``
+    messages and ``run_bytes`` bytes of payload (at least one message). An indexed MCAP bag
+    gives each window as one :class:`MessageRun` per topic (the run holding the window's last
+    message last; see :meth:`McapFile.runs`); another bag gives each window as one list of
+    RawMessages in log-time order."""
     try:
         with BagSource(path, robot) as source:
-            run: list[RawMessage] = []
-            for batch in bag_batches(source, run_size):
-                at = 0
-                while at < len(batch):
-                    taken = run_size - len(run)
-                    run.extend(batch[at : at + taken])
-                    at += taken
-                    if len(run) == run_size:
-                        yield run
-                        run = []
-            if run:
-                yield run
+            files = _mcap_files(source)
+            if files is None:
+                messages = source.messages()
+                while window := _window(messages, run_size, run_bytes):
+                    yield window
+                return
+            source.log_undefined()
+            for opened in files:
+                try:
+                    for runs in opened.runs(robot, run_size, run_bytes):
+                        yield from runs
+                finally:
+                    opened.close()
     except SourceError as err:
         raise InputError(str(err)) from err
 
 
-def bag_batches(source: BagSource, size: int) -> Iterator[list[RawMessage]]:
-    """What ``source.messages()`` yields, at most ``size`` a list; read in bulk
-    (:mod:`host_bridge.inputs.mcap`) where every file of the bag is an indexed MCAP."""
+def _window(messages: Iterator[RawMessage], size: int, payload_bytes: int) -> list[RawMessage]:
+    window: list[RawMessage] = []
+    total = 0
+    for raw in messages:
+        window.append(raw)
+        total += len(raw.data)
+        if len(window) >= size or total >= payload_bytes:
+            break
+    return window
+
+
+def _mcap_files(source: BagSource) -> list[McapFile] | None:
+    """Every file of the bag opened for the bulk reader (:mod:`host_bridge.inputs.mcap`); None
+    unless each is an indexed MCAP file of a rosbag2."""
     storages = source.mcap_storages() if source.connections else None
     files: list[McapFile] = []
     try:
@@ -58,8 +84,15 @@ def bag_batches(source: BagSource, size: int) -> Iterator[list[RawMessage]]:
         log.debug("%s: %s; reading the bag with rosbags", path, why)
         for opened in files:
             opened.close()
-        storages = None
-    if storages is None:
+        return None
+    return None if storages is None else files
+
+
+def bag_batches(source: BagSource, size: int) -> Iterator[list[RawMessage]]:
+    """What ``source.messages()`` yields, at most ``size`` a list; read in bulk
+    (:mod:`host_bridge.inputs.mcap`) where every file of the bag is an indexed MCAP."""
+    files = _mcap_files(source)
+    if files is None:
         messages = source.messages()
         while batch := list(itertools.islice(messages, size)):
             yield batch
@@ -94,7 +127,7 @@ class BagInput:
         try:
             for run in bag_runs(self.path, self.robot):
                 self.last_activity = time.monotonic()
-                deliver(run)
+                deliver([run] if isinstance(run, MessageRun) else run)
                 if self._closing.is_set():
                     return
         except BaseException as err:  # raised on the app's thread by ended()

@@ -12,14 +12,16 @@ way, and the app waits on both alike.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, overload
 
+import numpy as np
+import numpy.typing as npt
 import rerun as rr
 
 from host_bridge.contract import TIMELINE_RECEIVE, LogItem
-from robot_relay.wire import RawMessage
+from robot_relay.wire import MessageDefinition, RawMessage
 
 PRESENCE_PATH = "/_swanky/robots"
 
@@ -52,9 +54,52 @@ def presence_items(event: RobotEvent, now_ns: int) -> list[LogItem]:
     return [LogItem(PRESENCE_PATH, (text,), times={TIMELINE_RECEIVE: now_ns})]
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class MessageRun(Sequence[RawMessage]):
+    """Messages of one topic (one type and definition) in their order, as a bag input reads
+    them: the payloads and their times as arrays, not a record per message. The dispatcher
+    reads a columnar type's run straight from :attr:`payloads` and :attr:`log_ns`; whoever
+    iterates it (a tap, the message path) gets RawMessages, built as they are asked for."""
+
+    robot: str
+    topic: str
+    msgtype: str
+    definition: MessageDefinition | None
+    payloads: Sequence[bytes | memoryview]
+    log_ns: npt.NDArray[np.int64] | None = None
+    receive_ns: npt.NDArray[np.int64] | None = None
+
+    def __len__(self) -> int:
+        return len(self.payloads)
+
+    @overload
+    def __getitem__(self, index: int) -> RawMessage: ...
+    @overload
+    def __getitem__(self, index: slice) -> Sequence[RawMessage]: ...
+    def __getitem__(self, index: int | slice) -> RawMessage | Sequence[RawMessage]:
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(len(self)))]
+        return self._message(
+            self.payloads[index],
+            None if self.receive_ns is None else int(self.receive_ns[index]),
+            None if self.log_ns is None else int(self.log_ns[index]),
+        )
+
+    def __iter__(self) -> Iterator[RawMessage]:
+        count = len(self.payloads)
+        receive = [None] * count if self.receive_ns is None else self.receive_ns.tolist()
+        logged = [None] * count if self.log_ns is None else self.log_ns.tolist()
+        for data, receive_ns, log_ns in zip(self.payloads, receive, logged, strict=True):
+            yield self._message(data, receive_ns, log_ns)
+
+    def _message(self, data: bytes | memoryview, receive_ns: int | None, log_ns: int | None) -> RawMessage:
+        return RawMessage(self.robot, self.topic, self.msgtype, data, self.definition, receive_ns, log_ns)
+
+
 InputItem = RawMessage | InputProblem | RobotEvent
-Deliver = Callable[[Sequence[InputItem]], None]
-"""Where an input puts its runs (the dispatcher's ``take``); it may raise (``--strict``)."""
+Deliver = Callable[[Sequence[InputItem | MessageRun]], None]
+"""Where an input puts its runs (the dispatcher's ``take``); it may raise (``--strict``). A bag
+hands over :class:`MessageRun` s, live inputs their items one record each."""
 
 
 class Input(Protocol):

@@ -22,6 +22,7 @@ the chunk.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import mmap
 import struct
@@ -34,6 +35,7 @@ import numpy as np
 import numpy.typing as npt
 
 from host_bridge.errors import InputError
+from host_bridge.inputs.base import MessageRun
 from robot_relay.wire import RawMessage, TopicInfo
 
 log = logging.getLogger("swanky.host")
@@ -328,10 +330,10 @@ class McapFile:
             if at != end:
                 raise self._damaged(chunk, f"records overlap at {at}")
 
-    def batches(self, robot: str, size: int) -> Iterator[list[RawMessage]]:
-        """The wanted channels' messages as RawMessages in rosbags' order, at most ``size`` a
-        list (lists, not single messages: a generator step per message would cost more than
-        everything else here)."""
+    def _ranges(self) -> Iterator[tuple[Mapping[int, _Loaded], list[npt.NDArray[np.int64]]]]:
+        """The wanted channels' messages in rosbags' order, in ranges whose chunks are all
+        loaded: (the loaded chunks by number, the range's columns: chunk number, payload start
+        and end, channel, log time). The chunks change once the next range is asked for."""
         for group in _groups(self.chunks):
             numbers, offsets, channels, log_ns = self._index(group)
             starts, ends = np.empty_like(offsets), np.empty_like(offsets)
@@ -346,9 +348,8 @@ class McapFile:
             done = 0
             for position in [*sorted(first.values()), len(numbers)]:
                 # Every message before ``position`` has its chunk loaded: hand them on.
-                for begin in range(done, position, size):
-                    end = min(begin + size, position)
-                    yield self._batch(robot, loaded, [c[begin:end] for c in columns])
+                if done < position:
+                    yield loaded, [c[done:position] for c in columns]
                 for gone in [n for n in loaded if last[n] < position]:
                     del loaded[gone]
                 done = position
@@ -363,6 +364,48 @@ class McapFile:
             log.warning("%s: %d messages lie outside their chunk's indexed time range and are "
                         "skipped, as rosbags skips them", self.path, self._outside)
 
+    def batches(self, robot: str, size: int) -> Iterator[list[RawMessage]]:
+        """The wanted channels' messages as RawMessages in rosbags' order, at most ``size`` a
+        list (lists, not single messages: a generator step per message would cost more than
+        everything else here)."""
+        infos = self.channels
+        for loaded, columns in self._ranges():
+            for begin in range(0, len(columns[0]), size):
+                numbers, starts, ends, channels, log_ns = (c[begin : begin + size] for c in columns)
+                payloads = _payloads(loaded, numbers, starts, ends)
+                yield [
+                    RawMessage(robot, infos[channel].topic, infos[channel].msgtype, data,
+                               infos[channel].definition, None, stamp)
+                    for data, channel, stamp in zip(payloads, channels.tolist(), log_ns.tolist(),
+                                                    strict=True)
+                ]
+
+    def runs(self, robot: str, messages: int, payload_bytes: int) -> Iterator[list[MessageRun]]:
+        """The wanted channels' messages in windows of at most ``messages`` messages and
+        ``payload_bytes`` bytes of payload (but at least one message), each window as one
+        :class:`MessageRun` per topic: in each, a topic's messages keep rosbags' order, and the
+        run holding the window's last message comes last. No record per message is made."""
+        window = _Window(self.channels, robot)
+        for loaded, columns in self._ranges():
+            sizes = columns[2] - columns[1]
+            # Window bytes at the end of each message of the range if it all joined the window.
+            reach = np.cumsum(sizes)
+            at = 0
+            while at < len(sizes):
+                before = int(reach[at - 1]) if at else 0
+                fits = int(np.searchsorted(reach, before + payload_bytes - window.payload_bytes,
+                                           side="right")) - at
+                take = min(messages - window.count, fits, len(sizes) - at)
+                if take > 0 or not window.count:
+                    take = max(take, 1)
+                    window.add(loaded, [c[at : at + take] for c in columns],
+                               int(reach[at + take - 1]) - before)
+                    at += take
+                if window.count >= messages or window.payload_bytes >= payload_bytes or take <= 0:
+                    yield window.take()
+        if window.count:
+            yield window.take()
+
     def _checked(
         self, chunk: Chunk, loaded: _Loaded, offsets: npt.NDArray[np.int64],
         channels: npt.NDArray[np.int64], log_ns: npt.NDArray[np.int64],
@@ -375,19 +418,65 @@ class McapFile:
             raise self._damaged(chunk, str(err)) from err
         return payloads
 
-    def _batch(
-        self, robot: str, loaded: Mapping[int, _Loaded], columns: Sequence[npt.NDArray[np.int64]]
-    ) -> list[RawMessage]:
-        """RawMessages of ``columns`` (chunk number, payload start and end, channel, log time),
-        whose chunks are all ``loaded``."""
-        infos = self.channels
-        chunks = {number: (chunk.data, chunk.view) for number, chunk in loaded.items()}
-        return [
-            RawMessage(
-                robot, infos[channel].topic, infos[channel].msgtype,
-                chunks[number][1][start:end] if end - start >= LARGE_PAYLOAD
-                else chunks[number][0][start:end],
-                infos[channel].definition, None, stamp,
-            )
-            for number, start, end, channel, stamp in zip(*(c.tolist() for c in columns), strict=True)
-        ]
+
+def _payloads(
+    loaded: Mapping[int, _Loaded], numbers: npt.NDArray[np.int64], starts: npt.NDArray[np.int64],
+    ends: npt.NDArray[np.int64],
+) -> list[bytes | memoryview]:
+    """The payloads of messages of the ``loaded`` chunks ``numbers`` at ``starts:ends``:
+    memoryviews of the chunk from LARGE_PAYLOAD on, copies below."""
+    chunks = {number: (chunk.data, chunk.view) for number, chunk in loaded.items()}
+    return [
+        chunks[number][1][start:end] if end - start >= LARGE_PAYLOAD else chunks[number][0][start:end]
+        for number, start, end in zip(numbers.tolist(), starts.tolist(), ends.tolist(), strict=True)
+    ]
+
+
+class _Window:
+    """Messages gathered for :meth:`McapFile.runs`: their payloads (chunks may go once they
+    are sliced), channels and log times, in rosbags' order."""
+
+    def __init__(self, channels: Mapping[int, TopicInfo], robot: str) -> None:
+        self._infos = channels
+        self._robot = robot
+        topics = sorted({info.topic for info in channels.values()})
+        # Channel id -> the index of its topic: one topic's channels make one run.
+        self._topic_of = {channel: topics.index(info.topic) for channel, info in channels.items()}
+        self._payloads: list[bytes | memoryview] = []
+        self._channels: list[npt.NDArray[np.int64]] = []
+        self._log_ns: list[npt.NDArray[np.int64]] = []
+        self.count = 0
+        self.payload_bytes = 0
+
+    def add(self, loaded: Mapping[int, _Loaded], columns: Sequence[npt.NDArray[np.int64]],
+            payload_bytes: int) -> None:
+        numbers, starts, ends, channels, log_ns = columns
+        self._payloads += _payloads(loaded, numbers, starts, ends)
+        self._channels.append(channels)
+        self._log_ns.append(log_ns)
+        self.count += len(numbers)
+        self.payload_bytes += payload_bytes
+
+    def take(self) -> list[MessageRun]:
+        """The window as runs, one per stretch of a topic's messages with one channel (a topic
+        recorded on two channels alternates runs when its messages do), and empties it."""
+        channels = np.concatenate(self._channels)
+        log_ns = np.concatenate(self._log_ns)
+        payloads = self._payloads
+        topics = np.array([self._topic_of[c] for c in np.unique(channels).tolist()])
+        keys = topics[np.searchsorted(np.unique(channels), channels)]
+        order = np.argsort(keys, kind="stable")
+        ordered_keys, ordered_channels = keys[order], channels[order]
+        cuts = np.flatnonzero((ordered_keys[1:] != ordered_keys[:-1])
+                              | (ordered_channels[1:] != ordered_channels[:-1])) + 1
+        bounds = [0, *cuts.tolist(), len(order)]
+        runs = []
+        for begin, end in itertools.pairwise(bounds):
+            rows = order[begin:end]
+            info = self._infos[int(ordered_channels[begin])]
+            runs.append((int(rows[-1]), MessageRun(
+                self._robot, info.topic, info.msgtype, info.definition,
+                [payloads[row] for row in rows.tolist()], log_ns[rows])))
+        self._payloads, self._channels, self._log_ns = [], [], []
+        self.count = self.payload_bytes = 0
+        return [run for _, run in sorted(runs, key=lambda pair: pair[0])]

@@ -19,9 +19,10 @@ from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.errors import InputError
 from host_bridge.inputs.bag import bag_batches, bag_runs
+from host_bridge.inputs.base import MessageRun
 from host_bridge.inputs.mcap import LARGE_PAYLOAD, McapFile, NotIndexedError
 from robot_relay.sources.bag import BagSource
-from robot_relay.wire import RawMessage
+from robot_relay.wire import MessageDefinition, RawMessage
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
 T = STORE.types
@@ -112,11 +113,75 @@ def test_bulk_reader_yields_what_rosbags_yields(tmp_path: Path, compression: Com
     assert (image.header.stamp.sec, image.width, image.data[:3].tolist()) == (15, 400, [15, 16, 17])
 
 
-def test_runs_keep_their_size_across_batches(tmp_path: Path) -> None:
+def mcap_windows(bag: Path, messages: int, payload_bytes: int) -> list[list[MessageRun]]:
+    with BagSource(bag, "tb3") as source:
+        storages = source.mcap_storages()
+        assert storages is not None
+        ((path, channels),) = storages
+        with McapFile(path, channels) as opened:
+            return list(opened.runs("tb3", messages, payload_bytes))
+
+
+def test_runs_are_windows_split_by_topic(tmp_path: Path) -> None:
+    """Windows of 64 messages, each as one run per topic holding that topic's messages of the
+    window in rosbags' order, the run with the window's last message last; bag_runs gives the
+    same runs one after the other."""
     bag = write_mcap(tmp_path / "bag.mcap", CompressionType.ZSTD)
-    runs = list(bag_runs(bag, "tb3", run_size=64))
-    assert [len(run) for run in runs] == [64, 64, 64, 64, 24]
-    assert [fields(raw) for run in runs for raw in run] == rosbags_messages(bag)
+    expected = rosbags_messages(bag)
+    windows = mcap_windows(bag, 64, 10**9)
+    assert [sum(map(len, window)) for window in windows] == [64, 64, 64, 64, 24]
+    for number, window in enumerate(windows):
+        part = expected[64 * number : 64 * (number + 1)]
+        assert sorted(run.topic for run in window) == sorted({m[1] for m in part})
+        for run in window:
+            assert [fields(raw) for raw in run] == [m for m in part if m[1] == run.topic]
+            assert run.log_ns is not None
+            assert run.log_ns.tolist() == [m[6] for m in part if m[1] == run.topic]
+        assert fields(window[-1][-1]) == part[-1]
+    assert [run.topic for run in windows[0]] == ["/camera/image_raw", "/chatter", "/tie"]
+    got = [[fields(raw) for raw in run] for run in bag_runs(bag, "tb3", run_size=64)]
+    assert got == [[fields(raw) for raw in run] for window in windows for run in window]
+
+
+def test_runs_hold_at_most_their_bytes(tmp_path: Path) -> None:
+    """A window ends before its payloads pass the byte bound (a run of images must not hold a
+    whole bag), unless one message alone is larger; large payloads stay memoryviews."""
+    bag = write_mcap(tmp_path / "bag.mcap", CompressionType.LZ4)
+    expected = rosbags_messages(bag)
+    bound = 100_000
+    windows = mcap_windows(bag, 1000, bound)
+    sizes = [sum(len(data) for run in window for data in run.payloads) for window in windows]
+    counts = [sum(map(len, window)) for window in windows]
+    assert all(size <= bound or count == 1 for size, count in zip(sizes, counts, strict=True))
+    assert sum(counts) == 280
+    # Each window is as long as the bound allows: the next message would have passed it.
+    starts = np.cumsum(counts)[:-1]
+    assert all(size + len(expected[start][3]) > bound for size, start in zip(sizes, starts, strict=False))
+    assert len(windows) == 8
+    flat = [raw for window in windows for run in window for raw in run]
+    for topic in ("/chatter", "/tie", "/camera/image_raw"):
+        assert [fields(raw) for raw in flat if raw.topic == topic] == [
+            m for m in expected if m[1] == topic]
+    big = [data for window in windows for run in window for data in run.payloads
+           if len(data) >= LARGE_PAYLOAD]
+    assert len(big) == 8
+    assert all(isinstance(data, memoryview) for data in big)
+
+
+def test_message_run_is_a_sequence_of_raw_messages() -> None:
+    definition = MessageDefinition("ros2msg", "string data")
+    run = MessageRun("tb3", "/chatter", "std_msgs/msg/String", definition,
+                     [b"a", memoryview(b"bc"), b"d"], np.array([5, 6, 7], np.int64))
+    first = RawMessage("tb3", "/chatter", "std_msgs/msg/String", b"a", definition, None, 5)
+    assert len(run) == 3
+    assert run[0] == first
+    assert [fields(raw) for raw in run[1:]] == [
+        ("tb3", "/chatter", "std_msgs/msg/String", b"bc", definition, None, 6, None),
+        ("tb3", "/chatter", "std_msgs/msg/String", b"d", definition, None, 7, None)]
+    assert [fields(raw) for raw in run] == [fields(run[i]) for i in range(3)]
+    assert next(iter(run)) == first
+    assert run[-1].log_ns == 7
+    assert type(run[-1].log_ns) is int
 
 
 @pytest.mark.parametrize("storage_compression", [False, True])
