@@ -14,6 +14,7 @@ import pytest
 import rerun as rr
 
 from host_bridge.colormap import colormap_table
+from host_bridge.contract import LogItem
 from host_bridge.converters.laser import SPEC, convert_scan, scan_points
 from host_bridge.state import TopicState
 from tests.host_bridge.sensor_test_support import (
@@ -197,7 +198,9 @@ def test_run_in_rays_mode_or_with_and_without_frame_ids_goes_scan_by_scan() -> N
     assert [e.path for e in rays] == ["/r/scan", "/r/scan/rays"] * 3
     scans[1].header.frame_id = ""
     mixed = SPEC.convert_run(scans, [make_ctx("/scan") for _ in scans])
-    assert [len(e.archetypes) for e in mixed] == [2, 1, 2]  # Points3D (+ CoordinateFrame)
+    kinds = [[type(a) for a in e.archetypes] if isinstance(e, LogItem) else None for e in mixed]
+    with_frame = [rr.Points3D, rr.CoordinateFrame]
+    assert kinds == [with_frame, [rr.Points3D], with_frame]
 
 
 def test_infinite_bounds_still_drop_nan_and_infinite_ranges() -> None:
