@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 from rosbags.interfaces import Nodetype
 
 from host_bridge.config import HostConfig
-from host_bridge.contract import LogEntry, LogItem
+from host_bridge.contract import ColumnsItem, LogEntry, LogItem
 from host_bridge.decode import Decoder, base_typestore
 from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
 from host_bridge.registry import Row, default_registry
@@ -118,12 +118,19 @@ class RecordingSink:
         pass
 
     def scalars(self, path: str) -> list[float]:
-        return [
-            value
-            for item in self.entries if isinstance(item, LogItem) and item.path == path
-            for archetype in item.archetypes
-            for value in archetype.scalars.as_arrow_array().to_pylist()  # type: ignore[union-attr]
-        ]
+        """The values logged at ``path``, rows (one message) and columns (a run) alike."""
+        values: list[float] = []
+        for item in self.entries:
+            if item.path != path:
+                continue
+            if isinstance(item, ColumnsItem):
+                for column in item.columns:
+                    if column.component_descriptor().component == "Scalars:scalars":
+                        values.extend(v for row in column.as_arrow_array().to_pylist() for v in row)
+                continue
+            for archetype in item.archetypes:
+                values.extend(archetype.scalars.as_arrow_array().to_pylist())  # type: ignore[union-attr]
+        return values
 
     def warnings(self) -> list[str]:
         return [
