@@ -95,7 +95,7 @@ class _TopicPublisher:
             # Not express: zenoh batches what queues up while its link is busy. Express (one
             # write per message) cost 27-32 us of CPU per 3 KB message at full rate instead of
             # 3-4, and gained no latency at 200 Hz 3 KB or 30 Hz 1 MB (p50 0.3 ms and 1.8-2.0
-            # ms either way on loopback; benchmarks/relay_throughput.py, RESULTS.md notes).
+            # ms either way on loopback; measured beside benchmarks/relay_throughput.py).
         }
         self.publisher: Any
         if info.latched:

@@ -5,6 +5,16 @@ so a robot whose messages are slow to convert (or that floods the host) only del
 its queue fills and drops its own oldest messages while the other robots keep flowing. Latched
 messages (``/tf_static``, ``/robot_description``, maps) are never the ones dropped: a late copy
 of them is all a viewer will ever get.
+
+Heavy topics (the type table's ``heavy`` rows: images, point clouds, maps) go latest-only first:
+once more than :data:`HEAVY_BACKLOG` items wait for a robot, its worker is behind, and a new
+message of a heavy topic replaces the ones of that topic still waiting. The small topics queued
+with them (IMU, TF, scans) then wait for one conversion of each heavy topic, not for a pile of
+stale frames, and are themselves dropped only when the whole queue is full.
+
+Every message dropped here is counted per topic (:attr:`RobotQueues.dropped`, the drop summary
+the host prints when it stops) and, since it never reaches the pipeline, shows in
+``/_stats/<robot><topic>/drops`` as the wire sequence gap it leaves.
 """
 
 from __future__ import annotations
@@ -13,9 +23,14 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from host_bridge.inputs.base import Deliver, InputItem, InputProblem
 from robot_relay.wire import RawMessage
+
+if TYPE_CHECKING:
+    from host_bridge.registry import Registry
 
 log = logging.getLogger("swanky.host")
 
@@ -24,21 +39,74 @@ MAX_BATCH = 1024
 # A worker that wakes for one message waits this long for more, so high-rate topics reach the
 # converters as runs (send_columns) instead of one call per message.
 GATHER_S = 0.005
+# Items waiting for a robot beyond which its worker is behind and heavy topics go latest-only:
+# more than the few milliseconds GATHER_S collects at hundreds of messages a second.
+HEAVY_BACKLOG = 32
+
+# (item, latched, its topic if it is a non-latched message of a heavy topic, else None)
+_Entry = tuple[InputItem, bool, str | None]
+
+
+class HeavyTypes:
+    """Whether a message is of a heavy type (its type table row says ``heavy``), remembered per
+    type and topic; the table is built on first use unless given."""
+
+    def __init__(self, registry: Registry | None = None) -> None:
+        self._registry = registry
+        self._known: dict[tuple[str, str], bool] = {}
+
+    def __call__(self, raw: RawMessage) -> bool:
+        key = (raw.msgtype, raw.topic)
+        heavy = self._known.get(key)
+        if heavy is None:
+            if self._registry is None:
+                from host_bridge.registry import default_registry
+
+                self._registry = default_registry()
+            heavy = self._known[key] = self._registry.row(raw.msgtype, raw.topic).heavy
+        return heavy
 
 
 class _RobotQueue:
     def __init__(self, lock: threading.Lock) -> None:
-        self.items: deque[tuple[InputItem, bool]] = deque()
+        self.items: deque[_Entry] = deque()
+        # Non-latched heavy messages waiting, per topic: most are none, and then nothing is
+        # searched when a new one comes.
+        self.heavy_waiting: dict[str, int] = {}
         self.ready = threading.Condition(lock)
         self.worker: threading.Thread | None = None
 
+    def append(self, entry: _Entry) -> None:
+        self.items.append(entry)
+        heavy_topic = entry[2]
+        if heavy_topic is not None:
+            self.heavy_waiting[heavy_topic] = self.heavy_waiting.get(heavy_topic, 0) + 1
+
+    def forget(self, entry: _Entry) -> None:
+        """``entry`` has left the queue (taken by the worker or dropped)."""
+        heavy_topic = entry[2]
+        if heavy_topic is not None:
+            self.heavy_waiting[heavy_topic] -= 1
+
 
 class RobotQueues:
-    """Bounded per-robot FIFOs; full queues drop their oldest non-latched message, counted."""
+    """Bounded per-robot FIFOs; heavy topics keep only their newest message once a robot's
+    worker is behind, full queues drop their oldest non-latched message; each drop counted."""
 
-    def __init__(self, max_per_robot: int = MAX_PER_ROBOT) -> None:
+    def __init__(
+        self,
+        max_per_robot: int = MAX_PER_ROBOT,
+        *,
+        heavy: Callable[[RawMessage], bool] | None = None,
+        heavy_backlog: int = HEAVY_BACKLOG,
+    ) -> None:
         self.max_per_robot = max_per_robot
+        self.heavy = heavy if heavy is not None else HeavyTypes()
+        self.heavy_backlog = heavy_backlog
         self.dropped: dict[tuple[str, str], int] = {}
+        """Messages dropped per (robot, topic), for either reason."""
+        self.superseded: dict[tuple[str, str], int] = {}
+        """Of those, the heavy ones a newer message of their topic replaced."""
         # Data, problems and robots joining or leaving: what --until-idle waits on, so a robot
         # that joins but starts slowly (loading its bag) keeps the host waiting for it.
         self.last_activity = time.monotonic()
@@ -51,38 +119,61 @@ class RobotQueues:
 
     def put(self, item: InputItem, latched: bool = False) -> None:
         robot = item.robot
+        heavy_topic = (
+            item.topic if not latched and isinstance(item, RawMessage) and self.heavy(item) else None
+        )
         with self._lock:
             state = self._robots.get(robot)
             if state is None:
                 state = self._robots[robot] = _RobotQueue(self._lock)
                 self._start_worker(robot, state)
+            if (heavy_topic is not None and len(state.items) > self.heavy_backlog
+                    and state.heavy_waiting.get(heavy_topic)):
+                self._supersede(robot, state, heavy_topic)
             full = len(state.items) >= self.max_per_robot
             if full and not self._make_room(robot, state) and not latched:
                 self._count_drop(robot, item)
                 return
-            state.items.append((item, latched))
+            state.append((item, latched, heavy_topic))
             self.last_activity = time.monotonic()
             state.ready.notify()
             self._any.notify()
 
+    def _supersede(self, robot: str, state: _RobotQueue, topic: str) -> None:
+        """Drop the waiting non-latched messages of heavy ``topic``: a newer one has come."""
+        kept: deque[_Entry] = deque()
+        for entry in state.items:
+            if entry[2] == topic:
+                state.forget(entry)
+                self._count_drop(robot, entry[0], superseded=True)
+            else:
+                kept.append(entry)
+        state.items = kept
+
     def _make_room(self, robot: str, state: _RobotQueue) -> bool:
         """Drop the oldest non-latched message of a full queue; False if all are latched."""
-        for index, (item, latched) in enumerate(state.items):
+        for index, entry in enumerate(state.items):
+            item, latched, _ = entry
             if not latched and isinstance(item, RawMessage):
                 del state.items[index]
+                state.forget(entry)
                 self._count_drop(robot, item)
                 return True
         return False
 
-    def _count_drop(self, robot: str, item: InputItem) -> None:
+    def _count_drop(self, robot: str, item: InputItem, superseded: bool = False) -> None:
         topic = item.topic if isinstance(item, RawMessage | InputProblem) else ""
         key = (robot, topic)
         if key not in self.dropped:
             log.warning(
-                "[%s] %s: the host converts this robot's messages slower than they arrive; "
-                "dropping its oldest ones (counted, other robots unaffected)", robot, topic,
+                "[%s] %s: the host converts this robot's messages slower than they arrive; %s "
+                "(counted, other robots unaffected)", robot, topic,
+                "converting only the newest message of this heavy topic" if superseded
+                else "dropping its oldest ones",
             )
         self.dropped[key] = self.dropped.get(key, 0) + 1
+        if superseded:
+            self.superseded[key] = self.superseded.get(key, 0) + 1
 
     # -- one worker thread per robot ---------------------------------------------------------
 
@@ -112,8 +203,11 @@ class RobotQueues:
             if wait_for_more:
                 time.sleep(GATHER_S)
             with self._lock:
-                count = min(len(state.items), MAX_BATCH)
-                batch = [state.items.popleft()[0] for _ in range(count)]
+                batch = []
+                for _ in range(min(len(state.items), MAX_BATCH)):
+                    entry = state.items.popleft()
+                    state.forget(entry)
+                    batch.append(entry[0])
             try:
                 handler(batch)
             except BaseException as err:  # --strict: the main thread re-raises it
@@ -132,7 +226,13 @@ class RobotQueues:
             worker.join(max(0.0, deadline - time.monotonic()))
 
     def drop_summary(self) -> str:
-        return "\n".join(
-            f"[{robot}] {topic}: {count} dropped (queue full)"
-            for (robot, topic), count in sorted(self.dropped.items())
-        )
+        """One line per topic that lost messages here, saying why."""
+        lines = []
+        for key, count in sorted(self.dropped.items()):
+            robot, topic = key
+            superseded = self.superseded.get(key, 0)
+            reasons = [f"{count - superseded} queue full"] if count > superseded else []
+            if superseded:
+                reasons.append(f"{superseded} replaced by a newer one while the host was behind")
+            lines.append(f"[{robot}] {topic}: {count} dropped ({', '.join(reasons)})")
+        return "\n".join(lines)

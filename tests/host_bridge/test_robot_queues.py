@@ -1,4 +1,5 @@
-"""Per-robot queues: bounded, drop-oldest for non-latched messages, one worker per robot."""
+"""Per-robot queues: bounded, drop-oldest for non-latched messages, heavy topics latest-only once
+behind, one worker per robot."""
 
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ import time
 from collections.abc import Sequence
 
 from host_bridge.inputs.base import InputItem, InputProblem, RobotEvent
-from host_bridge.inputs.queues import RobotQueues
+from host_bridge.inputs.queues import HeavyTypes, RobotQueues
+from host_bridge.stats import StatsTracker, topic_stats_items
 from robot_relay.wire import RawMessage
 from tests.host_bridge.inputs.received import Received
 
@@ -106,3 +108,124 @@ def test_robot_events_count_as_activity() -> None:
     assert next(i for i in items if isinstance(i, RobotEvent)).text == (
         "robot a joined (rmw_zenoh)"
     )
+
+
+
+IMAGE, CLOUD, IMU = "sensor_msgs/msg/Image", "sensor_msgs/msg/PointCloud2", "sensor_msgs/msg/Imu"
+GRID = "nav_msgs/msg/OccupancyGrid"
+
+
+def typed(robot: str, topic: str, msgtype: str, n: int) -> RawMessage:
+    """Message ``n`` of ``topic``: its payload byte, and its wire sequence number."""
+    return RawMessage(robot, topic, msgtype, bytes([n]), receive_ns=T0 + n * MS, sequence=n)
+
+
+S, MS = 10**9, 10**6
+T0 = 1_700_000_000 * S
+
+
+def delivered(queues: RobotQueues, count: int) -> dict[str, list[tuple[str, int]]]:
+    """Serve the filled queues; per robot, (topic, payload byte) of what was delivered, in order
+    (robots are served on threads of their own, so only each robot's order is defined)."""
+    received = Received()
+    queues.serve(received.take)
+    items = received.wait_for(lambda items: len(items) >= count)
+    queues.close(timeout=5)
+    by_robot: dict[str, list[tuple[str, int]]] = {}
+    for item in items:
+        assert isinstance(item, RawMessage)
+        by_robot.setdefault(item.robot, []).append((item.topic, item.data[0]))
+    return by_robot
+
+
+def test_heavy_types_come_from_the_type_table() -> None:
+    heavy = HeavyTypes()
+    types = (IMAGE, CLOUD, GRID, IMU, "std_msgs/msg/Int32", "sensor_msgs/msg/CompressedImage")
+    assert [heavy(typed("a", "/t", t, 0)) for t in types] == [True, True, True, False, False, False]
+
+
+def test_behind_a_backlog_heavy_topics_keep_only_their_newest_and_small_ones_all_wait() -> None:
+    queues = RobotQueues(heavy_backlog=3)  # heavy: the type table's rows (Image, PointCloud2)
+    queues.put(typed("a", "/camera", IMAGE, 100))  # not behind: queued
+    for n in range(3):
+        queues.put(typed("a", "/imu", IMU, n))
+    queues.put(typed("a", "/camera", IMAGE, 101))  # 4 waiting > 3: replaces 100
+    queues.put(typed("a", "/points", CLOUD, 200))  # no cloud waiting: queued
+    queues.put(typed("a", "/imu", IMU, 3))
+    queues.put(typed("a", "/camera", IMAGE, 102))  # replaces 101
+    queues.put(typed("a", "/points", CLOUD, 201))  # replaces 200
+    queues.put(typed("a", "/imu", IMU, 4))
+    queues.put(typed("b", "/camera", IMAGE, 150))  # another robot, with no backlog of its own
+    queues.put(typed("b", "/camera", IMAGE, 151))
+    assert delivered(queues, 9) == {
+        "a": [("/imu", 0), ("/imu", 1), ("/imu", 2), ("/imu", 3), ("/camera", 102),
+              ("/points", 201), ("/imu", 4)],
+        "b": [("/camera", 150), ("/camera", 151)],
+    }
+    assert queues.dropped == {("a", "/camera"): 2, ("a", "/points"): 1}
+    assert queues.superseded == queues.dropped
+    assert queues.drop_summary() == (
+        "[a] /camera: 2 dropped (2 replaced by a newer one while the host was behind)\n"
+        "[a] /points: 1 dropped (1 replaced by a newer one while the host was behind)"
+    )
+
+
+def test_once_behind_one_heavy_message_replaces_all_its_topic_had_waiting() -> None:
+    queues = RobotQueues(heavy_backlog=3)
+    for n in range(4):  # 0, 1, 2 and 3 each come with at most 3 waiting: all queued
+        queues.put(typed("a", "/camera", IMAGE, n))
+    queues.put(typed("a", "/camera", IMAGE, 4))
+    assert delivered(queues, 1) == {"a": [("/camera", 4)]}
+    assert queues.dropped == {("a", "/camera"): 4}
+
+
+def test_latched_heavy_messages_are_never_replaced() -> None:
+    queues = RobotQueues(heavy_backlog=1)
+    for n in range(3):
+        queues.put(typed("a", "/map", GRID, n), latched=True)
+    queues.put(typed("a", "/camera", IMAGE, 10))
+    queues.put(typed("a", "/camera", IMAGE, 11))
+    assert delivered(queues, 4) == {
+        "a": [("/map", 0), ("/map", 1), ("/map", 2), ("/camera", 11)]
+    }
+    assert queues.dropped == {("a", "/camera"): 1}
+
+
+def test_a_full_queue_and_replacement_count_each_drop_once() -> None:
+    queues = RobotQueues(max_per_robot=4, heavy_backlog=2)
+    queues.put(typed("a", "/camera", IMAGE, 0))
+    for n in range(1, 5):  # the fourth small one finds the queue full: the image goes
+        queues.put(typed("a", "/imu", IMU, n))
+    queues.put(typed("a", "/camera", IMAGE, 5))  # full: /imu 1 goes; no image waits to replace
+    queues.put(typed("a", "/camera", IMAGE, 6))  # behind: replaces 5, which makes the room
+    assert delivered(queues, 4) == {"a": [("/imu", 2), ("/imu", 3), ("/imu", 4), ("/camera", 6)]}
+    assert queues.dropped == {("a", "/camera"): 2, ("a", "/imu"): 1}
+    assert queues.superseded == {("a", "/camera"): 1}
+    assert queues.drop_summary() == (
+        "[a] /camera: 2 dropped (1 queue full, 1 replaced by a newer one while the host was behind)\n"
+        "[a] /imu: 1 dropped (1 queue full)"
+    )
+
+
+def test_messages_dropped_here_are_drops_in_stats() -> None:
+    tracker = StatsTracker()
+    tracker.observe(typed("a", "/camera", IMAGE, 0), host_ns=T0)  # converted before the backlog
+    queues = RobotQueues(heavy_backlog=2)
+    for n in range(3):
+        queues.put(typed("a", "/imu", IMU, n))
+    for n in range(1, 5):  # 1 queued, then 2, 3 and 4 each replace the one before
+        queues.put(typed("a", "/camera", IMAGE, n))
+    received = Received()
+    queues.serve(received.take)
+    items = received.wait_for(lambda items: len(items) >= 4)
+    queues.close(timeout=5)
+    for item in items:
+        assert isinstance(item, RawMessage)
+        tracker.observe(item, host_ns=T0 + 500 * MS)
+    next_second = RawMessage("a", "/imu", IMU, b"\0", receive_ns=T0 + S, sequence=3)
+    closed = {s.topic: s for s in tracker.observe(next_second, host_ns=T0 + S)}
+    assert queues.dropped == {("a", "/camera"): 3}
+    assert (closed["/camera"].rate_hz, closed["/camera"].drops) == (2.0, 3)
+    assert (closed["/imu"].rate_hz, closed["/imu"].drops) == (3.0, 0)
+    paths = [item.path for item in topic_stats_items(list(closed.values()))]
+    assert [p for p in paths if p.endswith("/drops")] == ["/_stats/a/camera/drops", "/_stats/a/imu/drops"]
