@@ -137,12 +137,13 @@ def main() -> int:
         return 1
     # The host's closing table: "total  N topics  received converted dropped ...".
     total = re.search(r"^total\s+\d+ topics\s+(\d+)\s+(\d+)\s+(\d+)", errors, re.MULTILINE)
-    queue_drops = sum(int(n) for n in re.findall(r"^\[.*\] \S+: (\d+) dropped \(queue full\)",
-                                                  errors, re.MULTILINE))
+    # Its drop summary: "[robot] /topic: N dropped (why)", queue full or replaced by a newer one.
+    queue_drops = sum(int(n) for n in re.findall(r"^\[.*\] \S+: (\d+) dropped \(", errors,
+                                                  re.MULTILINE))
     if total is not None:
         print(f"host received {total[1]} messages, converted {total[2]}; {queue_drops} dropped on "
-              "arrival because it fell behind (its per-robot queue was full: while that queue "
-              "fills, RSS grows with it, up to the queue's bound)")
+              "arrival because it fell behind (its per-robot queue full, or a heavy message "
+              "replaced by a newer one: while that queue fills, RSS grows with it, up to its bound)")
     ratio = peaks[-1] / peaks[0]
     verdict = "flat" if ratio <= FLAT else "GROWING"
     print(f"baseline (first-minute peak) {peaks[0] / 1024:.0f} MB, last-minute peak "
