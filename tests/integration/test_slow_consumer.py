@@ -94,14 +94,15 @@ def test_slow_output_drops_the_flooding_robots_oldest_and_spares_the_other(
     assert 0 < len(kept) < FLOOD_MESSAGES
     assert kept == sorted(set(kept))
     dropped = FLOOD_MESSAGES - len(kept)
-    assert f"[flood] /odom: {dropped} dropped (queue full)" in host_lines.text
+    assert f"[flood] /odom: {dropped} dropped (" in host_lines.text
     assert "[flood] /odom: the host converts this robot's messages slower than they arrive" in \
         host_lines.text
     # In Rerun the queue's drops show as wire sequence gaps in /_stats, but only in periods
     # that closed: when every kept message is from the flood's last second, that is none.
-    shown = sum(row["Scalars:scalars"][0] for row in rows["/_stats/flood/odom/drops"])
+    shown = sum(row["Scalars:scalars"][0] for row in rows.get("/_stats/flood/odom/drops", []))
     assert 0 <= shown <= dropped
-    flood_latency_ms = max(row["Scalars:scalars"][0] for row in rows["/_stats/flood/odom/latency_ms"])
+    flood_latency_ms = max((row["Scalars:scalars"][0]
+                            for row in rows.get("/_stats/flood/odom/latency_ms", [])), default=0.0)
     sent_rate = FLOOD_MESSAGES / (flooded - started)
 
     # Flat memory: the queue is full within the first second; from then on the host's
@@ -121,7 +122,7 @@ def test_slow_output_drops_the_flooding_robots_oldest_and_spares_the_other(
               f"{1 / SLOW_S:.0f}/s ({sent_rate * SLOW_S:.1f}x too slow)",
         survived=f"calm: {len(calm.odom())}/{len(calm.odom())} in order, latency at most "
                  f"{calm_latency_ms:.0f} ms; flood: {len(kept)} kept, in order (latency up to "
-                 f"{flood_latency_ms / 1000:.1f} s); host RSS {first_half:.0f} MB -> "
+                 f"{flood_latency_ms / 1000:.1f} s in closed stats periods); host RSS {first_half:.0f} MB -> "
                  f"{second_half:.0f} MB (peak {sampler.peak_mb():.0f} MB)",
         lost=f"{dropped} flood messages, its oldest, counted in the host's drop summary and "
              f"warned about once; {shown:.0f} of them in /_stats/flood/odom/drops (sequence gaps "
