@@ -5,7 +5,8 @@ prints its figures against a baseline measured in the same run. Each runs in its
 (group) with its default arguments, stopped after its ``BUDGET_SECONDS`` (a top-level constant
 in the script, read without importing it; 180 s when absent) and within a total deadline of
 ``--deadline`` seconds (570 by default: the whole run stays under 10 minutes). Scripts run
-sequentially, never side by side: they measure time on a small machine.
+sequentially, never side by side: they measure time on a small machine. A script with a top-level
+``OPT_IN = True`` (the 30-minute soak) runs only when named.
 
     .venv/bin/python -m benchmarks                 # all of them; rewrites benchmarks/RESULTS.md
     .venv/bin/python -m benchmarks startup walls_4000 --results /tmp/r.md   # a selection
@@ -46,6 +47,8 @@ STDERR_TAIL = 1500  # characters of a failed script's stderr kept in the results
 class Benchmark:
     path: Path
     budget_s: float
+    opt_in: bool = False
+    """Run only when named (a top-level ``OPT_IN = True``: longer than a whole run may take)."""
 
     @property
     def name(self) -> str:
@@ -76,6 +79,15 @@ def budget(tree: ast.Module) -> float:
     return DEFAULT_BUDGET_S
 
 
+def opt_in(tree: ast.Module) -> bool:
+    return any(
+        isinstance(node, ast.Assign) and len(node.targets) == 1
+        and isinstance(node.targets[0], ast.Name) and node.targets[0].id == "OPT_IN"
+        and isinstance(node.value, ast.Constant) and node.value.value is True
+        for node in tree.body
+    )
+
+
 def discover() -> list[Benchmark]:
     found = []
     for path in sorted(HERE.glob("*.py")):
@@ -83,7 +95,7 @@ def discover() -> list[Benchmark]:
             continue
         tree = ast.parse(path.read_text(), filename=str(path))
         if any(is_main_guard(node) for node in tree.body):
-            found.append(Benchmark(path, budget(tree)))
+            found.append(Benchmark(path, budget(tree), opt_in(tree)))
     return found
 
 
@@ -211,13 +223,14 @@ def main() -> int:
     benchmarks = discover()
     if args.list:
         for benchmark in benchmarks:
-            print(f"{benchmark.name:<20} at most {benchmark.budget_s:.0f} s")
+            note = " (opt-in: run it by name)" if benchmark.opt_in else ""
+            print(f"{benchmark.name:<20} at most {benchmark.budget_s:.0f} s{note}")
         return 0
     unknown = sorted(set(args.names) - {b.name for b in benchmarks})
     if unknown:
         parser.error(f"no benchmark named {', '.join(unknown)}; "
                      f"there are {', '.join(b.name for b in benchmarks)}")
-    selected = [b for b in benchmarks if not args.names or b.name in args.names]
+    selected = [b for b in benchmarks if b.name in args.names or not (args.names or b.opt_in)]
     results = args.results if args.results is not None or args.names else RESULTS
     header = machine_lines()
     print("\n".join(header), flush=True)
