@@ -9,8 +9,9 @@ certificate) records what it tried, how many times, what survived and what was l
         reliability("Bad links", "link cut for 30 s, then restored", tried="1 cut",
                     survived="all 412 reliable /odom messages, in order", lost="0")
 
-At the end of the session the rows recorded replace the rows of the same (area, what) in the
-table; the others stay, so a run of one test file updates its rows only. Each row says when it
+At the end of the session the rows recorded replace every row of the tests that recorded them
+(so a row whose wording changed leaves no stale copy); the others stay, so a run of one test
+file updates its rows only. Each row says when it
 was measured. A test that fails records nothing: its row keeps the last value that passed,
 and the date shows how old that is.
 """
@@ -80,8 +81,9 @@ def _read(path: Path) -> list[Trial]:
 
 
 def write_table(trials: list[Trial], path: Path = TABLE) -> None:
-    """Merge ``trials`` into the table at ``path`` (same area and what: replaced)."""
-    rows = {(t.area, t.what): t for t in _read(path)}
+    """Merge ``trials`` into the table at ``path``: the rows of the tests that made them go."""
+    tests = {t.test for t in trials}
+    rows = {(t.area, t.what): t for t in _read(path) if t.test not in tests}
     rows.update({(t.area, t.what): t for t in trials})
     lines = [INTRO, "| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     for trial in sorted(rows.values(), key=lambda t: (t.area, t.what)):
