@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
+import pyarrow as pa
 import rerun as rr
 
 from host_bridge.errors import ConvertError, PartialConvertError
@@ -58,6 +59,28 @@ class ColumnsItem:
 
 
 LogEntry = LogItem | ColumnsItem
+
+
+def repeated_texts(texts: Sequence[str], rows: npt.NDArray[np.integer[Any]]) -> pa.Array:
+    """The strings ``texts[rows]`` as one Arrow utf8 array, made from its buffers: the column of
+    a few strings repeated over many rows (frame names, arrow labels) for ``rr.*.columns``,
+    which takes it as it is (a list of Python strings is encoded there one at a time)."""
+    encoded = [text.encode() for text in texts]
+    sizes = np.array([len(text) for text in encoded], np.int64)
+    row_sizes = sizes[rows]
+    offsets = np.zeros(len(rows) + 1, np.int64)
+    np.cumsum(row_sizes, out=offsets[1:])
+    if len(encoded) == 1:
+        data = np.frombuffer(encoded[0] * len(rows), np.uint8)
+    else:
+        width = int(sizes.max()) if len(sizes) else 0
+        table = np.zeros((len(encoded), width), np.uint8)
+        for row, text in enumerate(encoded):
+            table[row, : len(text)] = np.frombuffer(text, np.uint8)
+        data = table[rows][np.arange(width) < row_sizes[:, None]]
+    return pa.StringArray.from_buffers(
+        len(rows), pa.py_buffer(offsets.astype(np.int32)), pa.py_buffer(data)
+    )
 
 
 class TopicContext:

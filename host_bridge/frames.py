@@ -27,8 +27,10 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Iterable, Sequence
-from typing import Any
+from typing import Any, cast
 
+import numpy as np
+import numpy.typing as npt
 import pyarrow as pa
 import rerun as rr
 
@@ -54,9 +56,14 @@ def robot_root_frame(robot: str) -> str:
 
 def _flat(array: pa.Array) -> pa.Array:
     """A component column (one list per row) or batch as one array of values."""
-    if pa.types.is_list(array.type) or pa.types.is_large_list(array.type):
+    if not (pa.types.is_list(array.type) or pa.types.is_large_list(array.type)):
+        return array
+    if array.null_count:
         return array.flatten()
-    return array
+    # The values the rows' offsets span: flatten() without importing pyarrow.compute (80 ms).
+    offsets = array.offsets
+    start, end = offsets[0].as_py(), offsets[len(array)].as_py()
+    return array.values.slice(start, end - start)
 
 
 def _column_values(columns: Iterable[Any]) -> dict[str, pa.Array]:
@@ -80,9 +87,44 @@ def _archetype_values(archetype: Any) -> dict[str, pa.Array]:
 
 
 def _distinct(*arrays: pa.Array) -> set[tuple[Any, ...]]:
-    """The distinct rows of equally long arrays (a TF run repeats a few relations many times)."""
-    columns = [array.to_pylist() for array in arrays]
-    return set(zip(*columns, strict=True))
+    """The distinct rows of equally long arrays (a TF run repeats a few relations many times).
+    Strings are compared as bytes with numpy, and only one row of each distinct value becomes
+    Python strings: a run's frame columns have hundreds of thousands of rows."""
+    byte_rows = [_string_bytes(array) for array in arrays]
+    if not arrays or any(rows is None for rows in byte_rows):
+        return set(zip(*(array.to_pylist() for array in arrays), strict=True))
+    table = np.hstack(cast(list[npt.NDArray[np.uint8]], byte_rows))
+    if not len(table):
+        return set()
+    if (table == table[0]).all():
+        firsts: Sequence[int] = [0]
+    else:
+        padded = np.zeros((len(table), -(-table.shape[1] // 8) * 8), np.uint8)
+        padded[:, : table.shape[1]] = table
+        firsts = np.unique(padded.view(np.dtype((np.void, padded.shape[1]))).ravel(),
+                          return_index=True)[1].tolist()
+    return {tuple(array[row].as_py() for array in arrays) for row in firsts}
+
+
+def _string_bytes(array: pa.Array) -> npt.NDArray[np.uint8] | None:
+    """A utf8 array without nulls as one row per string: its byte length (4 bytes), then its
+    bytes padded with zeros, so equal rows are equal strings; None for any other array."""
+    if not pa.types.is_string(array.type) or array.null_count:
+        return None
+    count = len(array)
+    _, offsets_buffer, data_buffer = array.buffers()
+    offsets = np.frombuffer(offsets_buffer, np.int32, count + 1, array.offset * 4).astype(np.intp)
+    data = np.frombuffer(data_buffer, np.uint8) if data_buffer is not None else np.zeros(1, np.uint8)
+    sizes = np.diff(offsets)
+    width = int(sizes.max()) if count else 0
+    if count and (sizes == width).all():  # one size: the strings lie back to back
+        text = data[offsets[0] : offsets[0] + count * width].reshape(count, width)
+    else:
+        columns = np.arange(width)
+        inside = columns < sizes[:, None]
+        text = np.where(inside, data[np.minimum(offsets[:-1, None] + columns, len(data) - 1)], 0)
+    return np.hstack([sizes.astype("<u4").view(np.uint8).reshape(count, 4),
+                      text.astype(np.uint8, copy=False)])
 
 
 def frames_logged(entries: Sequence[LogEntry]) -> tuple[set[tuple[str, str]], set[str]]:

@@ -24,7 +24,14 @@ import numpy.typing as npt
 import rerun as rr
 
 from host_bridge.columns import Columns
-from host_bridge.contract import ColumnsItem, LogEntry, LogItem, RunContext, columnar
+from host_bridge.contract import (
+    ColumnsItem,
+    LogEntry,
+    LogItem,
+    RunContext,
+    columnar,
+    repeated_texts,
+)
 from host_bridge.converters._common import stamps_ns, vectors
 from host_bridge.converters.scalars import (
     SubPath,
@@ -86,11 +93,13 @@ def convert_imu_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
         for entries, times in ctx.stamped(stamps[frame_rows], frame_rows):
             rows = frame_rows[entries]
             n = len(rows)
-            transform = rr.Transform3D.columns(quaternion=unit[rows], parent_frame=[parent] * n)
+            transform = rr.Transform3D.columns(
+                quaternion=unit[rows], parent_frame=repeated_texts([parent], np.zeros(n, np.intp))
+            )
             arrow_columns = rr.Arrows3D.columns(
                 vectors=arrows[rows].reshape(-1, 3),
                 colors=np.tile(_ARROW_COLORS, (n, 1)),
-                labels=_ARROW_LABELS * n,
+                labels=repeated_texts(_ARROW_LABELS, np.tile(np.arange(len(_ARROW_LABELS)), n)),
             ).partition(np.full(n, len(_VECTORS)))
             items.append(ColumnsItem(orientation_path, [*transform, *arrow_columns], times))
     for rows, times in ctx.stamped(stamps):

@@ -23,6 +23,7 @@ from host_bridge.contract import (
     RunContext,
     TopicContext,
     columnar,
+    repeated_texts,
 )
 from host_bridge.converters._common import stamps_ns, vectors
 from host_bridge.options import TfOptions
@@ -109,15 +110,15 @@ def convert_tf_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
         local = np.repeat(np.arange(len(block.rows)), len(kept))
         rows = block.rows[local]
         which = np.tile(kept, len(block.rows))
-        parent_frames = np.array([ctx.frame(parents[j]) for j in kept], dtype=object)
-        child_frames = np.array([ctx.frame(children[j]) for j in kept], dtype=object)
+        parent_frames = [cast(str, ctx.frame(parents[j])) for j in kept]
+        child_frames = [cast(str, ctx.frame(children[j])) for j in kept]
         for entries, times in ctx.stamped(stamps[local, which], rows):
             picked = which[entries]
             columns_of_rows = rr.Transform3D.columns(
                 translation=translations[local[entries], picked],
                 quaternion=quaternions[local[entries], picked],
-                parent_frame=parent_frames[np.searchsorted(kept, picked)].tolist(),
-                child_frame=child_frames[np.searchsorted(kept, picked)].tolist(),
+                parent_frame=repeated_texts(parent_frames, np.searchsorted(kept, picked)),
+                child_frame=repeated_texts(child_frames, np.searchsorted(kept, picked)),
             )
             items.append(ColumnsItem(ctx.entity_path, columns_of_rows, times))
     return items

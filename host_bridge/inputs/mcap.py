@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
+from numpy.lib.stride_tricks import as_strided
 
 from host_bridge.errors import InputError
 from host_bridge.inputs.base import MessageRun
@@ -289,16 +290,16 @@ class McapFile:
         if len(offsets) and (offsets.min() < 0 or offsets.max() > size - MESSAGE_HEADER):
             raise self._damaged(chunk, "a message offset is outside the chunk")
         records = np.frombuffer(loaded.data, np.uint8, size, loaded.base)
-        headers = records[offsets[:, None] + np.arange(MESSAGE_HEADER)]
-        lengths = headers[:, 1:9].copy().view("<u8").ravel().astype(np.int64)
+        words = _numbers_at(records, "<u8")
+        lengths = words[offsets + 1].astype(np.int64)
         bad = (
-            (headers[:, 0] != OP_MESSAGE)
+            (records[offsets] != OP_MESSAGE)
             | (lengths < MESSAGE_HEADER - 9)
             | (offsets + 9 + lengths > size)
-            | (headers[:, 9:11].copy().view("<u2").ravel() != channels)
-            | (headers[:, 15:23].copy().view("<u8").ravel().astype(np.int64) != log_ns)
+            | (_numbers_at(records, "<u2")[offsets + 9] != channels)
+            | (words[offsets + 15].astype(np.int64) != log_ns)
         )
-        del records, headers
+        del records, words
         if bad.any():
             at = int(offsets[np.argmax(bad)])
             raise self._damaged(chunk, f"no message of the indexed channel and time at {at}")
@@ -315,7 +316,7 @@ class McapFile:
         ]
         offsets = np.sort(np.concatenate(entries)) if entries else np.zeros(0, np.int64)
         records = np.frombuffer(loaded.data, np.uint8, chunk.uncompressed_size, loaded.base)
-        lengths = records[offsets[:, None] + np.arange(1, 9)].copy().view("<u8").ravel()
+        lengths = _numbers_at(records, "<u8")[offsets + 1]
         del records
         ends = offsets + 9 + lengths.astype(np.int64)
         gap_starts = np.concatenate(([0], ends))
@@ -419,12 +420,26 @@ class McapFile:
         return payloads
 
 
+def _numbers_at(records: npt.NDArray[np.uint8], dtype: str) -> npt.NDArray[np.generic]:
+    """``records`` seen as the ``dtype`` number starting at each of its bytes (overlapping,
+    unaligned, no copy): fields at any offsets are then read with one gather, not a gather of
+    every byte of every record header."""
+    size = np.dtype(dtype).itemsize
+    rows = max(len(records) - size + 1, 0)
+    return as_strided(records, (rows, size), (1, 1), writeable=False).view(dtype)[:, 0]
+
+
 def _payloads(
     loaded: Mapping[int, _Loaded], numbers: npt.NDArray[np.int64], starts: npt.NDArray[np.int64],
     ends: npt.NDArray[np.int64],
 ) -> list[bytes | memoryview]:
     """The payloads of messages of the ``loaded`` chunks ``numbers`` at ``starts:ends``:
     memoryviews of the chunk from LARGE_PAYLOAD on, copies below."""
+    if len(numbers) and numbers[0] == numbers[-1] and (numbers == numbers[0]).all() and (
+        ends - starts < LARGE_PAYLOAD
+    ).all():  # the usual range: small messages of one chunk
+        data = loaded[int(numbers[0])].data
+        return [data[start:end] for start, end in zip(starts.tolist(), ends.tolist(), strict=True)]
     chunks = {number: (chunk.data, chunk.view) for number, chunk in loaded.items()}
     return [
         chunks[number][1][start:end] if end - start >= LARGE_PAYLOAD else chunks[number][0][start:end]
