@@ -10,7 +10,9 @@ Heavy topics (the type table's ``heavy`` rows: images, point clouds, maps) go la
 once more than :data:`HEAVY_BACKLOG` items wait for a robot, its worker is behind, and a new
 message of a heavy topic replaces the ones of that topic still waiting. The small topics queued
 with them (IMU, TF, scans) then wait for one conversion of each heavy topic, not for a pile of
-stale frames, and are themselves dropped only when the whole queue is full.
+stale frames, and are themselves dropped only when the whole queue is full. Within a batch the
+worker hands over the small topics' messages before the heavy ones (each topic's own order
+kept), so they do not wait for the heavy ones that came with them either.
 
 Every message dropped here is counted per topic (:attr:`RobotQueues.dropped`, the drop summary
 the host prints when it stops) and, since it never reaches the pipeline, shows in
@@ -35,12 +37,14 @@ if TYPE_CHECKING:
 log = logging.getLogger("swanky.host")
 
 MAX_PER_ROBOT = 5000
+# A worker takes everything waiting, up to this many, at once: what arrived while it converted one
+# batch is the next, so a loaded host converts runs (send_columns) that grow with the load, and
+# an idle one converts a message as soon as it comes. A fixed 5 ms wait for more added its whole
+# length to the latency of the issue's mixed load (p50 15 ms against 5 ms without;
+# benchmarks/live_capacity.py) and converted no more per second when flooded.
 MAX_BATCH = 1024
-# A worker that wakes for one message waits this long for more, so high-rate topics reach the
-# converters as runs (send_columns) instead of one call per message.
-GATHER_S = 0.005
 # Items waiting for a robot beyond which its worker is behind and heavy topics go latest-only:
-# more than the few milliseconds GATHER_S collects at hundreds of messages a second.
+# more than arrive during one conversion while it keeps up (a 40 ms cloud at 400 messages/s).
 HEAVY_BACKLOG = 32
 
 # (item, latched, its topic if it is a non-latched message of a heavy topic, else None)
@@ -199,15 +203,15 @@ class RobotQueues:
                     state.ready.wait()
                 if not state.items:
                     return
-                wait_for_more = len(state.items) < MAX_BATCH and not self._closing
-            if wait_for_more:
-                time.sleep(GATHER_S)
-            with self._lock:
-                batch = []
+                batch: list[InputItem] = []
+                heavy: list[InputItem] = []
                 for _ in range(min(len(state.items), MAX_BATCH)):
                     entry = state.items.popleft()
                     state.forget(entry)
-                    batch.append(entry[0])
+                    (batch if entry[2] is None else heavy).append(entry[0])
+                # The dispatcher converts a batch topic by topic anyway; the small topics go
+                # first, so they do not wait for the frames and clouds that came with them.
+                batch += heavy
             try:
                 handler(batch)
             except BaseException as err:  # --strict: the main thread re-raises it

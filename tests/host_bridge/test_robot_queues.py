@@ -158,8 +158,8 @@ def test_behind_a_backlog_heavy_topics_keep_only_their_newest_and_small_ones_all
     queues.put(typed("b", "/camera", IMAGE, 150))  # another robot, with no backlog of its own
     queues.put(typed("b", "/camera", IMAGE, 151))
     assert delivered(queues, 9) == {
-        "a": [("/imu", 0), ("/imu", 1), ("/imu", 2), ("/imu", 3), ("/camera", 102),
-              ("/points", 201), ("/imu", 4)],
+        "a": [("/imu", 0), ("/imu", 1), ("/imu", 2), ("/imu", 3), ("/imu", 4), ("/camera", 102),
+              ("/points", 201)],  # one batch: the small topics first
         "b": [("/camera", 150), ("/camera", 151)],
     }
     assert queues.dropped == {("a", "/camera"): 2, ("a", "/points"): 1}
@@ -229,3 +229,17 @@ def test_messages_dropped_here_are_drops_in_stats() -> None:
     assert (closed["/imu"].rate_hz, closed["/imu"].drops) == (3.0, 0)
     paths = [item.path for item in topic_stats_items(list(closed.values()))]
     assert [p for p in paths if p.endswith("/drops")] == ["/_stats/a/camera/drops", "/_stats/a/imu/drops"]
+
+
+def test_in_a_batch_small_topics_go_before_heavy_ones_each_in_its_order() -> None:
+    queues = RobotQueues()
+    queues.put(typed("a", "/points", CLOUD, 0))
+    queues.put(typed("a", "/imu", IMU, 1))
+    queues.put(typed("a", "/camera", IMAGE, 2))
+    queues.put(typed("a", "/map", GRID, 3), latched=True)  # latched: never held back
+    queues.put(typed("a", "/imu", IMU, 4))
+    queues.put(typed("a", "/points", CLOUD, 5))
+    assert delivered(queues, 6) == {"a": [
+        ("/imu", 1), ("/map", 3), ("/imu", 4), ("/points", 0), ("/camera", 2), ("/points", 5)
+    ]}
+    assert queues.dropped == {}

@@ -1,0 +1,330 @@
+"""Live host capacity (issue 13, target 4): a relay replaying as fast as it can into the host,
+against the host converting the same bag offline in the same run; then small-topic latency under
+the issue's mixed load.
+
+(a) Capacity. The small-message file of ``bag_conversion.py`` (Imu, TF, JointState, NavSatFix;
+its generator, at ``--small-scale``) is converted twice, each by the host's own pieces in this
+process (``host_bridge.app.open_input``, the Dispatcher, a Rerun sink saving to /dev/null):
+
+- baseline, offline: ``--bag`` input, from its first run delivered to its end;
+- live: ``swanky-relay --bag FILE --rate 0`` (another process, loopback Zenoh) into the live
+  input (Zenoh callbacks, per-robot queue, ``/_stats`` on), from the first run delivered to the
+  last one converted.
+
+Printed: messages converted per second of each and their ratio live / offline (target >= 0.5),
+with what the relay sent and the host received, converted and dropped.
+
+(b) Latency. A rosbag2 of one second of the issue's mixed load (LaserScan 720 rays 40 Hz, Imu
+200 Hz, TF 100 Hz, 640x480 rgb8 Image 30 Hz, 300,000-point PointCloud2 10 Hz; the scan and the
+cloud of ``converters.py``, Imu, TF and the image of ``bag_conversion.py``) is replayed by
+``swanky-relay --rate 1 --loop`` into the live host for ``--seconds``. Latency is publish ->
+converted: the relay's receive clock (stamped when it publishes the message) to the host's wall
+clock when the dispatcher has converted the message's run and handed it to the sink (the runs
+of a delivered batch are dispatched one topic at a time, as the dispatcher itself does, so each
+message's time is its own run's). Same machine, same clock. Printed per topic: p50 and p99,
+small topics pooled (targets p50 <= 2 ms, p99 <= 10 ms), and for comparison publish -> host
+pipeline entry (what ``/_stats/.../latency_ms`` shows: before decoding, queue wait included),
+with the heavy messages the host replaced by newer ones while behind (queues.py).
+
+    .venv/bin/python benchmarks/live_capacity.py [--small-scale 0.2] [--rounds 3] [--seconds 15]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import re
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Sequence
+from contextlib import ExitStack
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bag_conversion import (  # noqa: E402  (beside this script)
+    SMALL_SPAN_S,
+    Topic,
+    large_topics,
+    small_topics,
+    write_bag,
+)
+from converters import laser_scan, pcl_cloud  # noqa: E402
+
+from host_bridge.app import HostOptions, open_input  # noqa: E402
+from host_bridge.destinations import SinkOptions  # noqa: E402
+from host_bridge.dispatch import Dispatcher  # noqa: E402
+from host_bridge.inputs.base import InputItem, MessageRun  # noqa: E402
+from host_bridge.inputs.live import LiveInput  # noqa: E402
+from host_bridge.registry import default_registry  # noqa: E402
+from host_bridge.sink import RerunSink  # noqa: E402
+from robot_relay.session import ZenohOptions  # noqa: E402
+from robot_relay.wire import RawMessage  # noqa: E402
+from tests.integration.procs import free_port, listening  # noqa: E402
+
+# python -m benchmarks gives each script this many seconds at most.
+BUDGET_SECONDS = 120
+
+ROBOT = "bench"
+RATE_TARGET = 0.5  # live / offline messages converted per second
+P50_TARGET_MS, P99_TARGET_MS = 2.0, 10.0
+MIXED_RATES_HZ = {"/scan": 40, "/imu": 200, "/tf": 100, "/camera/image_raw": 30, "/points": 10}
+MIXED_CLOUD_POINTS = 300_000
+SCAN_RAYS = 720
+IDLE_S = 1.5  # after the replay: the host has converted everything once it is idle this long
+START_TIMEOUT_S = 60.0
+
+
+class TimedDelivery:
+    """The dispatcher's ``take``, one topic's run at a time (the order and grouping dispatch
+    uses), timing each message from its publication by the relay to its run converted."""
+
+    def __init__(self, dispatcher: Dispatcher) -> None:
+        self.dispatcher = dispatcher
+        self.first_start: float | None = None
+        self.last_end = 0.0
+        self.converted_ms: dict[str, list[float]] = {}
+        self.entered_ms: dict[str, list[float]] = {}
+        self.measuring = True
+        self._lock = threading.Lock()
+
+    def __call__(self, batch: Sequence[InputItem | MessageRun]) -> None:
+        runs: dict[str, list[InputItem | MessageRun]] = {}
+        for item in batch:
+            runs.setdefault(getattr(item, "topic", ""), []).append(item)
+        entered_ns = time.time_ns()
+        if self.first_start is None:
+            self.first_start = time.perf_counter()
+        for topic, run in runs.items():
+            self.dispatcher.take(run)
+            converted_ns = time.time_ns()
+            if self.measuring:
+                with self._lock:
+                    for item in run:
+                        if isinstance(item, RawMessage) and item.receive_ns is not None:
+                            self.converted_ms.setdefault(topic, []).append(
+                                (converted_ns - item.receive_ns) / 1e6)
+                            self.entered_ms.setdefault(topic, []).append(
+                                (entered_ns - item.receive_ns) / 1e6)
+        self.last_end = time.perf_counter()
+
+    def reset(self) -> None:
+        with self._lock:
+            self.converted_ms.clear()
+            self.entered_ms.clear()
+
+
+def host_pipeline(closing: ExitStack) -> tuple[Dispatcher, TimedDelivery]:
+    sink = RerunSink(SinkOptions(save=Path("/dev/null")))
+    closing.callback(sink.close)
+    dispatcher = Dispatcher(sink, registry=default_registry())
+    closing.callback(dispatcher.close)
+    return dispatcher, TimedDelivery(dispatcher)
+
+
+def converted(dispatcher: Dispatcher) -> int:
+    return sum(c.converted for c in dispatcher.counters.values())
+
+
+def received(dispatcher: Dispatcher) -> int:
+    return sum(c.received for c in dispatcher.counters.values())
+
+
+def convert_offline(bag: Path) -> tuple[int, float]:
+    """(messages converted, seconds) of the ``--bag`` input."""
+    with ExitStack() as closing:
+        dispatcher, delivery = host_pipeline(closing)
+        source = open_input(HostOptions(bag=bag, robot=ROBOT), dispatcher, demo=None,
+                            robot_files=None, stop=threading.Event(), closing=closing)
+        started = time.perf_counter()
+        source.start(delivery)
+        while not source.ended():
+            time.sleep(0.01)
+        return converted(dispatcher), time.perf_counter() - started
+
+
+def start_relay(bag: Path, port: int, *flags: str) -> subprocess.Popen[str]:
+    relay = subprocess.Popen(
+        [str(Path(sys.executable).parent / "swanky-relay"), "--robot", ROBOT, "--bag", str(bag),
+         "--wait-for-host", str(START_TIMEOUT_S), "-l", f"tcp/127.0.0.1:{port}",
+         "--no-multicast-scouting", *flags],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while not listening(port):
+        if relay.poll() is not None or time.monotonic() > deadline:
+            msg = f"swanky-relay did not listen on port {port}: {relay.communicate()[1][-2000:]}"
+            raise RuntimeError(msg)
+        time.sleep(0.05)
+    return relay
+
+
+def open_live(port: int, dispatcher: Dispatcher, closing: ExitStack) -> LiveInput:
+    options = HostOptions(
+        zenoh=ZenohOptions(connect=(f"tcp/127.0.0.1:{port}",), multicast_scouting=False),
+        robots=ROBOT, rmw_zenoh=False)
+    live = open_input(options, dispatcher, demo=None, robot_files=None, stop=threading.Event(),
+                      closing=closing)
+    assert isinstance(live, LiveInput)
+    return live
+
+
+def stop_relay(relay: subprocess.Popen[str]) -> str:
+    if relay.poll() is None:
+        relay.send_signal(signal.SIGTERM)
+    try:
+        return relay.communicate(timeout=30)[1]
+    except subprocess.TimeoutExpired:
+        relay.kill()
+        return relay.communicate(timeout=10)[1]
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class LiveRun:
+    sent: int
+    received: int
+    converted: int
+    queue_drops: int
+    seconds: float
+
+
+def convert_live(bag: Path) -> LiveRun:
+    """The relay replaying ``bag`` at full speed into the live input, until the host is idle."""
+    port = free_port()
+    relay = start_relay(bag, port, "--rate", "0")
+    try:
+        with ExitStack() as closing:
+            dispatcher, delivery = host_pipeline(closing)
+            live = open_live(port, dispatcher, closing)
+            live.start(delivery)
+            deadline = time.monotonic() + BUDGET_SECONDS
+            while relay.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.05)
+            while time.monotonic() - live.last_activity < IDLE_S:
+                time.sleep(0.05)
+            live.close()  # lets the worker convert what is queued
+            if delivery.first_start is None:
+                msg = "the live host received nothing from the relay"
+                raise RuntimeError(msg)
+            return LiveRun(
+                sent=relay_sent(stop_relay(relay)), received=received(dispatcher),
+                converted=converted(dispatcher), queue_drops=sum(live.queues.dropped.values()),
+                seconds=delivery.last_end - delivery.first_start)
+    finally:
+        stop_relay(relay)
+
+
+def relay_sent(stderr: str) -> int:
+    found = re.search(r"replay finished, (\d+) messages sent", stderr)
+    return int(found.group(1)) if found else -1
+
+
+def capacity(small_bag: Path, rounds: int) -> None:
+    ratios = []
+    for round_number in range(1, rounds + 1):
+        count, seconds = convert_offline(small_bag)
+        offline = count / seconds
+        run = convert_live(small_bag)
+        live = run.converted / run.seconds
+        ratios.append(live / offline)
+        print(f"round {round_number}: offline --bag {count:,} msgs in {seconds:.2f} s = "
+              f"{offline:,.0f} msg/s; live: relay sent {run.sent:,}, host received "
+              f"{run.received:,}, converted {run.converted:,} in {run.seconds:.2f} s = "
+              f"{live:,.0f} msg/s (dropped in its queue {run.queue_drops:,}); "
+              f"ratio {ratios[-1]:.2f}", flush=True)
+    ratio = statistics.median(ratios)
+    print(f"ratio live / offline messages converted per second, median of {rounds}: "
+          f"{ratio:.2f} (target >= {RATE_TARGET}: {'met' if ratio >= RATE_TARGET else 'MISSED'})",
+          flush=True)
+
+
+def mixed_topics(seconds: float) -> list[Topic]:
+    """The issue's mixed load for ``seconds``: Imu, TF and the image of bag_conversion's files,
+    the scan and the 300k-point cloud of converters.py, at :data:`MIXED_RATES_HZ`."""
+    scan, cloud = laser_scan(SCAN_RAYS), pcl_cloud(MIXED_CLOUD_POINTS)
+    made = {t.name: t for t in [*small_topics(1.0), *large_topics(1.0)]}
+    chosen = [
+        Topic("/scan", "sensor_msgs/msg/LaserScan", 0, lambda i, stamp: scan),
+        made["/imu"], made["/tf"], made["/camera/image_raw"],
+        Topic("/points", "sensor_msgs/msg/PointCloud2", 0, lambda i, stamp: cloud),
+    ]
+    return [dataclasses.replace(t, count=round(MIXED_RATES_HZ[t.name] * seconds)) for t in chosen]
+
+
+def percentile(values: list[float], fraction: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, int(fraction * len(ordered)))]
+
+
+def latency(mixed_bag: Path, warmup: float, seconds: float) -> None:
+    port = free_port()
+    relay = start_relay(mixed_bag, port, "--rate", "1", "--loop")
+    try:
+        with ExitStack() as closing:
+            dispatcher, delivery = host_pipeline(closing)
+            live = open_live(port, dispatcher, closing)
+            live.start(delivery)
+            deadline = time.monotonic() + START_TIMEOUT_S
+            while delivery.first_start is None and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(warmup)
+            delivery.reset()
+            superseded_before = dict(live.queues.superseded)
+            time.sleep(seconds)
+            delivery.measuring = False
+            superseded = {topic: count - superseded_before.get((robot, topic), 0)
+                          for (robot, topic), count in live.queues.superseded.items()}
+            by_topic = {t: (list(delivery.converted_ms[t]), list(delivery.entered_ms[t]))
+                        for t in delivery.converted_ms}
+    finally:
+        stop_relay(relay)
+    heavy = {"/camera/image_raw", "/points"}
+    print(f"mixed load for {seconds:g} s after {warmup:g} s (LaserScan 40 Hz, Imu 200 Hz, TF 100 Hz, "
+          "Image 640x480 rgb8 30 Hz, PointCloud2 300k 10 Hz), relay --rate 1 into the live host:")
+    print(f"  {'topic':<20}{'msgs':>6}  publish->converted p50/p99 ms  publish->pipeline p50/p99 ms"
+          "  replaced while behind")
+    for topic in sorted(by_topic, key=lambda t: (t in heavy, t)):
+        done, entered = by_topic[topic]
+        print(f"  {topic:<20}{len(done):>6}  {percentile(done, 0.5):>13.2f} {percentile(done, 0.99):>8.2f}"
+              f"     {percentile(entered, 0.5):>13.2f} {percentile(entered, 0.99):>8.2f}"
+              f"     {superseded.get(topic, 0):>6}")
+    small = [ms for topic, (done, _) in by_topic.items() if topic not in heavy for ms in done]
+    p50, p99 = percentile(small, 0.5), percentile(small, 0.99)
+    met = p50 <= P50_TARGET_MS and p99 <= P99_TARGET_MS
+    print(f"small topics (scan, imu, tf), publish -> converted: p50 {p50:.2f} ms, p99 {p99:.2f} ms "
+          f"(targets p50 <= {P50_TARGET_MS:g}, p99 <= {P99_TARGET_MS:g}: {'met' if met else 'MISSED'})",
+          flush=True)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--small-scale", type=float, default=0.2,
+                        help="scale of bag_conversion's small-message file (1.0: 470k messages)")
+    parser.add_argument("--rounds", type=int, default=3, help="capacity rounds (offline then live)")
+    parser.add_argument("--seconds", type=float, default=15.0, help="mixed load measured this long")
+    parser.add_argument("--warmup", type=float, default=3.0, help="mixed load before measuring")
+    parser.add_argument("--only", choices=["capacity", "latency"], help="run one part only")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="swanky_live_bench_") as tmp:
+        if args.only != "latency":
+            started = time.perf_counter()
+            small = Path(tmp) / "small"
+            write_bag(small, small_topics(args.small_scale), int(SMALL_SPAN_S * args.small_scale * 1e9))
+            print(f"small-message file at scale {args.small_scale} written in "
+                  f"{time.perf_counter() - started:.1f} s", flush=True)
+            capacity(small, args.rounds)
+        if args.only != "capacity":
+            mixed = Path(tmp) / "mixed"
+            write_bag(mixed, mixed_topics(1.0), 10**9)
+            latency(mixed, args.warmup, args.seconds)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
