@@ -6,9 +6,11 @@ Once per second of each robot's clock (the relay's receive time live; the bag's 
 
 - ``/_stats/<robot><topic>/rate_hz``: messages that reached the host, per second;
 - ``.../bandwidth_kbps``: their CDR bytes (after wire decompression), kbit/s;
-- ``.../drops``: messages lost on the way (wire sequence gaps) in the period;
-- ``.../latency_ms``: mean host wall clock when the message reached the pipeline minus the
-  relay's receive time (live only);
+- ``.../drops``: messages lost on the way (wire sequence gaps) in the period, the ones the
+  host's own queue dropped included (a full queue, a heavy topic's message replaced by a newer
+  one while the host is behind: inputs/queues.py, which names them apart when the host stops);
+- ``.../latency_ms``: mean host wall clock when the message reached the pipeline (before it is
+  decoded and converted) minus the relay's receive time (live only);
 - ``.../convert_ms``: mean host decode + conversion time per message;
 - ``/_stats/<robot>/host/convert_load_percent``: host time spent converting this robot's
   messages, in % of the period;

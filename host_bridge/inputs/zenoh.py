@@ -9,7 +9,6 @@ host's threads.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import threading
 import time
@@ -71,6 +70,16 @@ def fetch_catalog(session: zenoh.Session, robot: str, timeout: float) -> Catalog
         if reply.ok is not None:
             return Catalog.from_json(reply.ok.payload.to_bytes(), key)
     return None
+
+
+def _defined(raw: RawMessage, info: TopicInfo) -> RawMessage:
+    """``raw`` with the definition its relay's catalog gives; built directly, as this runs per
+    sample on Zenoh's thread (2 us against dataclasses.replace's 3)."""
+    return RawMessage(
+        robot=raw.robot, topic=raw.topic, msgtype=raw.msgtype, data=raw.data,
+        definition=info.definition, receive_ns=raw.receive_ns, log_ns=raw.log_ns,
+        sequence=raw.sequence,
+    )
 
 
 class _Robot:
@@ -166,7 +175,7 @@ class ZenohInput:
                 info = state.topics.get(raw.topic)
                 fetch = info is None and time.monotonic() - state.last_fetch > CATALOG_RETRY_S
                 if info is not None and info.msgtype == raw.msgtype:
-                    raw = dataclasses.replace(raw, definition=info.definition)
+                    raw = _defined(raw, info)
                     latched = info.latched
         if fetch:
             self._fetch_catalog(raw.robot)
@@ -217,7 +226,7 @@ class ZenohInput:
         for waiting in pending:
             info = known.get(waiting.topic)
             if info is not None and info.msgtype == waiting.msgtype:
-                waiting = dataclasses.replace(waiting, definition=info.definition)  # noqa: PLW2901
+                waiting = _defined(waiting, info)  # noqa: PLW2901
             self._put(waiting, info is not None and info.latched)
 
     def close(self) -> None:
