@@ -61,17 +61,18 @@ class ColumnsItem:
 LogEntry = LogItem | ColumnsItem
 
 
-def repeated_texts(texts: Sequence[str], rows: npt.NDArray[np.integer[Any]]) -> pa.Array:
+def repeated_texts(texts: Sequence[str], rows: npt.NDArray[np.integer[Any]] | int) -> pa.Array:
     """The strings ``texts[rows]`` as one Arrow utf8 array, made from its buffers: the column of
     a few strings repeated over many rows (frame names, arrow labels) for ``rr.*.columns``,
-    which takes it as it is (a list of Python strings is encoded there one at a time)."""
+    which takes it as it is (a list of Python strings is encoded there one at a time). ``rows``
+    a number: ``texts`` in order, that many times over."""
     encoded = [text.encode() for text in texts]
     sizes = np.array([len(text) for text in encoded], np.int64)
-    row_sizes = sizes[rows]
-    offsets = np.zeros(len(rows) + 1, np.int64)
+    row_sizes = np.tile(sizes, rows) if isinstance(rows, int) else sizes[rows]
+    offsets = np.zeros(len(row_sizes) + 1, np.int64)
     np.cumsum(row_sizes, out=offsets[1:])
-    if len(encoded) == 1:
-        data = np.frombuffer(encoded[0] * len(rows), np.uint8)
+    if isinstance(rows, int) or len(encoded) == 1:
+        data = np.frombuffer(b"".join(encoded) * (rows if isinstance(rows, int) else len(rows)), np.uint8)
     else:
         width = int(sizes.max()) if len(sizes) else 0
         table = np.zeros((len(encoded), width), np.uint8)
@@ -79,7 +80,7 @@ def repeated_texts(texts: Sequence[str], rows: npt.NDArray[np.integer[Any]]) -> 
             table[row, : len(text)] = np.frombuffer(text, np.uint8)
         data = table[rows][np.arange(width) < row_sizes[:, None]]
     return pa.StringArray.from_buffers(
-        len(rows), pa.py_buffer(offsets.astype(np.int32)), pa.py_buffer(data)
+        len(row_sizes), pa.py_buffer(offsets.astype(np.int32)), pa.py_buffer(data)
     )
 
 

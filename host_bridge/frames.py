@@ -99,11 +99,28 @@ def _distinct(*arrays: pa.Array) -> set[tuple[Any, ...]]:
     if (table == table[0]).all():
         firsts: Sequence[int] = [0]
     else:
-        padded = np.zeros((len(table), -(-table.shape[1] // 8) * 8), np.uint8)
-        padded[:, : table.shape[1]] = table
-        firsts = np.unique(padded.view(np.dtype((np.void, padded.shape[1]))).ravel(),
-                          return_index=True)[1].tolist()
+        firsts = _distinct_rows(table)
     return {tuple(array[row].as_py() for array in arrays) for row in firsts}
+
+
+def _distinct_rows(table: npt.NDArray[np.uint8]) -> list[int]:
+    """The index of one row of each distinct value of ``table``'s rows: rows hashed to one
+    number each (sorting numbers is cheaper than sorting byte strings), then checked equal to
+    the row they share their hash with, as byte strings should they not all be."""
+    words = np.zeros((len(table), -(-table.shape[1] // 8) * 8), np.uint8)
+    words[:, : table.shape[1]] = table
+    columns = words.view(np.uint64)
+    hashes = columns[:, 0].copy()
+    for column in columns.T[1:]:
+        hashes = hashes * np.uint64(0x100000001B3) ^ column
+    _, firsts, which = np.unique(hashes, return_index=True, return_inverse=True)
+    distinct: list[int]
+    if (words == words[firsts[which.ravel()]]).all():
+        distinct = firsts.tolist()
+        return distinct
+    distinct = np.unique(words.view(np.dtype((np.void, words.shape[1]))).ravel(),
+                                    return_index=True)[1].tolist()
+    return distinct
 
 
 def _string_bytes(array: pa.Array) -> npt.NDArray[np.uint8] | None:

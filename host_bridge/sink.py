@@ -310,7 +310,7 @@ class RerunSink:
         for entry in entries:
             if isinstance(entry, ColumnsItem):
                 indexes = [
-                    rr.TimeColumn(name, timestamp=values.astype("datetime64[ns]"))
+                    rr.TimeColumn(name, timestamp=values.astype(np.int64, copy=False).view("datetime64[ns]"))
                     for name, values in entry.times.items()
                 ]
                 self.recording.send_columns(entry.path, indexes=indexes, columns=entry.columns)

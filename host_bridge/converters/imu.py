@@ -94,12 +94,12 @@ def convert_imu_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
             rows = frame_rows[entries]
             n = len(rows)
             transform = rr.Transform3D.columns(
-                quaternion=unit[rows], parent_frame=repeated_texts([parent], np.zeros(n, np.intp))
+                quaternion=unit[rows], parent_frame=repeated_texts([parent], n)
             )
             arrow_columns = rr.Arrows3D.columns(
                 vectors=arrows[rows].reshape(-1, 3),
                 colors=np.tile(_ARROW_COLORS, (n, 1)),
-                labels=repeated_texts(_ARROW_LABELS, np.tile(np.arange(len(_ARROW_LABELS)), n)),
+                labels=repeated_texts(_ARROW_LABELS, n),
             ).partition(np.full(n, len(_VECTORS)))
             items.append(ColumnsItem(orientation_path, [*transform, *arrow_columns], times))
     for rows, times in ctx.stamped(stamps):

@@ -25,6 +25,7 @@ import contextlib
 import itertools
 import logging
 import mmap
+import operator
 import struct
 import zlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -321,7 +322,11 @@ class McapFile:
         ends = offsets + 9 + lengths.astype(np.int64)
         gap_starts = np.concatenate(([0], ends))
         gap_ends = np.concatenate((offsets, [chunk.uncompressed_size]))
-        for start, end in zip(gap_starts.tolist(), gap_ends.tolist(), strict=True):
+        overlapping = gap_starts > gap_ends
+        if overlapping.any():
+            raise self._damaged(chunk, f"records overlap at {int(gap_starts[np.argmax(overlapping)])}")
+        gaps = gap_starts < gap_ends  # most messages follow one another: nothing to walk
+        for start, end in zip(gap_starts[gaps].tolist(), gap_ends[gaps].tolist(), strict=True):
             at = start
             while at < end:
                 op, record_size = _RECORD.unpack_from(loaded.data, loaded.base + at)
@@ -491,7 +496,8 @@ class _Window:
             info = self._infos[int(ordered_channels[begin])]
             runs.append((int(rows[-1]), MessageRun(
                 self._robot, info.topic, info.msgtype, info.definition,
-                [payloads[row] for row in rows.tolist()], log_ns[rows])))
+                list(operator.itemgetter(*rows.tolist())(payloads)) if len(rows) > 1
+                else [payloads[int(rows[0])]], log_ns[rows])))
         self._payloads, self._channels, self._log_ns = [], [], []
         self.count = self.payload_bytes = 0
         return [run for _, run in sorted(runs, key=lambda pair: pair[0])]

@@ -22,9 +22,9 @@ import rerun as rr
 from rerun.chunk import RrdReader
 
 from host_bridge.cli import main as host_main
-from host_bridge.contract import LogItem
+from host_bridge.contract import ColumnsItem, LogItem, repeated_texts
 from host_bridge.converters.joints import robot_model
-from host_bridge.frames import RobotFrames
+from host_bridge.frames import RobotFrames, frames_logged
 from host_bridge.state import RobotState
 from tests.host_bridge.user_robot import (
     FINGER_RIGHT_XYZ,
@@ -316,3 +316,25 @@ def test_an_entity_hung_from_a_frame_places_that_frame_and_the_model_root_is_a_t
     assert logged(frames.observe([], state)) == [("/r", "frame", "r/base_footprint")]
     # Another robot's frames are its own business.
     assert frames.observe([drawn_in("/r/x", "r2/laser"), drawn_in("/r/y", "tf#/r/y")], state) == []
+
+
+def test_frames_of_a_column_run_are_read_from_its_bytes() -> None:
+    """A run of 3,000 TF rows over three relations (names of equal and of different sizes, one
+    a prefix of another, non-ASCII) and Imu-like rows with one parent: exactly those relations,
+    from Arrow columns made by repeated_texts as the converters make them."""
+    names = ["r/map", "r/odom", "r/odom", "r/base_link", "r/base_link", "r/bäse_link_2"]
+    rows = np.arange(3000) % 3
+    tf = ColumnsItem("/r/tf", list(rr.Transform3D.columns(
+        translation=np.zeros((3000, 3)),
+        parent_frame=repeated_texts(names[0::2], rows),
+        child_frame=repeated_texts(names[1::2], rows),
+    )), {"ros_time": np.arange(3000, dtype=np.int64)})
+    imu = ColumnsItem("/r/imu/orientation", list(rr.Transform3D.columns(
+        quaternion=np.tile([0.0, 0.0, 0.0, 1.0], (5, 1)), parent_frame=repeated_texts(["r/imu"], 5),
+    )), {"ros_time": np.arange(5, dtype=np.int64)})
+    assert frames_logged([tf, imu]) == ({
+        ("r/odom", "r/map"), ("r/base_link", "r/odom"), ("r/bäse_link_2", "r/base_link"),
+        ("tf#/r/imu/orientation", "r/imu")}, set())
+    assert repeated_texts(["ab", "", "déf"], np.array([2, 0, 1, 0])).to_pylist() == [
+        "déf", "ab", "", "ab"]
+    assert repeated_texts(["ab", "c"], 2).to_pylist() == ["ab", "c", "ab", "c"]
