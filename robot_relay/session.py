@@ -1,7 +1,20 @@
 """Zenoh session set-up shared by both command lines, with zenoh's own example flags
 (``-m/--mode``, ``-e/--connect``, ``-l/--listen``, ``--zenoh-config`` (zenoh's ``-c/--config``:
 ``--config`` is each command's own YAML file), ``--cfg KEY:JSON5``,
-``--no-multicast-scouting``), as in zenoh-python's examples/common/common.py."""
+``--no-multicast-scouting``), as in zenoh-python's examples/common/common.py.
+
+Priority links: one TCP connection carries everything in order, so on a slow link the images
+fill its kernel send buffer and a 1 KB odometry message waits behind seconds of them, whatever
+Zenoh's priorities say (they only order what is still in Zenoh's own queues). So each ``tcp/``
+or ``tls/`` endpoint the command connects to is opened as two links of one Zenoh transport
+(zenoh 1.x endpoint metadata ``?prio=``): ``data_low`` and ``background`` (images, clouds,
+video: :mod:`robot_relay.policy`) on one, everything else on the other, and
+``transport/unicast/max_links`` is raised to 2 so a listening host or router accepts the second
+link. Zenoh keeps sequence numbers per priority, so no topic's order spans the two links. A peer
+that accepts one link per transport (an older Swanky, a router with zenoh's default
+``max_links: 1``) refuses the second; the first then carries every priority as before, and
+zenoh retries the refused one every few seconds. ``--single-link`` (``priority_links=False``)
+opens one link, zenoh's default."""
 
 from __future__ import annotations
 
@@ -33,6 +46,15 @@ class ZenohOptions:
     cfg: tuple[str, ...] = ()
     """``--cfg KEY:JSON5`` items, applied last."""
     multicast_scouting: bool = True
+    priority_links: bool = True
+    """Connect to each ``tcp/``/``tls/`` endpoint with a bulk and a priority link (module doc)."""
+
+
+PRIORITY_RANGES = ("0-5", "6-7")
+"""Zenoh priorities by number (0 control ... 5 data; 6 data_low, 7 background), one range per
+link: control and ``real_time`` ... ``data`` on the first, bulk on the second."""
+STREAM_SCHEMES = ("tcp", "tls")
+"""Link protocols whose single byte stream makes small messages wait behind large ones."""
 
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,6 +76,12 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument(
         "--no-multicast-scouting", action="store_true", help="disable multicast scouting"
     )
+    group.add_argument(
+        "--single-link", action="store_true",
+        help="one TCP/TLS connection per -e endpoint (zenoh's default) instead of one for "
+        "data_low/background topics (images, clouds) and one for the rest, which keeps small "
+        "topics flowing when a slow link is full of images",
+    )
 
 
 def zenoh_options(args: argparse.Namespace) -> ZenohOptions:
@@ -65,6 +93,23 @@ def zenoh_options(args: argparse.Namespace) -> ZenohOptions:
         config_file=args.zenoh_config,
         cfg=tuple(args.cfg),
         multicast_scouting=not args.no_multicast_scouting,
+        priority_links=not args.single_link,
+    )
+
+
+def priority_link_endpoints(endpoint: str) -> tuple[str, ...]:
+    """``endpoint`` as one endpoint per :data:`PRIORITY_RANGES` (``tcp/pc:7447`` ->
+    ``tcp/pc:7447?prio=0-5``, ``tcp/pc:7447?prio=6-7``), other metadata and ``#`` link
+    configuration kept; as given when it is not TCP/TLS or already names its priorities."""
+    address, hash_sign, link_config = endpoint.partition("#")
+    locator, _, metadata = address.partition("?")
+    keys = {item.partition("=")[0] for item in metadata.split(";") if item}
+    if endpoint.partition("/")[0] not in STREAM_SCHEMES or "prio" in keys:
+        return (endpoint,)
+    return tuple(
+        f"{locator}?{';'.join([*([metadata] if metadata else []), f'prio={priorities}'])}"
+        f"{hash_sign}{link_config}"
+        for priorities in PRIORITY_RANGES
     )
 
 
@@ -80,8 +125,13 @@ def zenoh_config(options: ZenohOptions) -> zenoh.Config:
     values: list[tuple[str, str]] = [("timestamping/enabled", "true")]
     if options.mode:
         values.append(("mode", json.dumps(options.mode)))
-    if options.connect:
-        values.append(("connect/endpoints", json.dumps(list(options.connect))))
+    connect = list(options.connect)
+    if options.priority_links:
+        connect = [split for endpoint in connect for split in priority_link_endpoints(endpoint)]
+        max_links = json.loads(config.get_json("transport/unicast/max_links"))
+        values.append(("transport/unicast/max_links", str(max(max_links, len(PRIORITY_RANGES)))))
+    if connect:
+        values.append(("connect/endpoints", json.dumps(connect)))
     if options.listen:
         values.append(("listen/endpoints", json.dumps(list(options.listen))))
     if not options.multicast_scouting:
