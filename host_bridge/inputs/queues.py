@@ -25,10 +25,10 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
-from host_bridge.inputs.base import Deliver, InputItem, InputProblem
+from host_bridge.inputs.base import InputItem, InputProblem
 from robot_relay.wire import RawMessage
 
 if TYPE_CHECKING:
@@ -46,6 +46,10 @@ MAX_BATCH = 1024
 # Items waiting for a robot beyond which its worker is behind and heavy topics go latest-only:
 # more than arrive during one conversion while it keeps up (a 40 ms cloud at 400 messages/s).
 HEAVY_BACKLOG = 32
+
+ItemDeliver = Callable[[Sequence[InputItem]], None]
+"""Where the workers put each robot's runs: live items one record each, never a MessageRun (any
+:data:`~host_bridge.inputs.base.Deliver` takes them)."""
 
 # (item, latched, its topic if it is a non-latched message of a heavy topic, else None)
 _Entry = tuple[InputItem, bool, str | None]
@@ -118,7 +122,7 @@ class RobotQueues:
         self._lock = threading.Lock()
         self._any = threading.Condition(self._lock)
         self._robots: dict[str, _RobotQueue] = {}
-        self._handler: Deliver | None = None
+        self._handler: ItemDeliver | None = None
         self._closing = False
 
     def put(self, item: InputItem, latched: bool = False) -> None:
@@ -181,7 +185,7 @@ class RobotQueues:
 
     # -- one worker thread per robot ---------------------------------------------------------
 
-    def serve(self, handler: Deliver) -> None:
+    def serve(self, handler: ItemDeliver) -> None:
         """From now on every robot's items go to ``handler`` from that robot's own thread."""
         with self._lock:
             self._handler = handler
@@ -196,7 +200,7 @@ class RobotQueues:
         )
         state.worker.start()
 
-    def _work(self, state: _RobotQueue, handler: Deliver) -> None:
+    def _work(self, state: _RobotQueue, handler: ItemDeliver) -> None:
         while True:
             with self._lock:
                 while not state.items and not self._closing:
