@@ -3,18 +3,18 @@
 ``--config`` is each command's own YAML file), ``--cfg KEY:JSON5``,
 ``--no-multicast-scouting``), as in zenoh-python's examples/common/common.py.
 
-Priority links: one TCP connection carries everything in order, so on a slow link the images
-fill its kernel send buffer and a 1 KB odometry message waits behind seconds of them, whatever
-Zenoh's priorities say (they only order what is still in Zenoh's own queues). So each ``tcp/``
-or ``tls/`` endpoint the command connects to is opened as two links of one Zenoh transport
-(zenoh 1.x endpoint metadata ``?prio=``): ``data_low`` and ``background`` (images, clouds,
-video: :mod:`robot_relay.policy`) on one, everything else on the other, and
-``transport/unicast/max_links`` is raised to 2 so a listening host or router accepts the second
-link. Zenoh keeps sequence numbers per priority, so no topic's order spans the two links. A peer
-that accepts one link per transport (an older Swanky, a router with zenoh's default
-``max_links: 1``) refuses the second; the first then carries every priority as before, and
-zenoh retries the refused one every few seconds. ``--single-link`` (``priority_links=False``)
-opens one link, zenoh's default."""
+Priority links (``--priority-links``, off by default): one TCP connection carries everything in
+order, so on a slow link the images fill its kernel send buffer and a 1 KB odometry message
+waits behind seconds of them, whatever Zenoh's priorities say (they only order what is still in
+Zenoh's own queues). With priority links each ``tcp/`` or ``tls/`` endpoint the command connects
+to is opened as two links of one Zenoh transport (zenoh 1.x endpoint metadata ``?prio=``):
+``data_low`` and ``background`` (images, clouds, video: :mod:`robot_relay.policy`) on one,
+everything else on the other, and ``transport/unicast/max_links`` is raised to 2 so a listening
+host or router accepts the second link (a one-link peer refuses it; the first then carries every
+priority). Off by default because zenoh sends a priority on whichever link exists while its own
+is missing, and its receiver drops, unannounced, a reliable message that arrives after a later
+one of its priority (zenoh-transport's ``verify_sn``): when the second link comes up late (a SYN
+lost on a lossy link) or one breaks, reliable messages in flight on the old link can be lost."""
 
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ class ZenohOptions:
     cfg: tuple[str, ...] = ()
     """``--cfg KEY:JSON5`` items, applied last."""
     multicast_scouting: bool = True
-    priority_links: bool = True
+    priority_links: bool = False
     """Connect to each ``tcp/``/``tls/`` endpoint with a bulk and a priority link (module doc)."""
 
 
@@ -77,10 +77,10 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
         "--no-multicast-scouting", action="store_true", help="disable multicast scouting"
     )
     group.add_argument(
-        "--single-link", action="store_true",
-        help="one TCP/TLS connection per -e endpoint (zenoh's default) instead of one for "
-        "data_low/background topics (images, clouds) and one for the rest, which keeps small "
-        "topics flowing when a slow link is full of images",
+        "--priority-links", action="store_true",
+        help="two TCP/TLS connections per -e endpoint: one for data_low/background topics "
+        "(images, clouds), one for the rest, so small topics keep flowing when a slow link is "
+        "full of images; a reliable message in flight when a link comes or goes can be lost",
     )
 
 
@@ -93,7 +93,7 @@ def zenoh_options(args: argparse.Namespace) -> ZenohOptions:
         config_file=args.zenoh_config,
         cfg=tuple(args.cfg),
         multicast_scouting=not args.no_multicast_scouting,
-        priority_links=not args.single_link,
+        priority_links=args.priority_links,
     )
 
 

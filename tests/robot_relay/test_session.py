@@ -13,7 +13,7 @@ from robot_relay.session import ZenohOptions, priority_link_endpoints, zenoh_con
 def test_options_become_zenoh_configuration_values() -> None:
     config = zenoh_config(ZenohOptions(
         mode="client", connect=("tcp/127.0.0.1:7447",), listen=("tcp/127.0.0.1:7448",),
-        multicast_scouting=False, cfg=("scouting/gossip/enabled:false",),
+        multicast_scouting=False, priority_links=True, cfg=("scouting/gossip/enabled:false",),
     ))
     assert {key: config.get_json(key) for key in (
         "mode", "connect/endpoints", "listen/endpoints", "scouting/multicast/enabled",
@@ -44,8 +44,8 @@ def test_stream_endpoints_become_a_priority_and_a_bulk_link(
     assert priority_link_endpoints(endpoint) == links
 
 
-def test_single_link_leaves_endpoints_and_max_links_as_zenoh_has_them() -> None:
-    config = zenoh_config(ZenohOptions(connect=("tcp/pc:7447",), priority_links=False))
+def test_by_default_endpoints_and_max_links_stay_as_zenoh_has_them() -> None:
+    config = zenoh_config(ZenohOptions(connect=("tcp/pc:7447",)))
     assert config.get_json("connect/endpoints") == '["tcp/pc:7447"]'
     assert config.get_json("transport/unicast/max_links") == "1"
 
@@ -53,7 +53,8 @@ def test_single_link_leaves_endpoints_and_max_links_as_zenoh_has_them() -> None:
 def test_max_links_of_the_zenoh_config_file_is_kept_when_higher(tmp_path: Path) -> None:
     file = tmp_path / "zenoh.json5"
     file.write_text("{transport: {unicast: {max_links: 4}}}")
-    config = zenoh_config(ZenohOptions(config_file=str(file), listen=("tcp/0.0.0.0:7447",)))
+    config = zenoh_config(ZenohOptions(config_file=str(file), listen=("tcp/0.0.0.0:7447",),
+                                       priority_links=True))
     assert config.get_json("transport/unicast/max_links") == "4"
     assert config.get_json("listen/endpoints") == '["tcp/0.0.0.0:7447"]'
 

@@ -1,4 +1,5 @@
-"""Priority links on loopback (robot_relay/session.py): a session connecting to ``tcp/`` opens
+"""Priority links on loopback (robot_relay/session.py, ``--priority-links``): a session connecting
+to ``tcp/`` opens
 a bulk link for ``data_low`` and a link for everything else, and still talks to a peer that
 accepts one link (an older Swanky, a router with zenoh's default configuration) both ways."""
 
@@ -44,7 +45,7 @@ def plain_session(*, listen: str | None = None, connect: str | None = None) -> z
 def swanky_session(*, listen: str | None = None, connect: str | None = None) -> zenoh.Session:
     return open_session(ZenohOptions(
         listen=(listen,) if listen else (), connect=(connect,) if connect else (),
-        multicast_scouting=False, cfg=NO_SHM,
+        multicast_scouting=False, cfg=NO_SHM, priority_links=True,
     ))
 
 
