@@ -61,11 +61,18 @@ class ColumnsItem:
 LogEntry = LogItem | ColumnsItem
 
 
+_FEW_TEXTS = 32  # up to this many (a live run of one message) a list converts faster
+
+
 def repeated_texts(texts: Sequence[str], rows: npt.NDArray[np.integer[Any]] | int) -> pa.Array:
     """The strings ``texts[rows]`` as one Arrow utf8 array, made from its buffers: the column of
     a few strings repeated over many rows (frame names, arrow labels) for ``rr.*.columns``,
     which takes it as it is (a list of Python strings is encoded there one at a time). ``rows``
     a number: ``texts`` in order, that many times over."""
+    if isinstance(rows, int) and rows * len(texts) <= _FEW_TEXTS:
+        return pa.array(list(texts) * rows, pa.utf8())
+    if not isinstance(rows, int) and len(rows) <= _FEW_TEXTS:
+        return pa.array([texts[row] for row in rows.tolist()], pa.utf8())
     encoded = [text.encode() for text in texts]
     sizes = np.array([len(text) for text in encoded], np.int64)
     row_sizes = np.tile(sizes, rows) if isinstance(rows, int) else sizes[rows]

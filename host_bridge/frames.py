@@ -44,6 +44,9 @@ log = logging.getLogger("swanky.host")
 # Preferred target frames (REP 105), most global first.
 TARGET_FRAMES = ("map", "odom")
 
+# Up to this many rows (a live run of one message) Python strings cost less than numpy's calls.
+_FEW_ROWS = 32
+
 _PARENT = "Transform3D:parent_frame"
 _CHILD = "Transform3D:child_frame"
 _FRAME = "CoordinateFrame:frame"
@@ -90,8 +93,10 @@ def _distinct(*arrays: pa.Array) -> set[tuple[Any, ...]]:
     """The distinct rows of equally long arrays (a TF run repeats a few relations many times).
     Strings are compared as bytes with numpy, and only one row of each distinct value becomes
     Python strings: a run's frame columns have hundreds of thousands of rows."""
+    if not arrays or len(arrays[0]) <= _FEW_ROWS:
+        return set(zip(*(array.to_pylist() for array in arrays), strict=True))
     byte_rows = [_string_bytes(array) for array in arrays]
-    if not arrays or any(rows is None for rows in byte_rows):
+    if any(rows is None for rows in byte_rows):
         return set(zip(*(array.to_pylist() for array in arrays), strict=True))
     table = np.hstack(cast(list[npt.NDArray[np.uint8]], byte_rows))
     if not len(table):

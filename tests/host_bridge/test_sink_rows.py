@@ -1,0 +1,76 @@
+"""RerunSink logs a ColumnsItem of a few rows (a live run of one message) row by row and a larger
+one with send_columns: the .rrd holds the same rows, times and values either way."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rerun as rr
+
+from host_bridge.contract import ColumnsItem, repeated_texts
+from host_bridge.destinations import SinkOptions
+from host_bridge.sink import FEW_ROWS, RerunSink
+from tests.rrd import entity_rows
+
+
+def items(path: str, count: int) -> list[ColumnsItem]:
+    """Transforms with a parent frame and arrows of two vectors each, and a two-series plot:
+    ``count`` rows at ros_time 10, 20, ... and receive_time one more."""
+    stamps = 10 * np.arange(1, count + 1, dtype=np.int64)
+    times = {"ros_time": stamps, "receive_time": stamps + 1}
+    transforms = rr.Transform3D.columns(
+        translation=np.arange(3 * count, dtype=np.float64).reshape(count, 3),
+        parent_frame=repeated_texts(["r/odom", "r/map"], np.arange(count) % 2),
+    )
+    arrows = rr.Arrows3D.columns(
+        vectors=np.arange(6 * count, dtype=np.float32).reshape(2 * count, 3),
+        labels=repeated_texts(["a", "b"], count),
+    ).partition(np.full(count, 2))
+    plot = rr.Scalars.columns(scalars=np.arange(2 * count, dtype=np.float64).reshape(count, 2))
+    return [ColumnsItem(f"{path}/pose", [*transforms, *arrows], times),
+            ColumnsItem(f"{path}/plot", list(plot), times)]
+
+
+def rows_of(out: Path, path: str) -> dict[str, list[dict[str, Any]]]:
+    return {entity.removeprefix(path): rows
+            for entity, rows in entity_rows(out).items() if entity.startswith(path)}
+
+
+def send_columns(sink: RerunSink, item: ColumnsItem) -> None:
+    """What the sink does with many rows, done here for rows it would log one by one."""
+    indexes = [rr.TimeColumn(name, timestamp=values.view("datetime64[ns]"))
+               for name, values in item.times.items()]
+    sink.recording.send_columns(item.path, indexes=indexes, columns=list(item.columns))
+
+
+def without_log_time(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [{k: v for k, v in row.items() if k != "log_time"} for row in rows]
+
+
+def test_few_rows_are_logged_as_send_columns_would(tmp_path: Path) -> None:
+    sink = RerunSink(SinkOptions(save=tmp_path / "out.rrd"))
+    for count in (1, FEW_ROWS, FEW_ROWS + 1):
+        sink.log(items(f"/logged{count}", count), {})
+        for item in items(f"/sent{count}", count):
+            send_columns(sink, item)
+    sink.close()
+    out = tmp_path / "out.rrd"
+    for count in (1, FEW_ROWS, FEW_ROWS + 1):
+        logged, sent = rows_of(out, f"/logged{count}"), rows_of(out, f"/sent{count}")
+        assert sorted(logged) == sorted(sent) == ["/plot", "/pose"]
+        for entity, rows in logged.items():
+            assert without_log_time(rows) == without_log_time(sent[entity])
+            assert [row["ros_time"] for row in rows] == [10 * (i + 1) for i in range(count)]
+            assert [row["receive_time"] for row in rows] == [10 * (i + 1) + 1 for i in range(count)]
+    one = rows_of(out, "/logged1")
+    assert without_log_time(one["/plot"]) == [
+        {"ros_time": 10, "receive_time": 11, "Scalars:scalars": [0.0, 1.0], "static": False}]
+    pose = one["/pose"][0]
+    assert (pose["Transform3D:parent_frame"], pose["Transform3D:translation"]) == (
+        ["r/odom"], [[0.0, 1.0, 2.0]])
+    assert (pose["Arrows3D:labels"], pose["Arrows3D:vectors"]) == (
+        ["a", "b"], [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]])
+    assert [row["Transform3D:parent_frame"] for row in rows_of(out, "/logged4")["/pose"]] == [
+        ["r/odom"], ["r/map"], ["r/odom"], ["r/map"]]
