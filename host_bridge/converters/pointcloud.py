@@ -35,6 +35,10 @@ _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: 
 # as an unsigned word in the cloud's byte order the value is always 0xAARRGGBB.
 _PACKED_COLOR_FIELDS = ("rgba", "rgb")
 _XYZ_RECORD = np.dtype((np.void, 12))
+MAX_POINT_STEP = 1 << 16
+"""Bytes per point accepted. Far above any real point type (PCL's largest descriptor, VFH's 308
+floats, is 1232 bytes), and it keeps every numpy record type built from a message's sizes small:
+numpy refuses record types of 2 GiB and more with a bare ValueError."""
 
 
 def cloud_view(msg: Any, topic: str) -> npt.NDArray[np.void]:
@@ -44,7 +48,15 @@ def cloud_view(msg: Any, topic: str) -> npt.NDArray[np.void]:
     bytes can be split; fields without a name or repeating an earlier name are left out.
     """
     height, width = int(msg.height), int(msg.width)
-    point_step, row_step = int(msg.point_step), int(msg.row_step)
+    point_step = int(msg.point_step)
+    if point_step > MAX_POINT_STEP:
+        msg_ = (
+            f"{topic}: PointCloud2 point_step {point_step} is over {MAX_POINT_STEP} bytes per "
+            "point, more than any point type holds; the message is corrupt"
+        )
+        raise ConvertError(msg_)
+    # The declared sizes are checked against the data before any array is made from them.
+    row_step = _checked_row_step(msg, topic, height, width, point_step)
     order = ">" if msg.is_bigendian else "<"
     names: list[str] = []
     formats: list[np.dtype[Any]] = []
@@ -63,22 +75,34 @@ def cloud_view(msg: Any, topic: str) -> npt.NDArray[np.void]:
             code = "u4"
         base = np.dtype(order + code)
         count = max(int(field.count), 1)
-        fmt = base if count == 1 else np.dtype((base, (count,)))
-        if int(field.offset) + fmt.itemsize > point_step:
+        if int(field.offset) + count * base.itemsize > point_step:
             msg_ = (
                 f"{topic}: PointCloud2 field {field.name!r} (offset {field.offset}, "
-                f"{fmt.itemsize} bytes) does not fit in point_step {point_step}"
+                f"{count * base.itemsize} bytes) does not fit in point_step {point_step}"
             )
             raise ConvertError(msg_)
+        fmt = base if count == 1 else np.dtype((base, (count,)))
         names.append(field.name)
         formats.append(fmt)
         offsets.append(int(field.offset))
     dtype = np.dtype(
         {"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step}
     )
-    data = msg.data
     if height * width == 0:
         return np.zeros((height, width), dtype=dtype)
+    view: npt.NDArray[np.void] = np.ndarray(
+        shape=(height, width), dtype=dtype, buffer=msg.data, strides=(row_step, point_step)
+    )
+    return view
+
+
+def _checked_row_step(msg: Any, topic: str, height: int, width: int, point_step: int) -> int:
+    """The stride between rows, once the declared height x width points of ``point_step``
+    bytes are known to lie inside ``msg.data`` (a message declaring 10^9 points in a few bytes
+    is refused here, naming both sizes)."""
+    if height * width == 0:
+        return 0
+    row_step = int(msg.row_step)
     if height == 1:
         # One row needs no stride; some drivers leave row_step 0 for unorganised clouds.
         row_step = width * point_step
@@ -89,17 +113,14 @@ def cloud_view(msg: Any, topic: str) -> npt.NDArray[np.void]:
         )
         raise ConvertError(msg_)
     needed = (height - 1) * row_step + width * point_step
-    if len(data) < needed:
+    if len(msg.data) < needed:
         msg_ = (
-            f"{topic}: PointCloud2 of {height}x{width} points with point_step {point_step} and "
-            f"row_step {row_step} needs {needed} bytes, but data has {len(data)} bytes; the "
-            "message is truncated"
+            f"{topic}: PointCloud2 declares {height}x{width} points with point_step "
+            f"{point_step} and row_step {row_step}, which needs {needed} bytes, but data has "
+            f"{len(msg.data)} bytes; the message is truncated or its sizes are wrong"
         )
         raise ConvertError(msg_)
-    view: npt.NDArray[np.void] = np.ndarray(
-        shape=(height, width), dtype=dtype, buffer=data, strides=(row_step, point_step)
-    )
-    return view
+    return row_step
 
 
 def _single_valued(points: npt.NDArray[np.void], name: str, topic: str) -> npt.NDArray[Any]:

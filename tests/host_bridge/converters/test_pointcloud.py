@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import struct
+import tracemalloc
 import warnings
 from pathlib import Path
 from typing import Any
@@ -12,10 +13,14 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 import rerun as rr
+from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.colormap import apply_colormap
+from host_bridge.contract import LogItem
 from host_bridge.converters.pointcloud import convert_pointcloud2
+from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
 from host_bridge.errors import ConvertError
+from robot_relay.wire import RawMessage
 from tests.host_bridge.sensor_test_support import (
     archetype,
     flat,
@@ -26,9 +31,14 @@ from tests.host_bridge.sensor_test_support import (
     read_topic,
     rgba,
 )
+from tests.host_bridge.test_config import RecordingSink
+from tests.reliability import Record
 
 INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
 PATH = "/r/cloud"
+CLOUD = "sensor_msgs/msg/PointCloud2"
+ROBOT = "r"
+STORE = get_typestore(Stores.ROS2_HUMBLE)
 
 
 def field(name: str, offset: int, datatype: int, count: int = 1) -> Any:
@@ -430,3 +440,87 @@ def test_all_finite_12_byte_cloud_reaches_rerun_without_a_copy() -> None:
     values = arrow.flatten()
     assert values.buffers()[1].address == data.ctypes.data  # the message's own bytes
     np.testing.assert_array_equal(values.to_numpy().reshape(-1, 3), positions)
+
+
+# Declared sizes a corrupt or hostile publisher may send, each in a cloud of 12 bytes of data:
+# (topic, height, width, point_step, row_step, extra field (name, offset, count) or None, the
+# dispatcher's warning). Before, the last four raised numpy's bare "integer won't fit into a C
+# int" / "dtype size in bytes must fit into a C int" ValueError, naming nothing.
+HOSTILE_SIZES = [
+    ("/billion", 1, 10**9, 12, 0, None,
+     "PointCloud2 declares 1x1000000000 points with point_step 12 and row_step 12000000000, "
+     "which needs 12000000000 bytes, but data has 12 bytes; the message is truncated or its "
+     "sizes are wrong"),
+    ("/tall", 2**32 - 1, 1, 12, 2**32 - 1, None,
+     "PointCloud2 declares 4294967295x1 points with point_step 12 and row_step 4294967295, "
+     f"which needs {(2**32 - 2) * (2**32 - 1) + 12} bytes, but data has 12 bytes; the message "
+     "is truncated or its sizes are wrong"),
+    ("/step", 1, 1, 2**32 - 1, 2**32 - 1, None,
+     "PointCloud2 point_step 4294967295 is over 65536 bytes per point, more than any point "
+     "type holds; the message is corrupt"),
+    ("/empty_step", 0, 2**32 - 1, 2**31, 0, None,
+     "PointCloud2 point_step 2147483648 is over 65536 bytes per point, more than any point "
+     "type holds; the message is corrupt"),
+    ("/offset", 1, 1, 12, 12, ("intensity", 2**32 - 5, 1),
+     "PointCloud2 field 'intensity' (offset 4294967291, 4 bytes) does not fit in point_step 12"),
+    ("/count", 1, 1, 12, 12, ("intensity", 12, 2**30),
+     "PointCloud2 field 'intensity' (offset 12, 4294967296 bytes) does not fit in point_step 12"),
+]
+
+
+def cloud_cdr(data: bytes, fields: list[Any], *, height: int, width: int, point_step: int,
+              row_step: int, stamp_ns: int = 1_000_000_000) -> bytes:
+    message = msg("sensor_msgs/msg/PointCloud2", header=header("lidar", stamp_ns), height=height,
+                  width=width, fields=fields, is_bigendian=False, point_step=point_step,
+                  row_step=row_step, data=np.frombuffer(data, dtype=np.uint8), is_dense=False)
+    return bytes(STORE.serialize_cdr(message, CLOUD))
+
+
+def test_hostile_declared_sizes_are_refused_naming_the_topic_beside_good_clouds(
+    reliability: Record,
+) -> None:
+    xyz = [field("x", 0, FLOAT32), field("y", 4, FLOAT32), field("z", 8, FLOAT32)]
+    sink = RecordingSink()
+    dispatcher = Dispatcher(sink, strict=False)
+    good = np.arange(9, dtype=np.float32).reshape(3, 3)
+    tracemalloc.start()
+    try:
+        for step, (topic, height, width, point_step, row_step, extra, _) in enumerate(HOSTILE_SIZES):
+            fields = xyz if extra is None else [*xyz, field(extra[0], extra[1], FLOAT32, extra[2])]
+            bad = cloud_cdr(bytes(12), fields, height=height, width=width,
+                            point_step=point_step, row_step=row_step)
+            stamp = 1_000_000_000 * (step + 1)
+            dispatcher.dispatch([
+                RawMessage(ROBOT, topic, CLOUD, bad, log_ns=stamp),
+                RawMessage(ROBOT, "/cloud", CLOUD, cloud_cdr(
+                    (good + step).tobytes(), xyz, height=1, width=3, point_step=12, row_step=36,
+                    stamp_ns=stamp), log_ns=stamp),
+            ])
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    dispatcher.close()
+    warnings = [text for entry, _ in sink.logged
+                if isinstance(entry, LogItem) and entry.path == WARNINGS_PATH
+                for a in entry.archetypes if isinstance(a, rr.TextLog) and a.text is not None
+                for text in a.text.as_arrow_array().to_pylist()]
+    assert warnings == [
+        f"[{ROBOT}] {topic}: {text} (further ConvertErrors on this topic are counted, not shown)"
+        for topic, *_, text in HOSTILE_SIZES
+    ]
+    for topic, *_ in HOSTILE_SIZES:
+        counters = dispatcher.counters[(ROBOT, topic)]
+        assert (counters.received, counters.converted, counters.dropped) == (1, 0, 1)
+    clouds = [flat(archetype(entry, rr.Points3D).positions, 3) for entry, _ in sink.logged
+              if isinstance(entry, LogItem) and entry.path == f"/{ROBOT}/cloud"]
+    assert len(clouds) == len(HOSTILE_SIZES)
+    for step, positions in enumerate(clouds):
+        np.testing.assert_array_equal(positions, good + step)
+    assert peak < 16 << 20  # nothing of the declared sizes was allocated
+    reliability("Hostile input", "PointCloud2 declaring 10^9 points, a 4294967295-row cloud, "
+                "point_step 2^32-1 and 2^31, a field at offset 2^32-5 and one of count 2^30, "
+                "each in 12 bytes of data", tried=f"{len(HOSTILE_SIZES)} messages",
+                survived=f"host (traced peak {peak / 2**20:.1f} MB); each refused with a warning "
+                f"naming its topic and sizes; {len(clouds)} of {len(HOSTILE_SIZES)} good clouds "
+                "beside them converted with exact positions",
+                lost=f"the {len(HOSTILE_SIZES)} hostile messages only")
