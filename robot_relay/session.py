@@ -9,7 +9,7 @@ waits behind seconds of them, whatever Zenoh's priorities say (they only order w
 Zenoh's own queues). With priority links each ``tcp/`` or ``tls/`` endpoint the command connects
 to is opened as two links of one Zenoh transport (zenoh 1.x endpoint metadata ``?prio=``):
 ``data_low`` and ``background`` (images, clouds, video: :mod:`robot_relay.policy`) on one,
-everything else on the other, and ``transport/unicast/max_links`` is raised to 2 so a listening
+everything else on the other. ``transport/unicast/max_links`` is raised to 2, flag or not, so a listening
 host or router accepts the second link (a one-link peer refuses it; the first then carries every
 priority). Off by default because zenoh sends a priority on whichever link exists while its own
 is missing, and its receiver drops, unannounced, a reliable message that arrives after a later
@@ -128,8 +128,9 @@ def zenoh_config(options: ZenohOptions) -> zenoh.Config:
     connect = list(options.connect)
     if options.priority_links:
         connect = [split for endpoint in connect for split in priority_link_endpoints(endpoint)]
-        max_links = json.loads(config.get_json("transport/unicast/max_links"))
-        values.append(("transport/unicast/max_links", str(max(max_links, len(PRIORITY_RANGES)))))
+    # Always: a host or relay listening accepts a peer's priority links without a flag of its own.
+    max_links = json.loads(config.get_json("transport/unicast/max_links"))
+    values.append(("transport/unicast/max_links", str(max(max_links, len(PRIORITY_RANGES)))))
     if connect:
         values.append(("connect/endpoints", json.dumps(connect)))
     if options.listen:

@@ -44,17 +44,16 @@ def test_stream_endpoints_become_a_priority_and_a_bulk_link(
     assert priority_link_endpoints(endpoint) == links
 
 
-def test_by_default_endpoints_and_max_links_stay_as_zenoh_has_them() -> None:
+def test_by_default_endpoints_stay_one_link_and_peers_links_are_accepted() -> None:
     config = zenoh_config(ZenohOptions(connect=("tcp/pc:7447",)))
     assert config.get_json("connect/endpoints") == '["tcp/pc:7447"]'
-    assert config.get_json("transport/unicast/max_links") == "1"
+    assert config.get_json("transport/unicast/max_links") == "2"
 
 
 def test_max_links_of_the_zenoh_config_file_is_kept_when_higher(tmp_path: Path) -> None:
     file = tmp_path / "zenoh.json5"
     file.write_text("{transport: {unicast: {max_links: 4}}}")
-    config = zenoh_config(ZenohOptions(config_file=str(file), listen=("tcp/0.0.0.0:7447",),
-                                       priority_links=True))
+    config = zenoh_config(ZenohOptions(config_file=str(file), listen=("tcp/0.0.0.0:7447",)))
     assert config.get_json("transport/unicast/max_links") == "4"
     assert config.get_json("listen/endpoints") == '["tcp/0.0.0.0:7447"]'
 
