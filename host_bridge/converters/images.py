@@ -51,6 +51,7 @@ from host_bridge.converters.video import CODEC_SPELLINGS, VideoFrame, video_code
 from host_bridge.errors import ConvertError
 from host_bridge.options import ImageOptions
 from host_bridge.rvl import rvl_decode
+from robot_relay.wire import MAX_DECOMPRESSED_BYTES
 
 _MODES = ("auto", "depth", "color")
 
@@ -98,11 +99,21 @@ _BAYER_ENCODING = re.compile(r"bayer_(rggb|bggr|gbrg|grbg)(8|16)")
 
 # image_transport compressed_depth: ConfigHeader {int32 format; float32 depthQuantA, depthQuantB}.
 _DEPTH_HEADER = np.dtype([("format", "<i4"), ("quant_a", "<f4"), ("quant_b", "<f4")])
-# A corrupt RVL resolution header must not make the host allocate gigabytes.
-_MAX_SIDE = 1 << 15
+
+MAX_DECODED_PIXELS = MAX_DECOMPRESSED_BYTES // 2
+"""The most pixels a compressed image may declare: 64 Mpx (an 8K frame is 33), whose 16-bit
+depth is the 128 MiB a compressed payload may inflate to on the wire. A PNG of zeros 1000 times
+smaller than its pixels, or an RVL or JPEG header claiming 65535 x 65535, must not make the host
+(compressedDepth, decoded here) or the viewer (JPEG and PNG, decoded there) allocate gigabytes;
+the size is read from the header before anything is decoded. OpenCV's own limit
+(``CV_IO_MAX_IMAGE_PIXELS``, 2^30 by default) is not honoured by opencv-python-headless 5.0."""
 
 _JPEG, _JPEG_MAGIC = "image/jpeg", b"\xff\xd8\xff"
 _PNG, _PNG_MAGIC = "image/png", b"\x89PNG\r\n\x1a\n"
+_PNG_IHDR = 8 + 4 + 4 + 8  # signature, chunk length and type, then width and height (big-endian)
+# JPEG start-of-frame markers (SOF0..SOF15 but DHT, JPG and DAC), standalone markers (TEM, RSTn).
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+_JPEG_STANDALONE = frozenset({0x01, *range(0xD0, 0xD8)})
 
 Archetype = rr.AsComponents
 Pixels = npt.NDArray[Any]
@@ -385,6 +396,49 @@ def _media_type(fmt: str, data: npt.NDArray[np.uint8]) -> str | None:
     return None
 
 
+def _check_declared_size(ctx: ConvertContext, what: str, width: int, height: int) -> None:
+    """A ConvertError unless a header's ``width`` x ``height`` is an image the host or the
+    viewer may decode (see MAX_DECODED_PIXELS)."""
+    if width <= 0 or height <= 0 or width * height > MAX_DECODED_PIXELS:
+        msg = (
+            f"{ctx.topic}: {what} header declares a {width}x{height} image; more than "
+            f"{MAX_DECODED_PIXELS} pixels (or none) is refused without decoding it"
+        )
+        raise ConvertError(msg)
+
+
+def _png_size(data: npt.NDArray[np.uint8]) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR chunk, which the format puts first; None if ``data``
+    does not start like a PNG (the decoder then names it)."""
+    head = bytes(data[:_PNG_IHDR])
+    if len(head) < _PNG_IHDR or not head.startswith(_PNG_MAGIC) or head[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+def _jpeg_size(data: npt.NDArray[np.uint8]) -> tuple[int, int] | None:
+    """(width, height) from a JPEG's start-of-frame segment, found by hopping over the segments
+    before it (a few, whatever the image's size); None if there is none to find."""
+    view = np.ascontiguousarray(data).data  # a memoryview: its items are ints
+    at = 2  # after SOI
+    while at + 4 <= len(view):
+        if view[at] != 0xFF:
+            return None
+        marker = view[at + 1]
+        if marker == 0xFF:  # fill byte
+            at += 1
+        elif marker in _JPEG_STANDALONE:
+            at += 2
+        elif marker in _JPEG_SOF:
+            if at + 9 > len(view):
+                return None
+            height = int.from_bytes(view[at + 5 : at + 7], "big")
+            return int.from_bytes(view[at + 7 : at + 9], "big"), height
+        else:
+            at += 2 + int.from_bytes(view[at + 2 : at + 4], "big")
+    return None
+
+
 def _decode_compressed_depth(msg: Any, ctx: ConvertContext) -> tuple[Pixels, int, int]:
     """(depth pixels, width, height): 16UC1 stays raw millimetres, 32FC1 becomes metres."""
     original, _, codec = msg.format.partition(";")
@@ -407,15 +461,16 @@ def _decode_compressed_depth(msg: Any, ctx: ConvertContext) -> tuple[Pixels, int
             msg_ = f"{ctx.topic}: compressedDepth RVL payload has no resolution header"
             raise ConvertError(msg_)
         width, height = (int(v) for v in body[:8].view("<u4"))
-        if not (0 < width <= _MAX_SIDE and 0 < height <= _MAX_SIDE):
-            msg_ = f"{ctx.topic}: compressedDepth RVL header claims a {width}x{height} image"
-            raise ConvertError(msg_)
+        _check_declared_size(ctx, "compressedDepth RVL", width, height)
         try:
             raw: Pixels = rvl_decode(body[8:], width * height).reshape(height, width)
         except ValueError as err:
             msg_ = f"{ctx.topic}: compressedDepth RVL payload ({width}x{height}) is corrupt: {err}"
             raise ConvertError(msg_) from None
     else:
+        declared = _png_size(body)
+        if declared is not None:
+            _check_declared_size(ctx, "compressedDepth PNG", *declared)
         decoded = cv2.imdecode(body, cv2.IMREAD_UNCHANGED)
         if decoded is None or decoded.dtype != np.uint16 or decoded.ndim != 2:
             msg_ = (
@@ -448,6 +503,9 @@ def _still_image(msg: Any, ctx: ConvertContext) -> LogItem:
             "the payload does not start like a JPEG or PNG; its messages are dropped"
         )
         raise ConvertError(msg_)
+    declared = _png_size(msg.data) if media_type == _PNG else _jpeg_size(msg.data)
+    if declared is not None:
+        _check_declared_size(ctx, "PNG" if media_type == _PNG else "JPEG", *declared)
     encoded = rr.EncodedImage.from_fields(blob=_blob(msg.data), media_type=media_type)
     return LogItem(ctx.entity_path, (encoded,), times=ctx.times)
 

@@ -4,6 +4,9 @@ equal an OpenCV reference conversion of the message's own bytes."""
 
 from __future__ import annotations
 
+import struct
+import tracemalloc
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -18,12 +21,17 @@ from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.contract import ColumnsItem, LogEntry, LogItem
 from host_bridge.converters.images import (
+    MAX_DECODED_PIXELS,
     convert_compressed_image,
     convert_compressed_image_run,
     convert_image,
 )
+from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
 from host_bridge.errors import ConvertError
+from robot_relay.wire import RawMessage
 from tests.host_bridge.sensor_test_support import make_ctx
+from tests.host_bridge.test_config import RecordingSink
+from tests.reliability import Record
 
 TYPESTORE = get_typestore(Stores.ROS2_HUMBLE)
 T = TYPESTORE.types
@@ -614,3 +622,110 @@ def test_real_legacy_jpg_compressed_image_with_exif(shared_data: Path) -> None:
     decoded = cv2.imdecode(blob, cv2.IMREAD_COLOR)
     assert decoded is not None
     assert decoded.shape == (960, 1280, 3)
+
+
+# --- declared sizes over the decoding cap (issue 14) ------------------------------------------------
+
+
+def png_chunk(kind: bytes, data: bytes) -> bytes:
+    return len(data).to_bytes(4, "big") + kind + data + zlib.crc32(kind + data).to_bytes(4, "big")
+
+
+def zero_png16(width: int, height: int) -> bytes:
+    """A real, valid 16-bit grey PNG of zeros, deflated row by row: 2 bytes a pixel when decoded,
+    about 1/1000 of that as a file."""
+    deflate = zlib.compressobj(9)
+    row = bytes(1 + 2 * width)  # filter type 0, then the row's pixels
+    idat = b"".join(deflate.compress(row) for _ in range(height)) + deflate.flush()
+    ihdr = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
+    return PNG_SIGNATURE + png_chunk(b"IHDR", ihdr) + png_chunk(b"IDAT", idat) + png_chunk(b"IEND", b"")
+
+
+def with_png_size(png: bytes, width: int, height: int) -> bytes:
+    """``png`` whose IHDR declares ``width`` x ``height``, its CRC recomputed."""
+    ihdr = struct.pack(">II", width, height) + png[24:29]
+    return png[:8] + png_chunk(b"IHDR", ihdr) + png[33:]
+
+
+def with_jpeg_size(jpeg: bytes, width: int, height: int) -> bytes:
+    """``jpeg`` whose baseline start-of-frame segment declares ``width`` x ``height``."""
+    sof = jpeg.index(b"\xff\xc0")
+    return jpeg[:sof + 5] + struct.pack(">HH", height, width) + jpeg[sof + 9:]
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
+CAP = MAX_DECODED_PIXELS
+
+
+def test_images_declaring_more_pixels_than_the_cap_are_refused_before_decoding(
+    reliability: Record,
+) -> None:
+    small = random_pixels((6, 8, 3), np.uint8)
+    depth_bomb = zero_png16(8193, 8192)  # 67,117,056 pixels, one row over 2^26
+    assert len(depth_bomb) < 200_000
+    rvl_claim = struct.pack("<II", 65535, 65535) + bytes(16)
+    hostile = [
+        ("/depth_png", "16UC1; compressedDepth png", depth_header() + depth_bomb,
+         f"compressedDepth PNG header declares a 8193x8192 image; more than {CAP} pixels (or "
+         "none) is refused without decoding it"),
+        ("/depth_rvl", "16UC1; compressedDepth rvl", depth_header() + rvl_claim,
+         f"compressedDepth RVL header declares a 65535x65535 image; more than {CAP} pixels (or "
+         "none) is refused without decoding it"),
+        ("/png", "png", with_png_size(encode(".png", small), 20000, 20000),
+         f"PNG header declares a 20000x20000 image; more than {CAP} pixels (or none) is refused "
+         "without decoding it"),
+        ("/jpeg", "jpeg", with_jpeg_size(encode(".jpg", small), 65535, 65535),
+         f"JPEG header declares a 65535x65535 image; more than {CAP} pixels (or none) is "
+         "refused without decoding it"),
+    ]
+    good = encode(".png", small)
+    sink = RecordingSink()
+    dispatcher = Dispatcher(sink)
+    tracemalloc.start()
+    try:
+        for step, (topic, fmt, payload, _) in enumerate(hostile):
+            dispatcher.dispatch([
+                RawMessage(ROBOT, topic, COMPRESSED, compressed_cdr(fmt, payload), log_ns=step),
+                RawMessage(ROBOT, COMPRESSED_TOPIC, COMPRESSED, compressed_cdr("png", good),
+                           log_ns=step),
+            ])
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    dispatcher.close()
+    warnings = [text for entry, _ in sink.logged
+                if isinstance(entry, LogItem) and entry.path == WARNINGS_PATH
+                for a in entry.archetypes if isinstance(a, rr.TextLog) and a.text is not None
+                for text in a.text.as_arrow_array().to_pylist()]
+    assert warnings == [
+        f"[{ROBOT}] {topic}: {text} (further ConvertErrors on this topic are counted, not shown)"
+        for topic, _, _, text in hostile
+    ]
+    for topic, *_ in hostile:
+        counters = dispatcher.counters[(ROBOT, topic)]
+        assert (counters.received, counters.converted, counters.dropped) == (1, 0, 1)
+    stills = [a for entry, _ in sink.logged if isinstance(entry, LogItem)
+              and entry.path == f"/{ROBOT}{COMPRESSED_TOPIC}" for a in entry.archetypes]
+    assert len(stills) == len(hostile)
+    assert all(received_bytes(still).tobytes() == good for still in stills)
+    assert peak < 16 << 20  # decoding the depth bomb alone would take 128 MiB
+    reliability("Hostile input", "compressed images declaring more than 64 Mpx: a real "
+                f"{len(depth_bomb) // 1000} KB 16-bit PNG of 8193x8192 zeros (compressedDepth, "
+                "128 MiB decoded), an RVL header of 65535x65535, a PNG and a JPEG whose headers "
+                "claim 20000x20000 and 65535x65535",
+                tried=f"{len(hostile)} messages",
+                survived=f"host (traced peak {peak / 2**20:.1f} MB, nothing decoded); each "
+                f"refused naming its topic and declared size; {len(stills)} of {len(hostile)} good "
+                "PNGs beside them logged byte for byte",
+                lost=f"the {len(hostile)} oversized images only")
+
+
+def test_an_image_of_exactly_the_cap_is_logged() -> None:
+    png = with_png_size(encode(".png", random_pixels((6, 8, 3), np.uint8)), 8192, 8192)
+    archetype = convert_compressed(make_compressed("png", png))
+    assert received_bytes(archetype).tobytes() == png  # 2^26 pixels: passed on for the viewer
+
+
+def compressed_cdr(fmt: str, payload: bytes) -> bytes:
+    return bytes(TYPESTORE.serialize_cdr(make_compressed(fmt, payload), COMPRESSED))
