@@ -182,14 +182,18 @@ def test_live_host_without_robots_stops_on_a_signal(tmp_path: Path, signum: int)
 
 
 def test_bag_being_converted_stops_on_sigterm(tmp_path: Path) -> None:
-    """A long bag: the conversion stops part way, what was converted is saved."""
-    seconds = 600
+    """A long bag: the conversion stops part way (after the run of 65,536 messages it is
+    converting), what was converted is saved. The host's output is slowed to 30 us a message
+    (tests/integration/slow_host.py): unslowed, it converts the whole bag in less time than the
+    test waits before its signal."""
+    seconds = 1500
     bag = write_bag(tmp_path / "long_bag", [
         Entry("/joint_states", "sensor_msgs/msg/JointState", i * 10**7, joint_state(i * 10**7, [i, -i]))
         for i in range(seconds * 100)
     ])
     rrd = tmp_path / "bag.rrd"
-    with started(command("host_bridge.cli", "--bag", str(bag), "--save", str(rrd))) as (host, lines):
+    with started(command("tests.integration.slow_host", "0.00003", "*", "0",
+                         "--bag", str(bag), "--save", str(rrd))) as (host, lines):
         wait_for_file(rrd, lines)
         time.sleep(0.5)
         took = stop_and_wait(host, signal.SIGTERM)

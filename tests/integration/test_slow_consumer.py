@@ -1,8 +1,8 @@
 """A host whose output cannot keep up (issue 14): two robots on loopback, one ("flood")
 replaying its odometry as fast as its relay can send, the other ("calm") at its real 30 Hz.
 
-The host runs as ``python -m tests.integration.test_slow_consumer HOST-FLAGS``: the real
-``swanky-host`` with its dispatcher slowed down for the flood robot only (SLOW_S per message),
+The host runs as ``python -m tests.integration.slow_host``: the real ``swanky-host`` with its
+dispatcher slowed down for the flood robot only (SLOW_S per message),
 as if its converters or its viewer were too slow for it: about ten times too slow (a relay sends
 ~1,400 messages a second here, the host takes 1 / SLOW_S); the ratio measured goes into the
 table. Its per-robot queue holds QUEUE messages instead of 5,000, or the host would need 35 s at
@@ -13,9 +13,7 @@ robot must not notice.
 
 from __future__ import annotations
 
-import sys
 import time
-from collections.abc import Sequence
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -38,27 +36,6 @@ FLOOD_MESSAGES = 18_000
 STARTUP_S = 90.0
 
 
-def slow_host(argv: Sequence[str]) -> int:
-    """swanky-host with the flood robot's messages held SLOW_S each on their way out."""
-    from host_bridge.cli import main
-    from host_bridge.dispatch import Dispatcher
-    from host_bridge.inputs.queues import RobotQueues
-
-    dispatch = Dispatcher.dispatch
-    make_queues = RobotQueues.__init__
-
-    def smaller_queues(self: RobotQueues, max_per_robot: int = QUEUE, **kwargs: object) -> None:
-        make_queues(self, QUEUE, **kwargs)  # type: ignore[arg-type]
-
-    def slow_dispatch(self: Dispatcher, batch: Sequence[object]) -> None:
-        time.sleep(SLOW_S * sum(getattr(raw, "robot", "") == "flood" for raw in batch))
-        dispatch(self, batch)  # type: ignore[arg-type]
-
-    Dispatcher.dispatch = slow_dispatch  # type: ignore[method-assign]
-    RobotQueues.__init__ = smaller_queues  # type: ignore[method-assign]
-    return main(list(argv))
-
-
 def test_slow_output_drops_the_flooding_robots_oldest_and_spares_the_other(
     tmp_path: Path, reliability: Record,
 ) -> None:
@@ -71,7 +48,8 @@ def test_slow_output_drops_the_flooding_robots_oldest_and_spares_the_other(
     endpoint = ("-e", f"tcp/127.0.0.1:{port}", *NO_SHM, "--wait-for-host", "60")
     with ExitStack() as stack:
         host = stack.enter_context(running(command(
-            "tests.integration.test_slow_consumer", "-l", f"tcp/127.0.0.1:{port}", *NO_SHM,
+            "tests.integration.slow_host", str(SLOW_S), "flood", str(QUEUE),
+            "-l", f"tcp/127.0.0.1:{port}", *NO_SHM,
             "--save", str(out), "--until-idle", "4", "--duration", "180")))
         host_lines = Lines(host)
         sampler = Sampler(host.pid, period_s=0.1)
@@ -136,7 +114,3 @@ def test_slow_output_drops_the_flooding_robots_oldest_and_spares_the_other(
              f"warned about once; {shown:.0f} of them in /_stats/flood/odom/drops (sequence gaps "
              "of closed periods only); calm lost 0",
     )
-
-
-if __name__ == "__main__":
-    sys.exit(slow_host(sys.argv[1:]))
