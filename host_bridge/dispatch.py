@@ -250,7 +250,7 @@ class Dispatcher:
                     counters.last_sequence = raw.sequence
         return counters
 
-    def take(self, items: Sequence[InputItem | MessageRun]) -> None:
+    def take(self, items: Sequence[InputItem]) -> None:
         """A run from an input (inputs/base.py): problems warned about, robots joining or
         leaving logged under /_swanky/robots, messages dispatched."""
         batch = []

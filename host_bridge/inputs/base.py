@@ -96,10 +96,11 @@ class MessageRun(Sequence[RawMessage]):
         return RawMessage(self.robot, self.topic, self.msgtype, data, self.definition, receive_ns, log_ns)
 
 
-InputItem = RawMessage | InputProblem | RobotEvent
-Deliver = Callable[[Sequence[InputItem | MessageRun]], None]
-"""Where an input puts its runs (the dispatcher's ``take``); it may raise (``--strict``). A bag
-hands over :class:`MessageRun` s, live inputs their items one record each."""
+InputItem = RawMessage | MessageRun | InputProblem | RobotEvent
+"""What inputs deliver: a bag hands over :class:`MessageRun` s, live inputs a record per
+message."""
+Deliver = Callable[[Sequence[InputItem]], None]
+"""Where an input puts its runs (the dispatcher's ``take``); it may raise (``--strict``)."""
 
 
 class Input(Protocol):

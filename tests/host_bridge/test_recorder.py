@@ -28,7 +28,7 @@ ROS_NUMPY = Path("ros_numpy_msgs_synthetic") / "ros_numpy_test.bag"
 
 def record_bag(bag: Path, out: Path) -> list[RawMessage]:
     recorder = McapRecorder(out, prefix_robot=False)
-    messages = []
+    messages: list[RawMessage] = []
     for run in bag_runs(bag, "tb4"):
         recorder(run)
         messages += run
