@@ -45,8 +45,8 @@ if str(ROOT) not in sys.path:  # run as a script: the project's packages and ben
     sys.path.insert(0, str(ROOT))
 
 import zenoh  # noqa: E402
-
 from relay_cpu import cpu_seconds  # noqa: E402  (beside this script)
+
 from robot_relay.app import RelayOptions, relay_source  # noqa: E402
 from robot_relay.session import ZenohOptions, open_session  # noqa: E402
 from robot_relay.sources.base import Outlet  # noqa: E402

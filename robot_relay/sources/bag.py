@@ -417,7 +417,7 @@ class BagSource:
     def _ros1_definition(self, msgtype: str) -> MessageDefinition:
         return MessageDefinition("ros2msg", self._ros1_store.generate_msgdef(msgtype, ros_version=2)[0])
 
-    def _cdr(self, raw: bytes, info: TopicInfo) -> bytes | memoryview | None:
+    def _cdr(self, raw: bytes | memoryview, info: TopicInfo) -> bytes | memoryview | None:
         """CDR of a bag payload; None (warned once per topic) when a ROS 1 one is broken."""
         if not self.is_ros1:
             return raw
@@ -520,7 +520,7 @@ class BagSource:
                 self.paths[0], read, "; ".join(lost),
             )
 
-    def _read(self) -> Iterator[tuple[Any, int, bytes]]:
+    def _read(self) -> Iterator[tuple[Any, int, bytes | memoryview]]:
         """The reader's messages; a read error in the middle of the bag (a corrupt sqlite3 row or
         chunk) ends it with a SourceError naming the file and what was read up to there."""
         count, last_ns = 0, None

@@ -12,7 +12,7 @@ import re
 import resource
 from collections import Counter
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pytest
@@ -129,7 +129,7 @@ class RecordingSink:
                         values.extend(v for row in column.as_arrow_array().to_pylist() for v in row)
                 continue
             for archetype in item.archetypes:
-                values.extend(archetype.scalars.as_arrow_array().to_pylist())  # type: ignore[union-attr]
+                values.extend(cast(Any, archetype).scalars.as_arrow_array().to_pylist())
         return values
 
     def warnings(self) -> list[str]:
@@ -137,7 +137,7 @@ class RecordingSink:
             text
             for item in self.entries if isinstance(item, LogItem) and item.path == WARNINGS_PATH
             for archetype in item.archetypes
-            for text in archetype.text.as_arrow_array().to_pylist()  # type: ignore[union-attr]
+            for text in cast(Any, archetype).text.as_arrow_array().to_pylist()
         ]
 
 

@@ -9,7 +9,7 @@ import json
 import math
 from collections import Counter
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import pytest
 from hypothesis import given
@@ -236,7 +236,7 @@ def _check_key(key: str) -> str:
     parsed = [_parse_or_refuse(*parser) for parser in parsers]
     data_key = parsed[0]
     if data_key is not None:
-        robot, topic = data_key  # type: ignore[misc]
+        robot, topic = cast(tuple[str, str], data_key)
         assert check_robot_name(robot) == robot
         assert topic.startswith("/")
         assert len(topic) > 1

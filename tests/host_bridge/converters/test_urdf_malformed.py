@@ -16,7 +16,7 @@ import time
 import tracemalloc
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pytest
@@ -126,7 +126,7 @@ def draw(xml: str, resolver: ResourceResolver | None = None) -> Drawn:
                 speeds += [float(v) for col in entry.columns for v in np.ravel(values(col))]
             continue
         if entry.path == WARNINGS_PATH:
-            warnings += [text for a in entry.archetypes for text in values(a.text)]
+            warnings += [text for a in entry.archetypes for text in values(cast(Any, a).text)]
         elif entry.path.startswith(f"/{ROBOT}/robot_model/") and entry.path.endswith("/visual_0"):
             visuals[entry.path.split("/")[3]] = entry
         elif entry.path.startswith(f"/{ROBOT}/tf_static/") and index < from_description:
