@@ -73,6 +73,10 @@ def repeated_texts(texts: Sequence[str], rows: npt.NDArray[np.integer[Any]] | in
         return pa.array(list(texts) * rows, pa.utf8())
     if not isinstance(rows, int) and len(rows) <= _FEW_TEXTS:
         return pa.array([texts[row] for row in rows.tolist()], pa.utf8())
+    if not isinstance(rows, int) and len(rows) % len(texts) == 0 and (
+        rows.reshape(-1, len(texts)) == np.arange(len(texts))
+    ).all():  # texts in order again and again (a TF run's transforms): joined once, repeated
+        rows = len(rows) // len(texts)
     encoded = [text.encode() for text in texts]
     sizes = np.array([len(text) for text in encoded], np.int64)
     row_sizes = np.tile(sizes, rows) if isinstance(rows, int) else sizes[rows]

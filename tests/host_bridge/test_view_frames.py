@@ -340,3 +340,6 @@ def test_frames_of_a_column_run_are_read_from_its_bytes() -> None:
     assert repeated_texts(["ab", "c"], 2).to_pylist() == ["ab", "c", "ab", "c"]
     assert repeated_texts(["ab", "c"], 100).to_pylist() == ["ab", "c"] * 100
     assert repeated_texts(["é"], 40).to_pylist() == ["é"] * 40
+    backwards = (np.arange(99) % 3)[::-1]
+    assert repeated_texts(["ab", "", "déf"], backwards).to_pylist() == [
+        ["ab", "", "déf"][row] for row in backwards]
