@@ -27,7 +27,7 @@ from robot_relay.wire import RawMessage
 log = logging.getLogger("swanky.host")
 
 
-RUN_MESSAGES = 65536
+RUN_MESSAGES = 32768
 """Messages read before they go on as runs: big runs amortise what each run costs (a
 send_columns call per plotted series, the frames' bookkeeping) ..."""
 RUN_BYTES = 64 * 1024 * 1024
