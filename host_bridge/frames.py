@@ -95,6 +95,8 @@ def _distinct(*arrays: pa.Array) -> set[tuple[Any, ...]]:
     Python strings: a run's frame columns have hundreds of thousands of rows."""
     if not arrays or len(arrays[0]) <= _FEW_ROWS:
         return set(zip(*(array.to_pylist() for array in arrays), strict=True))
+    if all(_one_string(array) for array in arrays):  # an Imu run's parent frame
+        return {tuple(array[0].as_py() for array in arrays)}
     byte_rows = [_string_bytes(array) for array in arrays]
     if any(rows is None for rows in byte_rows):
         return set(zip(*(array.to_pylist() for array in arrays), strict=True))
@@ -126,6 +128,23 @@ def _distinct_rows(table: npt.NDArray[np.uint8]) -> list[int]:
     distinct = np.unique(words.view(np.dtype((np.void, words.shape[1]))).ravel(),
                                     return_index=True)[1].tolist()
     return distinct
+
+
+def _one_string(array: pa.Array) -> bool:
+    """Whether ``array`` is a utf8 array without nulls holding one string on every row."""
+    if not pa.types.is_string(array.type) or array.null_count or not len(array):
+        return False
+    count = len(array)
+    _, offsets_buffer, data_buffer = array.buffers()
+    offsets = np.frombuffer(offsets_buffer, np.int32, count + 1, array.offset * 4)
+    width = int(offsets[1] - offsets[0])
+    if int(offsets[-1] - offsets[0]) != count * width or not width:
+        return width == 0 and offsets[-1] == offsets[0]  # every row empty
+    if not (np.diff(offsets) == width).all():
+        return False
+    data = np.frombuffer(data_buffer, np.uint8, count * width, int(offsets[0]))
+    text = data.reshape(count, width)
+    return bool((text == text[0]).all())
 
 
 def _string_bytes(array: pa.Array) -> npt.NDArray[np.uint8] | None:

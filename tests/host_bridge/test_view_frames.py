@@ -320,7 +320,7 @@ def test_an_entity_hung_from_a_frame_places_that_frame_and_the_model_root_is_a_t
 
 def test_frames_of_a_column_run_are_read_from_its_bytes() -> None:
     """A run of 3,000 TF rows over three relations (names of equal and of different sizes, one
-    a prefix of another, non-ASCII) and Imu-like rows with one parent: exactly those relations,
+    a prefix of another, non-ASCII) and 100 Imu rows with one parent: exactly those relations,
     from Arrow columns made by repeated_texts as the converters make them."""
     names = ["r/map", "r/odom", "r/odom", "r/base_link", "r/base_link", "r/bäse_link_2"]
     rows = np.arange(3000) % 3
@@ -330,8 +330,9 @@ def test_frames_of_a_column_run_are_read_from_its_bytes() -> None:
         child_frame=repeated_texts(names[1::2], rows),
     )), {"ros_time": np.arange(3000, dtype=np.int64)})
     imu = ColumnsItem("/r/imu/orientation", list(rr.Transform3D.columns(
-        quaternion=np.tile([0.0, 0.0, 0.0, 1.0], (5, 1)), parent_frame=repeated_texts(["r/imu"], 5),
-    )), {"ros_time": np.arange(5, dtype=np.int64)})
+        quaternion=np.tile([0.0, 0.0, 0.0, 1.0], (100, 1)),
+        parent_frame=repeated_texts(["r/imu"], 100),
+    )), {"ros_time": np.arange(100, dtype=np.int64)})
     assert frames_logged([tf, imu]) == ({
         ("r/odom", "r/map"), ("r/base_link", "r/odom"), ("r/bäse_link_2", "r/base_link"),
         ("tf#/r/imu/orientation", "r/imu")}, set())
