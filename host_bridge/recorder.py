@@ -25,8 +25,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO, Protocol
 
-from mcap.writer import CompressionType, Writer
-
 from host_bridge.errors import RecorderError
 from robot_relay.wire import MessageDefinition, RawMessage
 
@@ -77,6 +75,9 @@ class McapRecorder:
         except OSError as err:
             msg = f"--record-mcap {path}: cannot write: {err.strerror}"
             raise RecorderError(msg) from err
+        # Imported here: every host imports this module, few record (18 ms of each start-up).
+        from mcap.writer import CompressionType, Writer
+
         self._writer = Writer(self._file, compression=CompressionType.ZSTD)
         self._writer.start(profile=PROFILE, library="swanky")
         self._schemas: dict[tuple[str, MessageDefinition | None], int] = {}
