@@ -154,17 +154,18 @@ def open_input(
     if robot_files is not None:
         robot_files.attach(session)
         closing.callback(robot_files.detach)
-    if options.stats is not False:
-        stats: RawOutput = StatsTap(
-            dispatcher.sink, dispatcher.counters, session=session, robots=robots
-        )
-        dispatcher.taps.append(stats)
-        closing.callback(stats.close)
-    live: Input = LiveInput(
+    live = LiveInput(
         session, robots=robots, domain=options.domain, root_robot=options.robot,
         rmw_zenoh=options.rmw_zenoh,
     )
-    source = live
+    if options.stats is not False:
+        stats: RawOutput = StatsTap(
+            dispatcher.sink, dispatcher.counters, session=session, robots=robots,
+            host_dropped=live.queues.dropped_when_taken,
+        )
+        dispatcher.taps.append(stats)
+        closing.callback(stats.close)  # after the input's: its queues' last drops are counted
+    source: Input = live
     if demo is not None:
         from host_bridge.demo.run import DemoInput
 

@@ -6,9 +6,13 @@ Once per second of each robot's clock (the relay's receive time live; the bag's 
 
 - ``/_stats/<robot><topic>/rate_hz``: messages that reached the host, per second;
 - ``.../bandwidth_kbps``: their CDR bytes (after wire decompression), kbit/s;
-- ``.../drops``: messages lost on the way (wire sequence gaps) in the period, the ones the
-  host's own queue dropped included (a full queue, a heavy topic's message replaced by a newer
-  one while the host is behind: inputs/queues.py, which names them apart when the host stops);
+- ``.../drops``: messages lost between the relay and the host (wire sequence gaps) in the
+  period, less the host's own ``host_drops`` (they leave gaps too, but are counted once, there);
+- ``.../host_drops`` (live): messages the host itself dropped in the period because it converts
+  the robot's messages slower than they arrive (a full queue, a heavy topic's message replaced
+  by a newer one while behind: inputs/queues.py), also for topics with nothing else to show;
+  what is dropped after the last closed period is logged when the host stops, at the end of the
+  period it falls in, so the series sums to the host's drop summary;
 - ``.../latency_ms``: mean host wall clock when the message reached the pipeline (before it is
   decoded and converted) minus the relay's receive time (live only);
 - ``.../convert_ms``: mean host decode + conversion time per message;
@@ -56,6 +60,9 @@ PERIOD_NS = 1_000_000_000
 MAX_EMPTY_PERIODS = 10
 
 ConvertTotals = Callable[[str, str], tuple[int, float]]
+HostDropped = Callable[[str], Mapping[str, int]]
+"""A robot's messages the host's queue dropped so far, per topic, as counted when the batch being
+observed left the queue (:meth:`~host_bridge.inputs.queues.RobotQueues.dropped_when_taken`)."""
 
 
 def no_convert_totals(robot: str, topic: str) -> tuple[int, float]:
@@ -73,6 +80,8 @@ class TopicStats:
     rate_hz: float
     bandwidth_kbps: float
     drops: int
+    host_drops: int | None
+    """None: no host queue (a bag)."""
     latency_ms: float | None
     convert_ms: float | None
     convert_seconds: float
@@ -86,6 +95,9 @@ class _TopicWindow:
     latency_ns: int = 0
     latency_count: int = 0
     last_sequence: int | None = None
+    # The topic's host drops as of the last batch it was in; those since then left gaps in this
+    # batch (unless older than the topic's first message seen) and are not the link's drops.
+    host_dropped_seen: int = 0
     converted_before: int = 0
     convert_seconds_before: float = 0.0
 
@@ -95,17 +107,45 @@ class _RobotWindow:
     timeline: str
     end_ns: int
     topics: dict[str, _TopicWindow] = field(default_factory=dict)
+    # Host drops per topic up to the last closed period.
+    host_dropped_closed: Mapping[str, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class HostDrops:
+    """Host drops of a topic after its last closed period, when the host stops."""
+
+    robot: str
+    topic: str
+    timeline: str
+    end_ns: int
+    count: int
 
 
 class StatsTracker:
     """Per-robot one-second windows over RawMessages; pure (times come in, numbers go out)."""
 
     def __init__(
-        self, period_ns: int = PERIOD_NS, convert_totals: ConvertTotals = no_convert_totals
+        self,
+        period_ns: int = PERIOD_NS,
+        convert_totals: ConvertTotals = no_convert_totals,
+        host_dropped: HostDropped | None = None,
     ) -> None:
         self.period_ns = period_ns
         self.convert_totals = convert_totals
+        self.host_dropped = host_dropped
         self._robots: dict[str, _RobotWindow] = {}
+        # Per (robot, topic): host drops not yet set against a sequence gap of the current batch.
+        self._unmatched: dict[tuple[str, str], int] = {}
+
+    def observe_batch(self, batch: Sequence[RawMessage], host_ns: int) -> list[TopicStats]:
+        """:meth:`observe` a batch the host's queue handed over at once (a robot's worker took
+        it); host drops not found in its gaps were of messages older than any seen."""
+        self._unmatched.clear()
+        closed: list[TopicStats] = []
+        for raw in batch:
+            closed += self.observe(raw, host_ns)
+        return closed
 
     def observe(self, raw: RawMessage, host_ns: int) -> list[TopicStats]:
         """Count ``raw``, handed to the host pipeline at ``host_ns``; return the periods it closed."""
@@ -126,19 +166,34 @@ class StatsTracker:
                 robot.end_ns = self._period_end(at)
         window = robot.topics.get(raw.topic)
         if window is None:
-            converted, seconds = self.convert_totals(raw.robot, raw.topic)
-            window = robot.topics[raw.topic] = _TopicWindow(
-                converted_before=converted, convert_seconds_before=seconds
-            )
+            window = robot.topics[raw.topic] = self._new_window(raw.robot, raw.topic)
         window.count += 1
         window.bytes += len(raw.data)
         if raw.sequence is not None:
-            window.drops += sequence_gap(window.last_sequence, raw.sequence)
+            gap = sequence_gap(window.last_sequence, raw.sequence)
+            window.drops += gap - self._dropped_by_host(raw, window, gap)
             window.last_sequence = raw.sequence
         if raw.receive_ns is not None:
             window.latency_ns += host_ns - raw.receive_ns
             window.latency_count += 1
         return closed
+
+    def _new_window(self, robot: str, topic: str) -> _TopicWindow:
+        converted, seconds = self.convert_totals(robot, topic)
+        return _TopicWindow(converted_before=converted, convert_seconds_before=seconds)
+
+    def _dropped_by_host(self, raw: RawMessage, window: _TopicWindow, gap: int) -> int:
+        """How much of the sequence ``gap`` before ``raw`` the host's own queue dropped."""
+        if self.host_dropped is None:
+            return 0
+        key = (raw.robot, raw.topic)
+        unmatched = self._unmatched.get(key)
+        if unmatched is None:  # the topic's first message in this batch
+            dropped = self.host_dropped(raw.robot).get(raw.topic, 0)
+            unmatched, window.host_dropped_seen = dropped - window.host_dropped_seen, dropped
+        matched = min(unmatched, gap)
+        self._unmatched[key] = unmatched - matched
+        return matched
 
     def _period_end(self, at: int) -> int:
         return (at // self.period_ns + 1) * self.period_ns
@@ -146,6 +201,9 @@ class StatsTracker:
     def _close(self, name: str, robot: _RobotWindow) -> list[TopicStats]:
         seconds = self.period_ns / 1e9
         closed = []
+        host_dropped = None if self.host_dropped is None else self.host_dropped(name)
+        for topic in sorted((host_dropped or {}).keys() - robot.topics.keys()):
+            robot.topics[topic] = self._new_window(name, topic)  # dropped, none converted yet
         for topic, window in robot.topics.items():
             converted, convert_seconds = self.convert_totals(name, topic)
             new_converted = converted - window.converted_before
@@ -158,6 +216,8 @@ class StatsTracker:
                 rate_hz=window.count / seconds,
                 bandwidth_kbps=window.bytes * 8 / 1000 / seconds,
                 drops=window.drops,
+                host_drops=None if host_dropped is None
+                else host_dropped.get(topic, 0) - robot.host_dropped_closed.get(topic, 0),
                 latency_ms=window.latency_ns / window.latency_count / 1e6
                 if window.latency_count else None,
                 convert_ms=spent * 1000 / new_converted if new_converted else None,
@@ -165,11 +225,29 @@ class StatsTracker:
             ))
             robot.topics[topic] = _TopicWindow(
                 last_sequence=window.last_sequence,
+                host_dropped_seen=window.host_dropped_seen,
                 converted_before=converted,
                 convert_seconds_before=convert_seconds,
             )
+        if host_dropped is not None:
+            robot.host_dropped_closed = host_dropped
         robot.end_ns += self.period_ns
         return closed
+
+    def host_drops_at_stop(self) -> list[HostDrops]:
+        """The host drops after each robot's last closed period, on its open period's end, so
+        that ``host_drops`` sums to what the host dropped (call once the queues are drained)."""
+        if self.host_dropped is None:
+            return []
+        found = []
+        for name, robot in self._robots.items():
+            dropped = self.host_dropped(name)
+            for topic, count in sorted(dropped.items()):
+                new = count - robot.host_dropped_closed.get(topic, 0)
+                if new:
+                    found.append(HostDrops(name, topic, robot.timeline, robot.end_ns, new))
+            robot.host_dropped_closed = dropped
+        return found
 
 
 def topic_stats_items(stats: Sequence[TopicStats], period_ns: int = PERIOD_NS) -> list[LogItem]:
@@ -183,6 +261,7 @@ def topic_stats_items(stats: Sequence[TopicStats], period_ns: int = PERIOD_NS) -
             "rate_hz": s.rate_hz,
             "bandwidth_kbps": s.bandwidth_kbps,
             "drops": float(s.drops),
+            "host_drops": None if s.host_drops is None else float(s.host_drops),
             "latency_ms": s.latency_ms,
             "convert_ms": s.convert_ms,
         }
@@ -243,10 +322,11 @@ class StatsTap:
         *,
         session: zenoh.Session | None = None,
         robots: str = "*",
+        host_dropped: HostDropped | None = None,
         clock: Callable[[], int] = time.time_ns,
     ) -> None:
         self.sink = sink
-        self.tracker = StatsTracker(convert_totals=self._convert_totals)
+        self.tracker = StatsTracker(convert_totals=self._convert_totals, host_dropped=host_dropped)
         self._counters = counters
         self._clock = clock
         self._rates = RelayRates()
@@ -276,10 +356,8 @@ class StatsTap:
 
     def __call__(self, batch: Sequence[RawMessage]) -> None:
         host_ns = self._clock()
-        closed: list[TopicStats] = []
         with self._lock:
-            for raw in batch:
-                closed += self.tracker.observe(raw, host_ns)
+            closed = self.tracker.observe_batch(batch, host_ns)
             items = topic_stats_items(closed, self.tracker.period_ns)
             while self._reports:
                 items += self._rates.items(self._reports.popleft())
@@ -287,6 +365,16 @@ class StatsTap:
             self.sink.log(items, {})
 
     def close(self) -> None:
+        """Stop taking the relays' reports; log the host drops of the periods still open (the
+        input is closed first, so its queues are drained)."""
         if self._subscriber is not None:
             self._subscriber.undeclare()
             self._subscriber = None
+        with self._lock:
+            last = self.tracker.host_drops_at_stop()
+        if last:
+            self.sink.log([
+                LogItem(f"{STATS_ROOT}/{d.robot}{d.topic}/host_drops",
+                        (rr.Scalars(float(d.count)),), times={d.timeline: d.end_ns})
+                for d in last
+            ], {})

@@ -15,8 +15,11 @@ worker hands over the small topics' messages before the heavy ones (each topic's
 kept), so they do not wait for the heavy ones that came with them either.
 
 Every message dropped here is counted per topic (:attr:`RobotQueues.dropped`, the drop summary
-the host prints when it stops) and, since it never reaches the pipeline, shows in
-``/_stats/<robot><topic>/drops`` as the wire sequence gap it leaves.
+the host prints when it stops) and shows in ``/_stats/<robot><topic>/host_drops`` (stats.py reads
+:meth:`RobotQueues.dropped_when_taken` and keeps these drops out of the wire ``drops``, though
+they leave sequence gaps too). A topic's first drop is warned about once, in
+``/_swanky/warnings`` as well: the warning leads the robot's next batch, so it shows when the
+drops begin, not after the backlog (and takes no message's place in the queue).
 """
 
 from __future__ import annotations
@@ -25,10 +28,12 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
+from host_bridge.errors import HostError
 from host_bridge.inputs.base import InputItem, InputProblem
+from host_bridge.stats import STATS_ROOT
 from robot_relay.wire import RawMessage
 
 if TYPE_CHECKING:
@@ -53,6 +58,11 @@ ItemDeliver = Callable[[Sequence[InputItem]], None]
 
 # (item, latched, its topic if it is a non-latched message of a heavy topic, else None)
 _Entry = tuple[InputItem, bool, str | None]
+
+
+class HostBehindError(HostError):
+    """The host dropped messages of a topic: it converts the robot's messages slower than they
+    arrive."""
 
 
 class HeavyTypes:
@@ -83,6 +93,12 @@ class _RobotQueue:
         self.heavy_waiting: dict[str, int] = {}
         self.ready = threading.Condition(lock)
         self.worker: threading.Thread | None = None
+        self.dropped: dict[str, int] = {}
+        # ``dropped`` as it was when the worker took its current batch: replaced, never changed.
+        self.dropped_when_taken: Mapping[str, int] = {}
+        self.dropped_since_taken = False
+        # Each topic's first drop, to be warned about ahead of the waiting messages.
+        self.warnings: list[InputProblem] = []
 
     def append(self, entry: _Entry) -> None:
         self.items.append(entry)
@@ -111,8 +127,6 @@ class RobotQueues:
         self.max_per_robot = max_per_robot
         self.heavy = heavy if heavy is not None else HeavyTypes()
         self.heavy_backlog = heavy_backlog
-        self.dropped: dict[tuple[str, str], int] = {}
-        """Messages dropped per (robot, topic), for either reason."""
         self.superseded: dict[tuple[str, str], int] = {}
         """Of those, the heavy ones a newer message of their topic replaced."""
         # Data, problems and robots joining or leaving: what --until-idle waits on, so a robot
@@ -140,9 +154,9 @@ class RobotQueues:
                 self._supersede(robot, state, heavy_topic)
             full = len(state.items) >= self.max_per_robot
             if full and not self._make_room(robot, state) and not latched:
-                self._count_drop(robot, item)
-                return
-            state.append((item, latched, heavy_topic))
+                self._count_drop(robot, state, item)
+            else:
+                state.append((item, latched, heavy_topic))
             self.last_activity = time.monotonic()
             state.ready.notify()
             self._any.notify()
@@ -153,7 +167,7 @@ class RobotQueues:
         for entry in state.items:
             if entry[2] == topic:
                 state.forget(entry)
-                self._count_drop(robot, entry[0], superseded=True)
+                self._count_drop(robot, state, entry[0], superseded=True)
             else:
                 kept.append(entry)
         state.items = kept
@@ -165,23 +179,45 @@ class RobotQueues:
             if not latched and isinstance(item, RawMessage):
                 del state.items[index]
                 state.forget(entry)
-                self._count_drop(robot, item)
+                self._count_drop(robot, state, item)
                 return True
         return False
 
-    def _count_drop(self, robot: str, item: InputItem, superseded: bool = False) -> None:
+    def _count_drop(
+        self, robot: str, state: _RobotQueue, item: InputItem, superseded: bool = False
+    ) -> None:
         topic = item.topic if isinstance(item, RawMessage | InputProblem) else ""
-        key = (robot, topic)
-        if key not in self.dropped:
-            log.warning(
-                "[%s] %s: the host converts this robot's messages slower than they arrive; %s "
-                "(counted, other robots unaffected)", robot, topic,
-                "converting only the newest message of this heavy topic" if superseded
-                else "dropping its oldest ones",
-            )
-        self.dropped[key] = self.dropped.get(key, 0) + 1
+        if topic not in state.dropped:
+            # The dispatcher warns (stderr and /_swanky/warnings) once per topic and kind.
+            state.warnings.append(InputProblem(robot, topic, HostBehindError(
+                "the host converts this robot's messages slower than they arrive; "
+                + ("converting only the newest message of this heavy topic" if superseded
+                   else "dropping its oldest ones")
+                + f" (counted in {STATS_ROOT}/{robot}{topic}/host_drops, other robots unaffected)"
+            )))
+        state.dropped[topic] = state.dropped.get(topic, 0) + 1
+        state.dropped_since_taken = True
         if superseded:
+            key = (robot, topic)
             self.superseded[key] = self.superseded.get(key, 0) + 1
+
+    @property
+    def dropped(self) -> dict[tuple[str, str], int]:
+        """Messages dropped per (robot, topic), for either reason."""
+        with self._lock:
+            return {
+                (robot, topic): count
+                for robot, state in self._robots.items()
+                for topic, count in state.dropped.items()
+            }
+
+    def dropped_when_taken(self, robot: str) -> Mapping[str, int]:
+        """``robot``'s messages dropped per topic, as counted when its worker took the batch it
+        hands over now: each older than every message of its topic still to be handed over
+        after it. Read without the lock on that worker's thread (the /_stats tap); never changed
+        once returned."""
+        state = self._robots.get(robot)
+        return {} if state is None else state.dropped_when_taken
 
     # -- one worker thread per robot ---------------------------------------------------------
 
@@ -207,12 +243,16 @@ class RobotQueues:
                     state.ready.wait()
                 if not state.items:
                     return
-                batch: list[InputItem] = []
+                batch: list[InputItem] = list(state.warnings)  # a drop leaves items waiting
+                state.warnings.clear()
                 heavy: list[InputItem] = []
                 for _ in range(min(len(state.items), MAX_BATCH)):
                     entry = state.items.popleft()
                     state.forget(entry)
                     (batch if entry[2] is None else heavy).append(entry[0])
+                if state.dropped_since_taken:
+                    state.dropped_when_taken = dict(state.dropped)
+                    state.dropped_since_taken = False
                 # The dispatcher converts a batch topic by topic anyway; the small topics go
                 # first, so they do not wait for the frames and clouds that came with them.
                 batch += heavy
@@ -236,7 +276,8 @@ class RobotQueues:
     def drop_summary(self) -> str:
         """One line per topic that lost messages here, saying why."""
         lines = []
-        for key, count in sorted(self.dropped.items()):
+        dropped = self.dropped
+        for key, count in sorted(dropped.items()):
             robot, topic = key
             superseded = self.superseded.get(key, 0)
             reasons = [f"{count - superseded} queue full"] if count > superseded else []

@@ -6,12 +6,17 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Sequence
+from pathlib import Path
 
+from host_bridge.destinations import SinkOptions
+from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
 from host_bridge.inputs.base import InputItem, InputProblem, RobotEvent
-from host_bridge.inputs.queues import HeavyTypes, RobotQueues
+from host_bridge.inputs.queues import HeavyTypes, HostBehindError, RobotQueues
+from host_bridge.sink import RerunSink
 from host_bridge.stats import StatsTracker, topic_stats_items
 from robot_relay.wire import RawMessage
 from tests.host_bridge.inputs.received import Received
+from tests.rrd import entity_rows
 
 
 def raw(robot: str, topic: str, n: int) -> RawMessage:
@@ -26,10 +31,11 @@ def test_full_queue_drops_oldest_non_latched_and_counts() -> None:
     queues.put(raw("b", "/scan", 9))
     received = Received()
     queues.serve(received.take)  # the workers start only now: the queues are full
-    items = received.wait_for(lambda items: len(items) == 4)
+    items = received.wait_for(lambda items: len(items) == 5)
     queues.close(timeout=5)
     a = [i.data[0] for i in items if isinstance(i, RawMessage) and i.robot == "a"]
     assert a == [0, 4, 5]  # the latched one survives, then the newest scans
+    assert [(i.robot, i.topic) for i in items if isinstance(i, InputProblem)] == [("a", "/scan")]
     assert [i.data[0] for i in items if isinstance(i, RawMessage) and i.robot == "b"] == [9]
     assert queues.dropped == {("a", "/scan"): 3}
     assert "[a] /scan: 3 dropped" in queues.drop_summary()
@@ -125,14 +131,21 @@ T0 = 1_700_000_000 * S
 
 
 def delivered(queues: RobotQueues, count: int) -> dict[str, list[tuple[str, int]]]:
-    """Serve the filled queues; per robot, (topic, payload byte) of what was delivered, in order
-    (robots are served on threads of their own, so only each robot's order is defined)."""
+    """Serve the filled queues; per robot, (topic, payload byte) of the ``count`` messages
+    delivered, in order (robots are served on threads of their own, so only each robot's order
+    is defined). The warnings of first drops are left out (see
+    test_a_topics_first_drop_is_warned_about_once_ahead_of_the_backlog)."""
     received = Received()
     queues.serve(received.take)
-    items = received.wait_for(lambda items: len(items) >= count)
+    items = received.wait_for(
+        lambda items: sum(isinstance(i, RawMessage) for i in items) >= count
+    )
     queues.close(timeout=5)
     by_robot: dict[str, list[tuple[str, int]]] = {}
     for item in items:
+        if isinstance(item, InputProblem):
+            assert isinstance(item.error, HostBehindError)
+            continue
         assert isinstance(item, RawMessage)
         by_robot.setdefault(item.robot, []).append((item.topic, item.data[0]))
     return by_robot
@@ -207,28 +220,67 @@ def test_a_full_queue_and_replacement_count_each_drop_once() -> None:
     )
 
 
-def test_messages_dropped_here_are_drops_in_stats() -> None:
-    tracker = StatsTracker()
-    tracker.observe(typed("a", "/camera", IMAGE, 0), host_ns=T0)  # converted before the backlog
+def test_messages_dropped_here_are_host_drops_in_stats_not_link_drops() -> None:
     queues = RobotQueues(heavy_backlog=2)
+    tracker = StatsTracker(host_dropped=queues.dropped_when_taken)
+    first_taken, release = threading.Event(), threading.Event()
+    warned: list[str] = []
+
+    def handle(batch: Sequence[InputItem]) -> None:  # as the dispatcher and its /_stats tap do
+        warned.extend(i.topic for i in batch if isinstance(i, InputProblem))
+        assert tracker.observe_batch(
+            [i for i in batch if isinstance(i, RawMessage)], host_ns=T0 + 500 * MS) == []
+        first_taken.set()
+        release.wait(20)  # the first batch converts slowly: a backlog builds up behind it
+
+    queues.put(typed("a", "/camera", IMAGE, 0))
+    queues.serve(handle)
+    assert first_taken.wait(20)
     for n in range(3):
         queues.put(typed("a", "/imu", IMU, n))
     for n in range(1, 5):  # 1 queued, then 2, 3 and 4 each replace the one before
         queues.put(typed("a", "/camera", IMAGE, n))
+    release.set()
+    queues.close(timeout=10)
+    assert queues.dropped == {("a", "/camera"): 3}
+    assert warned == ["/camera"]
+    next_second = RawMessage("a", "/imu", IMU, b"\0", receive_ns=T0 + S, sequence=3)
+    closed = {s.topic: s for s in tracker.observe_batch([next_second], host_ns=T0 + S)}
+    # /camera 1, 2 and 3 left a sequence gap before 4; the host dropped them, the link did not.
+    assert (closed["/camera"].rate_hz, closed["/camera"].drops, closed["/camera"].host_drops) == (
+        2.0, 0, 3)
+    assert (closed["/imu"].rate_hz, closed["/imu"].drops, closed["/imu"].host_drops) == (3.0, 0, 0)
+    paths = [item.path for item in topic_stats_items(list(closed.values()))]
+    assert [p for p in paths if "drops" in p] == [
+        "/_stats/a/camera/drops", "/_stats/a/camera/host_drops",
+        "/_stats/a/imu/drops", "/_stats/a/imu/host_drops",
+    ]
+    assert tracker.host_drops_at_stop() == []  # all in the closed period
+
+
+def test_a_topics_first_drop_is_warned_about_once_ahead_of_the_backlog(tmp_path: Path) -> None:
+    queues = RobotQueues(max_per_robot=3)
+    for n in range(1, 7):  # 4 makes room by dropping 1, 5 drops 2, 6 drops 3
+        queues.put(raw("a", "/scan", n))
     received = Received()
     queues.serve(received.take)
-    items = received.wait_for(lambda items: len(items) >= 4)
+    items = received.wait_for(lambda items: len(items) == 4)
     queues.close(timeout=5)
-    for item in items:
-        assert isinstance(item, RawMessage)
-        tracker.observe(item, host_ns=T0 + 500 * MS)
-    next_second = RawMessage("a", "/imu", IMU, b"\0", receive_ns=T0 + S, sequence=3)
-    closed = {s.topic: s for s in tracker.observe(next_second, host_ns=T0 + S)}
-    assert queues.dropped == {("a", "/camera"): 3}
-    assert (closed["/camera"].rate_hz, closed["/camera"].drops) == (2.0, 3)
-    assert (closed["/imu"].rate_hz, closed["/imu"].drops) == (3.0, 0)
-    paths = [item.path for item in topic_stats_items(list(closed.values()))]
-    assert [p for p in paths if p.endswith("/drops")] == ["/_stats/a/camera/drops", "/_stats/a/imu/drops"]
+    warning, *scans = items  # the warning takes no message's place
+    assert [i.data[0] for i in scans if isinstance(i, RawMessage)] == [4, 5, 6]
+    assert queues.dropped == {("a", "/scan"): 3}
+    assert isinstance(warning, InputProblem)
+    assert (warning.robot, warning.topic) == ("a", "/scan")
+    expected = (
+        "[a] /scan: the host converts this robot's messages slower than they arrive; dropping "
+        "its oldest ones (counted in /_stats/a/scan/host_drops, other robots unaffected) "
+        "(further HostBehindErrors on this topic are counted, not shown)"
+    )
+    out = tmp_path / "warned.rrd"
+    sink = RerunSink(SinkOptions(save=out))
+    Dispatcher(sink).take([warning])
+    sink.close()
+    assert [row["TextLog:text"] for row in entity_rows(out)[WARNINGS_PATH]] == [[expected]]
 
 
 def test_in_a_batch_small_topics_go_before_heavy_ones_each_in_its_order() -> None:

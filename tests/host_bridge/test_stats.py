@@ -11,7 +11,14 @@ from host_bridge.contract import TIMELINE_LOG, TIMELINE_RECEIVE
 from host_bridge.destinations import SinkOptions
 from host_bridge.dispatch import TopicCounters
 from host_bridge.sink import RerunSink
-from host_bridge.stats import RelayRates, StatsTap, StatsTracker, TopicStats, topic_stats_items
+from host_bridge.stats import (
+    HostDrops,
+    RelayRates,
+    StatsTap,
+    StatsTracker,
+    TopicStats,
+    topic_stats_items,
+)
 from robot_relay.wire import RawMessage, RelayReport
 from tests.rrd import entity_rows
 
@@ -83,6 +90,46 @@ def test_sequence_wrap_and_relay_restart_are_not_drops() -> None:
         tracker.observe(live("/scan", T0 + i * MS, seq), T0)
     (scan,) = tracker.observe(live("/scan", T0 + S, 4), T0 + S)
     assert scan.drops == 1  # only 2 is missing
+
+
+def test_host_drops_are_counted_apart_from_the_links_and_flushed_at_stop() -> None:
+    # What the host's queue had dropped per topic when it handed over each batch.
+    dropped: dict[str, int] = {}
+    tracker = StatsTracker(host_dropped=lambda robot: dict(dropped) if robot == "tb3" else {})
+    # Batch 1: /scan 0-4 were dropped before the first one the tap sees (no gap to show them).
+    dropped["/scan"] = 5
+    assert tracker.observe_batch([live("/scan", T0, 5), live("/scan", T0 + 100 * MS, 6)], T0) == []
+    # Batch 2: 7 and 8 dropped by the host, 9 lost on the link; /odom's only message dropped.
+    dropped.update({"/scan": 7, "/odom": 1})
+    assert tracker.observe_batch([live("/scan", T0 + 500 * MS, 10)], T0) == []
+    # Batch 3 opens the next second: the first closes.
+    closed = tracker.observe_batch([live("/scan", T0 + S, 11)], T0 + S)
+    assert [(s.topic, s.rate_hz, s.drops, s.host_drops) for s in closed] == [
+        ("/scan", 3.0, 1, 7),
+        ("/odom", 0.0, 0, 1),  # nothing reached the pipeline, yet its drops show
+    ]
+    paths = [i.path for i in topic_stats_items(closed)]
+    assert [p for p in paths if p.startswith("/_stats/tb3/odom/")] == [
+        "/_stats/tb3/odom/rate_hz", "/_stats/tb3/odom/bandwidth_kbps", "/_stats/tb3/odom/drops",
+        "/_stats/tb3/odom/host_drops",
+    ]
+    # /scan 12 and 13 dropped after the last closed period: logged when the host stops, once.
+    dropped["/scan"] = 9
+    assert tracker.host_drops_at_stop() == [
+        HostDrops("tb3", "/scan", TIMELINE_RECEIVE, T0 + 2 * S, 2)
+    ]
+    assert tracker.host_drops_at_stop() == []
+
+
+def test_without_a_host_queue_there_is_no_host_drops_series() -> None:
+    tracker = StatsTracker()  # a bag: no queue between the input and the pipeline
+    tracker.observe_batch([live("/scan", T0, 0), live("/scan", T0 + MS, 3)], T0)
+    (scan,) = tracker.observe_batch([live("/scan", T0 + S, 4)], T0 + S)
+    assert (scan.drops, scan.host_drops) == (2, None)
+    assert [i.path for i in topic_stats_items([scan]) if "drops" in i.path] == [
+        "/_stats/tb3/scan/drops"
+    ]
+    assert tracker.host_drops_at_stop() == []
 
 
 def test_convert_time_from_the_dispatcher_counters() -> None:
