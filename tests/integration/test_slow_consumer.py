@@ -81,12 +81,21 @@ def test_slow_output_drops_the_flooding_robots_oldest_and_spares_the_other(
     assert kept == sorted(set(kept))
     dropped = FLOOD_MESSAGES - len(kept)
     assert f"[flood] /odom: {dropped} dropped (" in host_lines.text
-    assert "[flood] /odom: the host converts this robot's messages slower than they arrive" in \
-        host_lines.text
-    # In Rerun the queue's drops show as wire sequence gaps in /_stats, but only in periods
-    # that closed: when every kept message is from the flood's last second, that is none.
-    shown = sum(row["Scalars:scalars"][0] for row in rows.get("/_stats/flood/odom/drops", []))
-    assert 0 <= shown <= dropped
+    warning = ("[flood] /odom: the host converts this robot's messages slower than they arrive; "
+               "dropping its oldest ones (counted in /_stats/flood/odom/host_drops")
+    assert warning in host_lines.text
+    warned = [row["TextLog:text"][0] for row in rows["/_swanky/warnings"]]
+    assert [text for text in warned if "slower than they arrive" in text] == [
+        f"{warning}, other robots unaffected) (further HostBehindErrors on this topic are "
+        "counted, not shown)"
+    ]
+    # In Rerun: every one of them in /_stats/flood/odom/host_drops, none as a link drop.
+    host_drops = [row["Scalars:scalars"][0] for row in rows["/_stats/flood/odom/host_drops"]]
+    shown = sum(host_drops)
+    assert shown == dropped
+    link_drops = sum(row["Scalars:scalars"][0] for row in rows.get("/_stats/flood/odom/drops", []))
+    assert link_drops == 0
+    assert {row["Scalars:scalars"][0] for row in rows["/_stats/calm/odom/host_drops"]} == {0.0}
     flood_latency_ms = max((row["Scalars:scalars"][0]
                             for row in rows.get("/_stats/flood/odom/latency_ms", [])), default=0.0)
     sent_rate = FLOOD_MESSAGES / (flooded - started)
@@ -111,6 +120,8 @@ def test_slow_output_drops_the_flooding_robots_oldest_and_spares_the_other(
                  f"{flood_latency_ms / 1000:.1f} s in closed stats periods); host RSS {first_half:.0f} MB -> "
                  f"{second_half:.0f} MB (peak {sampler.peak_mb():.0f} MB)",
         lost=f"{dropped} flood messages, its oldest, counted in the host's drop summary and "
-             f"warned about once; {shown:.0f} of them in /_stats/flood/odom/drops (sequence gaps "
-             "of closed periods only); calm lost 0",
+             "warned about once (stderr and /_swanky/warnings); "
+             f"{shown:.0f}/{dropped} of them in /_stats/flood/odom/host_drops "
+             f"({sum(1 for n in host_drops if n)} of {len(host_drops)} periods), "
+             f"{link_drops:.0f} as link drops; calm lost 0",
     )
