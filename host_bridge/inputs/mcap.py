@@ -13,10 +13,15 @@ The order is exactly rosbags' (``McapReader.messages``, which ``BagSource`` yiel
 ties by the chunk's file offset, then by the record's place in its chunk; files of a split bag
 one after the other. Messages outside their chunk's indexed time range are skipped as rosbags
 skips them (said once). A file this reader does not take (no summary or chunk indexes, a chunk
-without message indexes, an unknown compression) raises :class:`NotIndexedError` before anything is
-read, and the caller reads the bag with ``BagSource`` instead; a chunk whose records disagree with
-its index (a damaged file) raises :class:`~host_bridge.errors.InputError` naming the file and
-the chunk.
+without message indexes, an unknown compression, a chunk index that matches no chunk) raises
+:class:`NotIndexedError` before anything is read, and the caller reads the bag with ``BagSource``
+instead (which salvages a damaged summary from the data section).
+
+A damaged chunk (a bad CRC, a decompression failure, a message index that is not one or whose
+offsets disagree with the records, a message its index leaves out) is skipped and the other
+chunks are read, as the relay's salvage reader does; after the file, one warning names it and
+every chunk skipped, with what its index says it held. A chunk index whose offset was flipped
+is repaired from its message indexes (they follow their chunk, which ends at the first of them).
 """
 
 from __future__ import annotations
@@ -36,7 +41,6 @@ import numpy as np
 import numpy.typing as npt
 from numpy.lib.stride_tricks import as_strided
 
-from host_bridge.errors import InputError
 from host_bridge.inputs.base import MessageRun
 from robot_relay.wire import RawMessage, TopicInfo
 
@@ -67,6 +71,10 @@ class NotIndexedError(Exception):
     """The file is not one this reader takes (the message says why); rosbags reads it."""
 
 
+class _DamagedChunkError(Exception):
+    """A chunk whose records disagree with its index (the message says how): it is skipped."""
+
+
 @dataclass(frozen=True, slots=True)
 class Chunk:
     """One chunk as its ChunkIndex and Chunk record describe it."""
@@ -80,6 +88,7 @@ class Chunk:
     uncompressed_size: int
     crc: int
     message_indexes: tuple[tuple[int, int], ...]  # (channel id, file offset of its MessageIndex)
+    indexed_at: int  # where the chunk index says the chunk is: file_offset unless repaired
 
 
 def _string(buffer: mmap.mmap, at: int) -> tuple[str, int]:
@@ -87,21 +96,44 @@ def _string(buffer: mmap.mmap, at: int) -> tuple[str, int]:
     return buffer[at + 4 : at + 4 + size].decode(), at + 4 + size
 
 
+def _chunk_record(
+    buffer: mmap.mmap, file_offset: int, compression: str, compressed_size: int
+) -> tuple[int, int] | None:
+    """(where its records start, its CRC) of the Chunk record at ``file_offset`` if there is one
+    with this compression and compressed size, else None."""
+    if not 0 <= file_offset < len(buffer):
+        return None
+    try:
+        op, _ = _RECORD.unpack_from(buffer, file_offset)
+        _, _, _, crc = _CHUNK_HEAD.unpack_from(buffer, file_offset + _RECORD.size)
+        stored, records_at = _string(buffer, file_offset + _RECORD.size + _CHUNK_HEAD.size)
+        (records_size,) = _U64.unpack_from(buffer, records_at)
+    except (struct.error, UnicodeDecodeError):
+        return None
+    if op != OP_CHUNK or stored != compression or records_size != compressed_size:
+        return None
+    return records_at + 8, crc
+
+
 def _chunk(buffer: mmap.mmap, at: int) -> Chunk:
     """The ChunkIndex record's content at ``at``, checked against the Chunk record it names."""
-    start_ns, end_ns, file_offset, _, map_size = _CHUNK_INDEX_HEAD.unpack_from(buffer, at)
+    index_at = at
+    start_ns, end_ns, indexed_at, length, map_size = _CHUNK_INDEX_HEAD.unpack_from(buffer, at)
     at += _CHUNK_INDEX_HEAD.size
     indexes = tuple(struct.iter_unpack("<HQ", buffer[at : at + map_size]))
     compression, at = _string(buffer, at + map_size + 8)
     compressed_size, uncompressed_size = struct.unpack_from("<QQ", buffer, at)
-    op, _ = _RECORD.unpack_from(buffer, file_offset)
-    _, _, _, crc = _CHUNK_HEAD.unpack_from(buffer, file_offset + _RECORD.size)
-    stored, records_at = _string(buffer, file_offset + _RECORD.size + _CHUNK_HEAD.size)
-    (records_size,) = _U64.unpack_from(buffer, records_at)
-    records_offset = records_at + 8
-    if op != OP_CHUNK or stored != compression or records_size != compressed_size:
-        msg = f"the chunk index at byte {at} does not match the chunk at byte {file_offset}"
+    file_offset = indexed_at
+    found = _chunk_record(buffer, file_offset, compression, compressed_size)
+    if found is None and indexes:
+        # A flipped chunk offset: the chunk's message indexes follow it (the MCAP spec), so the
+        # chunk, ``length`` bytes long, ends where the first of them starts.
+        file_offset = min(offset for _, offset in indexes) - length
+        found = _chunk_record(buffer, file_offset, compression, compressed_size)
+    if found is None:
+        msg = f"the chunk index at byte {index_at} does not match the chunk at byte {indexed_at}"
         raise NotIndexedError(msg)
+    records_offset, crc = found
     if records_offset + compressed_size > len(buffer):
         msg = f"the chunk at byte {file_offset} runs past the end of the file"
         raise NotIndexedError(msg)
@@ -112,7 +144,7 @@ def _chunk(buffer: mmap.mmap, at: int) -> Chunk:
         msg = f"the chunk at byte {file_offset} has no message index"
         raise NotIndexedError(msg)
     return Chunk(file_offset, start_ns, end_ns, records_offset, compression, compressed_size,
-                 uncompressed_size, crc, tuple(sorted(indexes)))
+                 uncompressed_size, crc, tuple(sorted(indexes)), indexed_at)
 
 
 def read_chunks(buffer: mmap.mmap) -> list[Chunk]:
@@ -206,6 +238,13 @@ class McapFile:
             self.close()
             raise
         self._outside = 0
+        # What the warning after the file says: chunk indexes repaired, chunks skipped.
+        self._repaired = [
+            f"the chunk index of the chunk at byte {chunk.file_offset} points at byte "
+            f"{chunk.indexed_at}; the chunk was found before its message indexes"
+            for chunk in self.chunks if chunk.indexed_at != chunk.file_offset
+        ]
+        self._skipped: list[str] = []
 
     def __enter__(self) -> McapFile:
         return self
@@ -223,17 +262,11 @@ class McapFile:
         of the chunks in ``group``, in rosbags' order."""
         parts: list[tuple[int, int, npt.NDArray[np.void]]] = []
         for number, chunk in enumerate(group):
-            for channel, at in chunk.message_indexes:
-                if channel not in self.channels:
-                    continue
-                op, _ = _RECORD.unpack_from(self._map, at)
-                (stored,) = _U16.unpack_from(self._map, at + _RECORD.size)
-                (size,) = _U32.unpack_from(self._map, at + _RECORD.size + 2)
-                if op != OP_MESSAGE_INDEX or stored != channel or size % _INDEX_ENTRY.itemsize:
-                    raise self._damaged(chunk, f"its message index at byte {at} is not one")
-                entries = np.frombuffer(self._map, _INDEX_ENTRY, size // _INDEX_ENTRY.itemsize,
-                                        at + _RECORD.size + 6).copy()
-                parts.append((number, channel, entries))
+            try:
+                parts += [(number, channel, self._entries(channel, at))
+                          for channel, at in chunk.message_indexes if channel in self.channels]
+            except _DamagedChunkError as damage:
+                self._skip(chunk, str(damage))
         if not parts:
             empty = np.zeros(0, np.int64)
             return empty, empty, empty, empty
@@ -253,11 +286,38 @@ class McapFile:
         order = np.lexsort((offsets, file_offsets, log_ns))
         return numbers[order], offsets[order], channels[order], log_ns[order]
 
-    def _damaged(self, chunk: Chunk, what: str) -> InputError:
-        return InputError(
-            f"{self.path}: the chunk at byte {chunk.file_offset} disagrees with its index ({what}):"
-            " the file is damaged; `mcap recover` may rebuild it"
-        )
+    def _entries(self, channel: int, at: int) -> npt.NDArray[np.void]:
+        """The entries of the chunk's MessageIndex record of ``channel`` at ``at``."""
+        try:
+            op, _ = _RECORD.unpack_from(self._map, at)
+            (stored,) = _U16.unpack_from(self._map, at + _RECORD.size)
+            (size,) = _U32.unpack_from(self._map, at + _RECORD.size + 2)
+            if op != OP_MESSAGE_INDEX or stored != channel or size % _INDEX_ENTRY.itemsize:
+                raise ValueError
+            entries: npt.NDArray[np.void] = np.frombuffer(
+                self._map, _INDEX_ENTRY, size // _INDEX_ENTRY.itemsize, at + _RECORD.size + 6)
+            return np.array(entries)  # a copy: the map may close
+        except (struct.error, ValueError) as err:  # ValueError: it runs past the end of the file
+            msg = f"its message index at byte {at} is not one"
+            raise _DamagedChunkError(msg) from err
+
+    def _skip(self, chunk: Chunk, why: str) -> None:
+        """Note a damaged chunk for the warning, with what its index says it held."""
+        held: dict[str, int | None] = {}  # None: its index cannot be read
+        for channel, at in chunk.message_indexes:
+            if channel in self.channels:
+                topic = self.channels[channel].topic
+                try:
+                    count = len(self._entries(channel, at))
+                except _DamagedChunkError:
+                    held[topic] = None
+                    continue
+                if topic not in held or held[topic] is not None:
+                    held[topic] = (held.get(topic) or 0) + count
+        what = ", ".join(f"{'?' if count is None else count} {topic}"
+                         for topic, count in sorted(held.items()))
+        self._skipped.append(f"the chunk at byte {chunk.file_offset} ({what or 'no'} messages "
+                             f"per its index) is skipped: {why}")
 
     def _load(self, chunk: Chunk) -> _Loaded:
         records = memoryview(self._map)[
@@ -267,18 +327,19 @@ class McapFile:
                 data: bytes | mmap.mmap = DECOMPRESSORS[chunk.compression](
                     records, chunk.uncompressed_size)
             except Exception as err:
-                raise self._damaged(chunk, f"{chunk.compression} does not decompress: {err}") from err
+                msg = f"{chunk.compression} does not decompress it ({err})"
+                raise _DamagedChunkError(msg) from err
             base = 0
             if len(data) != chunk.uncompressed_size:
-                raise self._damaged(chunk, f"{len(data)} bytes decompressed, "
-                                           f"{chunk.uncompressed_size} expected")
+                msg = f"{len(data)} bytes decompressed, {chunk.uncompressed_size} expected"
+                raise _DamagedChunkError(msg)
         else:
             data, base = self._map, chunk.records_offset
             if chunk.compressed_size != chunk.uncompressed_size:
-                raise self._damaged(chunk, "uncompressed sizes differ")
+                raise _DamagedChunkError("uncompressed sizes differ")
         view = memoryview(data)
         if chunk.crc and zlib.crc32(view[base : base + chunk.uncompressed_size]) != chunk.crc:
-            raise self._damaged(chunk, "checksum mismatch")
+            raise _DamagedChunkError("its CRC does not match (corrupt)")
         return _Loaded(data, view, base)
 
     def _payloads(
@@ -289,7 +350,7 @@ class McapFile:
         messages at ``offsets`` (all read at once), checked against the index."""
         size = chunk.uncompressed_size
         if len(offsets) and (offsets.min() < 0 or offsets.max() > size - MESSAGE_HEADER):
-            raise self._damaged(chunk, "a message offset is outside the chunk")
+            raise _DamagedChunkError("a message offset is outside the chunk")
         records = np.frombuffer(loaded.data, np.uint8, size, loaded.base)
         words = _numbers_at(records, "<u8")
         lengths = words[offsets + 1].astype(np.int64)
@@ -303,7 +364,7 @@ class McapFile:
         del records, words
         if bad.any():
             at = int(offsets[np.argmax(bad)])
-            raise self._damaged(chunk, f"no message of the indexed channel and time at {at}")
+            raise _DamagedChunkError(f"no message of the indexed channel and time at {at}")
         starts = loaded.base + offsets + MESSAGE_HEADER
         return starts, loaded.base + offsets + 9 + lengths
 
@@ -324,17 +385,17 @@ class McapFile:
         gap_ends = np.concatenate((offsets, [chunk.uncompressed_size]))
         overlapping = gap_starts > gap_ends
         if overlapping.any():
-            raise self._damaged(chunk, f"records overlap at {int(gap_starts[np.argmax(overlapping)])}")
+            raise _DamagedChunkError(f"records overlap at {int(gap_starts[np.argmax(overlapping)])}")
         gaps = gap_starts < gap_ends  # most messages follow one another: nothing to walk
         for start, end in zip(gap_starts[gaps].tolist(), gap_ends[gaps].tolist(), strict=True):
             at = start
             while at < end:
                 op, record_size = _RECORD.unpack_from(loaded.data, loaded.base + at)
                 if op == OP_MESSAGE:
-                    raise self._damaged(chunk, f"the message at {at} is not indexed")
+                    raise _DamagedChunkError(f"the message at {at} is not indexed")
                 at += _RECORD.size + record_size
             if at != end:
-                raise self._damaged(chunk, f"records overlap at {at}")
+                raise _DamagedChunkError(f"records overlap at {at}")
 
     def _ranges(self) -> Iterator[tuple[Mapping[int, _Loaded], list[npt.NDArray[np.int64]]]]:
         """The wanted channels' messages in rosbags' order, in ranges whose chunks are all
@@ -350,12 +411,18 @@ class McapFile:
             first = {n: int(by_chunk[bounds[n]]) for n in used}
             last = {n: int(by_chunk[bounds[n + 1] - 1]) for n in used}
             loaded: dict[int, _Loaded] = {}
+            skipped: list[int] = []
             columns = (numbers, starts, ends, channels, log_ns)
             done = 0
             for position in [*sorted(first.values()), len(numbers)]:
-                # Every message before ``position`` has its chunk loaded: hand them on.
+                # Every message before ``position`` has its chunk loaded or skipped: hand them on.
                 if done < position:
-                    yield loaded, [c[done:position] for c in columns]
+                    part = [c[done:position] for c in columns]
+                    if skipped:
+                        kept = ~np.isin(part[0], skipped)
+                        part = [c[kept] for c in part]
+                    if len(part[0]):
+                        yield loaded, part
                 for gone in [n for n in loaded if last[n] < position]:
                     del loaded[gone]
                 done = position
@@ -363,12 +430,22 @@ class McapFile:
                     break
                 number = int(numbers[position])
                 where = by_chunk[bounds[number] : bounds[number + 1]]
-                loaded[number] = self._load(group[number])
-                starts[where], ends[where] = self._checked(
-                    group[number], loaded[number], offsets[where], channels[where], log_ns[where])
+                try:
+                    chunk = self._load(group[number])
+                    starts[where], ends[where] = self._checked(
+                        group[number], chunk, offsets[where], channels[where], log_ns[where])
+                except _DamagedChunkError as damage:
+                    self._skip(group[number], str(damage))
+                    skipped.append(number)
+                else:
+                    loaded[number] = chunk
         if self._outside:
             log.warning("%s: %d messages lie outside their chunk's indexed time range and are "
                         "skipped, as rosbags skips them", self.path, self._outside)
+        if self._repaired or self._skipped:
+            log.warning("bag %s is damaged (%sthe readable part was read); lost: %s", self.path,
+                        "".join(f"{repair}; " for repair in self._repaired),
+                        "; ".join(self._skipped) or "no message")
 
     def batches(self, robot: str, size: int) -> Iterator[list[RawMessage]]:
         """The wanted channels' messages as RawMessages in rosbags' order, at most ``size`` a
@@ -421,7 +498,7 @@ class McapFile:
             payloads = self._payloads(chunk, loaded, offsets, channels, log_ns)
             self._unindexed_messages(chunk, loaded)
         except (IndexError, ValueError, struct.error) as err:
-            raise self._damaged(chunk, str(err)) from err
+            raise _DamagedChunkError(f"{type(err).__name__}: {err}") from err
         return payloads
 
 

@@ -33,6 +33,7 @@ from tests.rrd import entity_rows
 mcap_writer = pytest.importorskip("mcap.writer")
 mcap_stream = pytest.importorskip("mcap.stream_reader")
 mcap_records = pytest.importorskip("mcap.records")
+mcap_reader = pytest.importorskip("mcap.reader")
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
 
@@ -129,8 +130,10 @@ def convert(bag: Path, out: Path) -> tuple[int, list[float]]:
 
 
 def damage_warnings(caplog: pytest.LogCaptureFixture, bag: Path) -> list[str]:
+    """The warnings naming ``bag``: the relay's bag source's, or the host's bulk MCAP reader's."""
     return [r.getMessage() for r in caplog.records
-            if r.name == "swanky.relay" and r.levelno == logging.WARNING and bag.name in r.getMessage()]
+            if r.name in ("swanky.relay", "swanky.host") and r.levelno == logging.WARNING
+            and bag.name in r.getMessage()]
 
 
 @pytest.mark.parametrize("compression", ["zstd", "lz4"])
@@ -179,6 +182,117 @@ def test_an_mcap_with_a_damaged_summary_is_read_from_its_data_section(
     reliability("Damaged bags", "MCAP with 58 bytes flipped in its summary (chunk indexes)",
                 tried="1 bag", survived=f"all {COUNT} /speed messages, exit 0, one warning",
                 lost="0 messages")
+
+
+def chunk_indexes(bag: Path) -> list[Any]:
+    """The chunk indexes of the summary, by the ``mcap`` package's reader, in file order."""
+    with bag.open("rb") as stream:
+        summary = mcap_reader.make_reader(stream).get_summary()
+    assert summary is not None
+    return sorted(summary.chunk_indexes, key=lambda index: index.chunk_start_offset)
+
+
+def held_speeds(index: Any) -> list[float]:
+    """The /speed values of a chunk: messages are written in log-time order, /speed i at
+    _stamp(i), so a chunk holds those of its time range."""
+    return [float(i) for i in range(COUNT)
+            if index.message_start_time <= _stamp(i) <= index.message_end_time]
+
+
+def skipped_chunk(bag: Path, index: Any, why: str) -> str:
+    held = len(held_speeds(index))
+    return (f"bag {bag} is damaged (the readable part was read); lost: the chunk at byte "
+            f"{index.chunk_start_offset} ({held} /mode, {held} /speed messages per its index) "
+            f"is skipped: {why}")
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4"])
+def test_an_indexed_mcap_with_a_corrupt_chunk_loses_that_chunk_only(
+    compression: str, tmp_path: Path, caplog: pytest.LogCaptureFixture, reliability: Record
+) -> None:
+    """40 bytes flipped inside the third chunk's compressed records: its codec or its CRC says
+    so; the host's bulk reader skips it and converts the 12 others (it was exit 2, nothing)."""
+    bag = write_mcap(tmp_path / f"chunk-{compression}.mcap", compression)
+    indexes = chunk_indexes(bag)
+    third = indexes[2]
+    lost = held_speeds(third)
+    data = bytearray(bag.read_bytes())
+    records = third.chunk_start_offset + third.chunk_length - third.compressed_size
+    for at in range(records + 40, records + 80):
+        data[at] ^= 0xFF
+    bag.write_bytes(bytes(data))
+    with caplog.at_level(logging.WARNING):
+        code, speeds = convert(bag, tmp_path / "out.rrd")
+    assert code == 0
+    assert len(indexes) == 13
+    assert len(lost) == 24
+    assert speeds == [float(i) for i in range(COUNT) if float(i) not in lost]
+    [warning] = damage_warnings(caplog, bag)
+    head = skipped_chunk(bag, third, "")
+    assert warning.startswith(head)
+    why = warning[len(head):]
+    assert why == "its CRC does not match (corrupt)" or why.startswith(
+        f"{compression} does not decompress it (")
+    reliability("Damaged bags", f"indexed MCAP ({compression} chunks) with 40 bytes flipped in "
+                "one chunk, through the host's bulk reader", tried="1 bag",
+                survived=f"{len(speeds)} of {COUNT} /speed messages (the 12 other chunks), exit 0, "
+                "one warning naming the file, the chunk and what its index held",
+                lost=f"the {len(lost)} /speed and {len(lost)} /mode messages of that chunk "
+                f"(before: exit 2, 0 of {COUNT} converted)")
+
+
+def _flip_message_index_offset(data: bytearray, index: Any) -> None:
+    """The second entry of the chunk's first message index points 64 bytes off its message."""
+    at = min(index.message_index_offsets.values())
+    entry = at + 9 + 2 + 4 + 16  # record header, channel id, entries' length, first entry
+    (offset,) = struct.unpack_from("<Q", data, entry + 8)
+    struct.pack_into("<Q", data, entry + 8, offset ^ 0x40)
+
+
+def _flip_chunk_offset(data: bytearray, index: Any) -> None:
+    """The chunk index's chunk_start_offset points past the end of the file."""
+    summary = _summary_start(bytes(data))
+    at = data.index(struct.pack("<Q", index.chunk_start_offset), summary)
+    struct.pack_into("<Q", data, at, len(data) + 1000)
+
+
+@pytest.mark.parametrize("damage", ["message index offset", "chunk index offset"])
+def test_an_indexed_mcap_with_a_flipped_index_offset(
+    damage: str, tmp_path: Path, caplog: pytest.LogCaptureFixture, reliability: Record
+) -> None:
+    """A message index entry pointing off its message loses that chunk (its records cannot be
+    trusted to be the indexed ones); a chunk index pointing past the end of the file is repaired
+    from the chunk's message indexes, which follow it: nothing lost."""
+    bag = write_mcap(tmp_path / "offset.mcap", "zstd")
+    third = chunk_indexes(bag)[2]
+    data = bytearray(bag.read_bytes())
+    if damage == "message index offset":
+        _flip_message_index_offset(data, third)
+    else:
+        _flip_chunk_offset(data, third)
+    bag.write_bytes(bytes(data))
+    with caplog.at_level(logging.WARNING):
+        code, speeds = convert(bag, tmp_path / "out.rrd")
+    assert code == 0
+    [warning] = damage_warnings(caplog, bag)
+    if damage == "message index offset":
+        lost = held_speeds(third)
+        (first_at,) = struct.unpack_from(
+            "<Q", data, min(third.message_index_offsets.values()) + 9 + 2 + 4 + 16 + 8)
+        assert warning == skipped_chunk(
+            bag, third, f"no message of the indexed channel and time at {first_at}")
+    else:
+        lost = []
+        assert warning == (
+            f"bag {bag} is damaged (the chunk index of the chunk at byte "
+            f"{third.chunk_start_offset} points at byte {len(data) + 1000}; the chunk was found "
+            "before its message indexes; the readable part was read); lost: no message")
+    assert speeds == [float(i) for i in range(COUNT) if float(i) not in lost]
+    reliability("Damaged bags", f"indexed MCAP (zstd) with a flipped {damage}", tried="1 bag",
+                survived=f"{len(speeds)} of {COUNT} /speed messages, exit 0, one warning naming "
+                "the file and the chunk", lost=f"{len(lost)} /speed and {len(lost)} /mode "
+                "messages (that chunk's)" if lost else "0 messages (before: exit 2, 92 of 600 "
+                "messages converted)")
 
 
 def test_a_db3_with_corrupt_rows_loses_those_rows_only(

@@ -6,7 +6,10 @@ on the shared recordings, and falls back to rosbags for what it does not take.""
 
 from __future__ import annotations
 
+import logging
 import struct
+from collections import Counter
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -17,10 +20,9 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.rosbag2 import Writer as BagWriter
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.errors import InputError
 from host_bridge.inputs.bag import bag_batches, bag_runs
 from host_bridge.inputs.base import MessageRun
-from host_bridge.inputs.mcap import LARGE_PAYLOAD, McapFile, NotIndexedError
+from host_bridge.inputs.mcap import LARGE_PAYLOAD, Chunk, McapFile, NotIndexedError
 from robot_relay.sources.bag import BagSource
 from robot_relay.wire import MessageDefinition, RawMessage
 
@@ -244,30 +246,83 @@ def test_empty_bag(tmp_path: Path) -> None:
     assert list(bag_runs(directory, "tb3")) == []
 
 
-def test_damaged_chunk_is_named(tmp_path: Path) -> None:
-    """A payload byte flipped in an uncompressed chunk: its CRC says so, naming file and chunk."""
+def skipped(bag: Path, caplog: pytest.LogCaptureFixture) -> tuple[list[RawMessage], list[str]]:
+    """The bulk reader's messages of a damaged ``bag`` and the warnings naming it."""
+    with caplog.at_level(logging.WARNING, "swanky.host"):
+        got = bulk_messages(bag)
+    return got, [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING
+                 and r.name == "swanky.host" and str(bag) in r.getMessage()]
+
+
+def lost_chunk(
+    bag: Path, chunk: Chunk, index_says: Mapping[str, str] | None = None
+) -> tuple[str, list[tuple[Any, ...]]]:
+    """The start of the warning naming ``chunk`` of the uncompressed ``bag`` as skipped (with
+    ``index_says``' counts for topics whose index is damaged), and rosbags' messages of the
+    other chunks."""
+    content = bag.read_bytes()
+    inside = content[chunk.records_offset : chunk.records_offset + chunk.compressed_size]
+    # A message is the chunk's if its time is in the chunk's range and its payload in its records.
+    held = [m for m in rosbags_messages(bag)
+            if chunk.start_ns <= m[6] <= chunk.end_ns and m[3] in inside]
+    counts = Counter(m[1] for m in held)
+    what = ", ".join((index_says or {}).get(topic, f"{count} {topic}")
+                     for topic, count in sorted(counts.items()))
+    return (f"bag {bag} is damaged (the readable part was read); lost: the chunk at byte "
+            f"{chunk.file_offset} ({what} messages per its index) is skipped: ",
+            [m for m in rosbags_messages(bag) if m not in held])
+
+
+def test_damaged_chunk_is_skipped_and_named(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A payload byte flipped in an uncompressed chunk: its CRC says so; the chunk is skipped,
+    every other message read, and one warning names the file and the chunk."""
     bag = write_mcap(tmp_path / "bag.mcap", CompressionType.NONE)
     content = bytearray(bag.read_bytes())
     at = content.index(string_cdr("hello 3")[8:])
+    with McapFile(bag, {}) as opened:
+        [chunk] = [c for c in opened.chunks
+                   if c.records_offset <= at < c.records_offset + c.compressed_size]
+    head, expected = lost_chunk(bag, chunk)
     content[at] ^= 0xFF
     bag.write_bytes(bytes(content))
-    with pytest.raises(InputError, match=r"bag\.mcap: the chunk at byte \d+ disagrees with its "
-                                         r"index \(checksum mismatch\): the file is damaged"):
-        bulk_messages(bag)
+    got, warnings = skipped(bag, caplog)
+    assert [fields(raw) for raw in got] == expected
+    assert len(expected) == 280 - 10
+    assert warnings == [f"{head}its CRC does not match (corrupt)"]
 
 
-def test_message_index_pointing_elsewhere_is_named(tmp_path: Path) -> None:
+@pytest.mark.parametrize("damage", ["offset", "unindexed", "past the end"])
+def test_message_index_disagreeing_with_its_chunk_skips_the_chunk(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, damage: str
+) -> None:
+    """A message index entry pointing a byte off its message, one left out (the message is
+    then unindexed), or a message index whose length runs past the end of the file."""
     bag = write_mcap(tmp_path / "bag.mcap", CompressionType.NONE, enable_crcs=False)
     content = bytearray(bag.read_bytes())
     with McapFile(bag, {}) as opened:
-        _, index_at = opened.chunks[0].message_indexes[0]
+        chunk = opened.chunks[1]
+    _, index_at = chunk.message_indexes[0]  # /chatter's: it holds one message
+    head, expected = lost_chunk(bag, chunk, {
+        "offset": {}, "unindexed": {"/chatter": "0 /chatter"},
+        "past the end": {"/chatter": "? /chatter"}}[damage])
     entry = index_at + 15
-    (offset,) = struct.unpack_from("<Q", content, entry + 8)
-    struct.pack_into("<Q", content, entry + 8, offset + 1)
+    (size,) = struct.unpack_from("<I", content, index_at + 11)
+    (first,) = struct.unpack_from("<Q", content, entry + 8)
+    why = {"offset": f"no message of the indexed channel and time at {first + 1}",
+           "unindexed": f"the message at {first} is not indexed",
+           "past the end": f"its message index at byte {index_at} is not one"}[damage]
+    if damage == "offset":
+        struct.pack_into("<Q", content, entry + 8, first + 1)
+    elif damage == "unindexed":  # the first entry dropped: the later ones move up
+        content[entry : index_at + 15 + size] = content[entry + 16 : index_at + 15 + size] + bytes(16)
+        struct.pack_into("<I", content, index_at + 11, size - 16)
+    else:
+        struct.pack_into("<I", content, index_at + 11, 16 * len(content))
     bag.write_bytes(bytes(content))
-    with pytest.raises(InputError, match="no message of the indexed channel and time"):
-        bulk_messages(bag)
-
+    got, warnings = skipped(bag, caplog)
+    assert [fields(raw) for raw in got] == expected
+    assert len(expected) < 280
+    assert warnings == [f"{head}{why}"]
 
 @pytest.mark.parametrize("bag", [
     "tf_nav2_sim_evo/nav2_turtlebot.mcap", "rosbag2_format_fixtures/mcap_wbag",
