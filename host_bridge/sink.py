@@ -3,7 +3,9 @@ the only place that calls ``log`` / ``send_columns``.
 
 Nothing here may wait for a viewer without bound: a viewer that is missing, dies or stops
 reading is found out (an HTTP/2 probe, flushes waited on in short steps, a bounded close) and
-named, so the host neither hangs nor ignores Ctrl-C, and a ``--save`` file is still completed."""
+named, so the host neither hangs nor ignores Ctrl-C, and a ``--save`` file is still completed.
+A viewer slower than the data holds the host's robot workers back (:class:`_ViewerPacer`), so
+the host's memory stays bounded and their queues drop, and count, what it cannot take."""
 
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ import socket
 import sys
 import sysconfig
 import threading
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,6 +59,10 @@ FEW_ROWS = 4
 """ColumnsItems of up to this many rows are logged row by row (cheaper than send_columns)."""
 FLUSH_STEP_S = 1.0
 """Flushes wait in steps this long, so Python sees signals and a dead viewer in between."""
+PACE_PERIOD_S = 0.2
+"""How often the gRPC viewers are asked whether they have taken everything logged so far."""
+PACE_BEHIND_S = 0.5
+"""A viewer that has not taken what was logged within this long is behind: logging waits."""
 
 
 class Sink(Protocol):
@@ -178,6 +185,76 @@ def _never() -> bool:
     return False
 
 
+class _ViewerPacer:
+    """Back-pressure from the gRPC viewers (--rerun-addr, --spawn).
+
+    Rerun's gRPC client buffers whatever it has not sent, without limit (rerun-sdk 0.41 has no
+    memory limit for it): logging 5.7 MB/s to a frozen viewer grew the host by exactly that
+    rate (112 -> 266 MB in 27 s). A flush returns once the client has sent everything logged
+    before it, and what it can send is bounded by the connection's HTTP/2 window and socket
+    buffers (a frozen viewer stopped it after ~3 MB). So a thread flushes every
+    PACE_PERIOD_S; while a flush is not done within PACE_BEHIND_S, :meth:`wait` holds whoever
+    logs (the robots' workers), whose bounded queues then keep the newest heavy messages and
+    count what they drop. A healthy viewer takes a flush in a few ms: nothing waits. A viewer
+    that went away (its flush fails at once) is not waited for: :meth:`RerunSink.close` names
+    it."""
+
+    def __init__(self, recording: rr.RecordingStream, names: str) -> None:
+        self._recording = recording
+        self._names = names
+        self.caught_up = threading.Event()
+        self.caught_up.set()
+        self.times_behind = 0
+        self.seconds_behind = 0.0
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="rerun-pacer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stopping.wait(PACE_PERIOD_S):
+            if self._flushed(PACE_BEHIND_S):
+                continue
+            self.caught_up.clear()
+            since = time.monotonic()
+            if not self.times_behind:
+                log.warning(
+                    "the Rerun viewer %s takes the data slower than it comes: logging waits for it "
+                    "(live robots' queues keep their newest messages and count the drops)",
+                    self._names,
+                )
+            self.times_behind += 1
+            while not self._stopping.is_set() and not self._flushed(FLUSH_STEP_S):
+                pass
+            self.seconds_behind += time.monotonic() - since
+            self.caught_up.set()
+
+    def _flushed(self, timeout_s: float) -> bool:
+        """False if the viewers had not taken everything logged within ``timeout_s``."""
+        try:
+            self._recording.flush(timeout_sec=timeout_s)
+        except RuntimeError as err:
+            if "timed out" in str(err):  # Rerun's words for a viewer that is only slow
+                return False
+            self._stopping.set()  # gone: waiting for it would only lose the other sinks' data
+        return True
+
+    def wait(self, give_up: Callable[[], bool]) -> None:
+        """Until the viewers have caught up, or ``give_up()``."""
+        while not self.caught_up.wait(FLUSH_STEP_S):
+            if give_up():
+                return
+
+    def stop(self) -> None:
+        self._stopping.set()
+        self.caught_up.set()
+        self._thread.join()
+        if self.times_behind:
+            log.info(
+                "the Rerun viewer %s fell behind %d time%s, %.1f s in all", self._names,
+                self.times_behind, "" if self.times_behind == 1 else "s", self.seconds_behind,
+            )
+
+
 @dataclass(frozen=True, slots=True)
 class _Cells:
     """An Arrow array of one component's values, as ``log`` takes them."""
@@ -213,6 +290,10 @@ class RerunSink:
         self._save = options.save
         self.abandoned = False
         self._open(options)
+        self._pacer = (
+            _ViewerPacer(self.recording, "; ".join(viewer.name for viewer in self._viewers))
+            if self._viewers else None
+        )
         # Rerun's time context is per thread (the dispatcher and the slow-converter worker).
         self._local = threading.local()
 
@@ -330,6 +411,8 @@ class RerunSink:
         self._local.times = times
 
     def log(self, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
+        if self._pacer is not None and not self._pacer.caught_up.is_set():
+            self._pacer.wait(self._give_up)
         for entry in entries:
             if isinstance(entry, ColumnsItem):
                 columns = list(entry.columns)
@@ -418,6 +501,8 @@ class RerunSink:
         ``abandoned`` set: the process must then end with ``os._exit``, as Rerun's exit handler
         would wait for it too."""
         problem: SinkError | None = None
+        if self._pacer is not None:
+            self._pacer.stop()
         try:
             self.flush()
         except SinkError as err:
