@@ -119,6 +119,18 @@ class _Salvage:
     def messages(self) -> Iterator[tuple[int, int, bytes]]:
         raise NotImplementedError
 
+    def _stopped(self, offset: int, chunk: int | None, what: str) -> None:
+        """Note a record cut short at ``offset``: the file's end, or inside ``chunk``."""
+        if chunk is None:
+            self.damage.stopped = (
+                f"the file ends inside {what} at byte {offset} (cut short): nothing after it"
+            )
+        else:
+            self.damage.skipped.append(
+                f"the chunk at byte {chunk} ends inside {what} at byte {offset}; the rest of "
+                "that chunk is lost"
+            )
+
     def scan(self) -> tuple[int, int, int]:
         """Read the whole file once: its connections, and (messages, first, last log time)."""
         count, first, last = 0, None, None
@@ -189,17 +201,6 @@ class McapSalvage(_Salvage):
                     f"{what} (opcode {opcode:#04x}) at byte {base + start - _RECORD.size} is "
                     f"malformed ({type(err).__name__}), skipped"
                 )
-
-    def _stopped(self, offset: int, chunk: int | None, what: str) -> None:
-        if chunk is None:
-            self.damage.stopped = (
-                f"the file ends inside {what} at byte {offset} (cut short): nothing after it"
-            )
-        else:
-            self.damage.skipped.append(
-                f"the chunk at byte {chunk} ends inside {what} at byte {offset}; the rest of "
-                "that chunk is lost"
-            )
 
     def _chunk(self, content: memoryview, offset: int) -> Iterator[tuple[int, int, bytes]]:
         reader = _Reader(content)
@@ -379,16 +380,6 @@ class Ros1Salvage(_Salvage):
                 )
                 if at > len(data):
                     return
-
-    def _stopped(self, offset: int, chunk: int | None, what: str) -> None:
-        if chunk is None:
-            self.damage.stopped = (
-                f"the file ends inside {what} at byte {offset} (cut short): nothing after it"
-            )
-        else:
-            self.damage.skipped.append(
-                f"the chunk at byte {chunk} ends inside {what}; the rest of that chunk is lost"
-            )
 
     def _chunk(
         self, fields: dict[str, bytes], content: memoryview, offset: int
