@@ -8,7 +8,9 @@ a numpy structured dtype (one field per number, at the offset the layout gives i
 number field into a column at once. :func:`read_columns` does this for any type the typestore
 knows, from its field list (no code per type):
 
-1. The payloads are joined and split by length (``b"".join`` and ``map(len, ...)`` run in C).
+1. The payloads are split by length and each length's are gathered into one 2-D byte array. A
+   bag's run comes as :class:`PackedPayloads` (slices of one buffer: no object per payload, the
+   gather reads them in place); a list of payloads is joined first (``b"".join`` runs in C).
 2. For each length, one payload is walked in Python with CDR's rules (each number aligned to its
    size, at most 8, counted from the end of the 4-byte encapsulation header; a string or sequence
    length is a uint32 aligned to 4; the elements of an empty sequence are not aligned; at most 3
@@ -56,10 +58,11 @@ import weakref
 from collections import defaultdict
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, TypeAlias
+from typing import Any, TypeAlias, overload
 
 import numpy as np
 import numpy.typing as npt
+from numpy.lib.stride_tricks import as_strided
 from rosbags.interfaces import Nodetype
 from rosbags.typesys.store import Typestore
 
@@ -484,6 +487,46 @@ def _flatten(value: StringValue, texts: list[str]) -> tuple[int, ...]:
     return (len(value), *(dims[0] if dims else ()))
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class PackedPayloads(Sequence[bytes | memoryview]):
+    """Payloads as slices of a few buffers, with no object per payload: the i-th is
+    ``buffers[sources[i]][starts[i]:ends[i]]`` (bytes slices are copies, memoryview slices are
+    not). A bag's window keeps its payloads in their decompressed chunks (or copies of the part
+    it reads); :func:`read_columns` gathers a run's rows straight from the buffers."""
+
+    buffers: Sequence[bytes | memoryview]
+    sources: npt.NDArray[np.intp]
+    starts: npt.NDArray[np.intp]
+    ends: npt.NDArray[np.intp]
+
+    @classmethod
+    def of(cls, payloads: Sequence[bytes | memoryview]) -> PackedPayloads:
+        """``payloads`` joined into one buffer."""
+        ends = np.cumsum(np.fromiter(map(len, payloads), dtype=np.intp, count=len(payloads)))
+        starts = np.concatenate([np.zeros(1, np.intp), ends[:-1]]) if len(ends) else ends
+        return cls((b"".join(payloads),), np.zeros(len(payloads), np.intp), starts, ends)
+
+    def __len__(self) -> int:
+        return len(self.starts)
+
+    @overload
+    def __getitem__(self, index: int) -> bytes | memoryview: ...
+    @overload
+    def __getitem__(self, index: slice) -> PackedPayloads: ...
+    def __getitem__(self, index: int | slice) -> bytes | memoryview | PackedPayloads:
+        if isinstance(index, slice):
+            return PackedPayloads(self.buffers, self.sources[index], self.starts[index], self.ends[index])
+        payload: bytes | memoryview = self.buffers[self.sources[index]][self.starts[index] : self.ends[index]]
+        return payload
+
+    def __iter__(self) -> Iterator[bytes | memoryview]:
+        buffers = self.buffers
+        for source, start, end in zip(
+            self.sources.tolist(), self.starts.tolist(), self.ends.tolist(), strict=True
+        ):
+            yield buffers[source][start:end]
+
+
 def read_columns(
     payloads: Sequence[bytes | memoryview],
     msgtype: str,
@@ -493,14 +536,16 @@ def read_columns(
 ) -> Columns | None:
     """The run of CDR ``payloads`` (encapsulation header included) of ``msgtype``, as known to
     ``store``, in columns; ``None`` when it cannot be (see the module's docstring): decode it
-    message by message then. ``max_blocks`` replaces the default bound on blocks."""
+    message by message then. ``max_blocks`` replaces the default bound on blocks. Payloads in
+    one buffer (:class:`PackedPayloads`) are read in place, any others joined first."""
     if not payloads:
         return None
+    packed = payloads if isinstance(payloads, PackedPayloads) else PackedPayloads.of(payloads)
     limit = 1 + len(payloads) // MESSAGES_PER_BLOCK if max_blocks is None else max_blocks
     blocks: list[Block] = []
     try:
         plan = _plan(store, msgtype)
-        for rows, grid in _by_length(payloads):
+        for rows, grid in _by_length(packed):
             for block in _blocks(plan, rows, grid, store.max_sequence_length):
                 blocks.append(block)
                 if len(blocks) > limit:
@@ -537,19 +582,41 @@ def columns_of_messages(msgs: Sequence[Any], topic: str) -> Columns:
 
 
 def _by_length(
-    payloads: Sequence[bytes | memoryview],
+    packed: PackedPayloads,
 ) -> Iterator[tuple[npt.NDArray[np.intp], npt.NDArray[np.uint8]]]:
-    """The joined payloads split by length: their positions and a (rows, length) byte array."""
-    lengths = np.fromiter(map(len, payloads), dtype=np.intp, count=len(payloads))
-    joined = np.frombuffer(b"".join(payloads), dtype=np.uint8)
+    """The payloads split by length: their positions and a (rows, length) byte array, gathered
+    from their buffers (a view where they lie back to back in one)."""
+    buffers = [np.frombuffer(buffer, dtype=np.uint8) for buffer in packed.buffers]
+    starts, lengths = packed.starts, packed.ends - packed.starts
     if (lengths == lengths[0]).all():
-        yield np.arange(len(payloads)), joined.reshape(len(payloads), -1)
-        return
-    starts = np.concatenate([[0], np.cumsum(lengths[:-1])])
-    values, which = np.unique(lengths, return_inverse=True)
-    for number, length in enumerate(values):
-        rows = np.flatnonzero(which == number)
-        yield rows, joined[starts[rows, None] + np.arange(length)]
+        groups: Iterator[tuple[npt.NDArray[np.intp], int]] = iter(
+            [(np.arange(len(lengths)), int(lengths[0]))])
+    else:
+        values, which = np.unique(lengths, return_inverse=True)
+        groups = ((np.flatnonzero(which == number), int(length)) for number, length in enumerate(values))
+    for rows, length in groups:
+        sources = packed.sources[rows]
+        if (sources == sources[0]).all():
+            yield rows, _rows_of(buffers[int(sources[0])], starts[rows], length)
+            continue
+        grid = np.empty((len(rows), length), dtype=np.uint8)
+        for source in np.unique(sources).tolist():
+            mine = sources == source
+            grid[mine] = _rows_of(buffers[source], starts[rows[mine]], length)
+        yield rows, grid
+
+
+def _rows_of(
+    buffer: npt.NDArray[np.uint8], starts: npt.NDArray[np.intp], length: int
+) -> npt.NDArray[np.uint8]:
+    """The ``length`` bytes at each of ``starts`` in ``buffer`` as rows: a view where they lie
+    back to back, else one gather through a view of the buffer as its rows at every offset."""
+    first = int(starts[0])
+    if (starts == first + length * np.arange(len(starts))).all():
+        return buffer[first : first + length * len(starts)].reshape(len(starts), length)
+    at_every_byte = as_strided(buffer, (max(len(buffer) - length + 1, 0), length), (1, 1), writeable=False)
+    rows: npt.NDArray[np.uint8] = at_every_byte[starts]
+    return rows
 
 
 def _blocks(

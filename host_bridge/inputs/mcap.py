@@ -30,7 +30,6 @@ import contextlib
 import itertools
 import logging
 import mmap
-import operator
 import struct
 import zlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -41,6 +40,7 @@ import numpy as np
 import numpy.typing as npt
 from numpy.lib.stride_tricks import as_strided
 
+from host_bridge.columns import PackedPayloads
 from host_bridge.inputs.base import MessageRun
 from robot_relay.wire import RawMessage, TopicInfo
 
@@ -530,8 +530,11 @@ def _payloads(
 
 
 class _Window:
-    """Messages gathered for :meth:`McapFile.runs`: their payloads (chunks may go once they
-    are sliced), channels and log times, in rosbags' order."""
+    """Messages gathered for :meth:`McapFile.runs`, in rosbags' order: their channels, log times
+    and payloads as places in the window's buffers (no object per payload). A buffer is a
+    decompressed chunk most of which the window reads, else a copy of the bytes the window reads
+    of it (so a run kept for long does not pin a large chunk for a few messages), and large
+    payloads are memoryviews of their chunk; chunks may go once their range is added."""
 
     def __init__(self, channels: Mapping[int, TopicInfo], robot: str) -> None:
         self._infos = channels
@@ -539,27 +542,58 @@ class _Window:
         topics = sorted({info.topic for info in channels.values()})
         # Channel id -> the index of its topic: one topic's channels make one run.
         self._topic_of = {channel: topics.index(info.topic) for channel, info in channels.items()}
-        self._payloads: list[bytes | memoryview] = []
-        self._channels: list[npt.NDArray[np.int64]] = []
-        self._log_ns: list[npt.NDArray[np.int64]] = []
+        self._buffers: list[bytes | memoryview] = []
+        self._kept: dict[int, int] = {}  # id of a chunk's data or view -> its place in _buffers
+        self._columns: list[tuple[npt.NDArray[np.int64], ...]] = []
         self.count = 0
         self.payload_bytes = 0
 
     def add(self, loaded: Mapping[int, _Loaded], columns: Sequence[npt.NDArray[np.int64]],
             payload_bytes: int) -> None:
         numbers, starts, ends, channels, log_ns = columns
-        self._payloads += _payloads(loaded, numbers, starts, ends)
-        self._channels.append(channels)
-        self._log_ns.append(log_ns)
+        sources = np.empty(len(numbers), np.int64)
+        at = starts.copy()
+        large = ends - starts >= LARGE_PAYLOAD
+        one_chunk = numbers[0] == numbers[-1] and (numbers == numbers[0]).all()
+        for number in [int(numbers[0])] if one_chunk else np.unique(numbers).tolist():
+            mine = np.ones(len(numbers), bool) if one_chunk else numbers == number
+            chunk = loaded[number]
+            if (small := mine & ~large).any():
+                sources[small], at[small] = self._small(chunk, starts[small], ends[small])
+            if (big := mine & large).any():
+                sources[big] = self._keep(chunk.view)
+        self._columns.append((sources, at, at + (ends - starts), channels, log_ns))
         self.count += len(numbers)
         self.payload_bytes += payload_bytes
+
+    def _keep(self, buffer: bytes | memoryview) -> int:
+        place = self._kept.get(id(buffer))
+        if place is None:
+            place = self._kept[id(buffer)] = len(self._buffers)
+            self._buffers.append(buffer)
+        return place
+
+    def _small(self, chunk: _Loaded, starts: npt.NDArray[np.int64],
+               ends: npt.NDArray[np.int64]) -> tuple[int, npt.NDArray[np.int64]]:
+        """The buffer and places of the small payloads at ``starts:ends`` of ``chunk``: the
+        decompressed chunk itself when they lie in most of it, else a copy of the bytes they
+        lie in when they fill most of those (small messages one after another), else of each."""
+        low, high = int(starts.min()), int(ends.max())
+        if isinstance(chunk.data, bytes) and 2 * (high - low) >= len(chunk.data):
+            return self._keep(chunk.data), starts
+        sizes = ends - starts
+        if 2 * int(sizes.sum()) >= high - low:
+            return self._keep(chunk.data[low:high]), starts - low
+        copied = b"".join([chunk.data[start:end] for start, end in
+                           zip(starts.tolist(), ends.tolist(), strict=True)])
+        return self._keep(copied), np.cumsum(sizes) - sizes
 
     def take(self) -> list[MessageRun]:
         """The window as runs, one per stretch of a topic's messages with one channel (a topic
         recorded on two channels alternates runs when its messages do), and empties it."""
-        channels = np.concatenate(self._channels)
-        log_ns = np.concatenate(self._log_ns)
-        payloads = self._payloads
+        sources, starts, ends, channels, log_ns = (
+            np.concatenate(column) for column in zip(*self._columns, strict=True))
+        buffers = tuple(self._buffers)
         topics = np.array([self._topic_of[c] for c in np.unique(channels).tolist()])
         keys = topics[np.searchsorted(np.unique(channels), channels)]
         order = np.argsort(keys, kind="stable")
@@ -571,10 +605,9 @@ class _Window:
         for begin, end in itertools.pairwise(bounds):
             rows = order[begin:end]
             info = self._infos[int(ordered_channels[begin])]
+            payloads = PackedPayloads(buffers, sources[rows], starts[rows], ends[rows])
             runs.append((int(rows[-1]), MessageRun(
-                self._robot, info.topic, info.msgtype, info.definition,
-                list(operator.itemgetter(*rows.tolist())(payloads)) if len(rows) > 1
-                else [payloads[int(rows[0])]], log_ns[rows])))
-        self._payloads, self._channels, self._log_ns = [], [], []
+                self._robot, info.topic, info.msgtype, info.definition, payloads, log_ns[rows])))
+        self._buffers, self._kept, self._columns = [], {}, []
         self.count = self.payload_bytes = 0
         return [run for _, run in sorted(runs, key=lambda pair: pair[0])]

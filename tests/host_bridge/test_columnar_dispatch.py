@@ -16,12 +16,14 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
+from host_bridge.columns import PackedPayloads
 from host_bridge.config import HostConfig
 from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry
 from host_bridge.decode import Decoder
 from host_bridge.dispatch import Dispatcher, message_times
 from host_bridge.errors import PartialConvertError
 from host_bridge.frames import frames_logged
+from host_bridge.inputs.base import MessageRun
 from host_bridge.registry import default_registry
 from host_bridge.state import RobotState, TopicState
 from robot_relay.wire import RawMessage
@@ -403,6 +405,36 @@ def test_a_truncated_payload_costs_only_itself_and_is_warned_once_naming_the_top
     assert warnings[0].startswith("[tb3] /imu: ")
     assert "payload does not deserialize" in warnings[0]
     kept = [raw for i, raw in enumerate(good) if i not in (7, 20)]
+    assert rows(converted(sink)) == rows(message_path(kept))
+
+
+def test_a_truncated_payload_in_a_packed_bag_run_costs_only_itself(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A bag's run (payloads in one buffer, record headers between them) with a payload cut
+    short in the middle: that message is dropped and warned about, the others convert."""
+    data = payloads(IMU, [imu(i, 100 * SECOND + i) for i in range(30)])
+    data[11] = data[11][:-30]
+    buffer, starts = b"", []
+    for payload in data:
+        buffer += b"\x05" + bytes(30)  # a Message record's header
+        starts.append(len(buffer))
+        buffer += payload
+    ends = [start + len(payload) for start, payload in zip(starts, data, strict=True)]
+    packed = PackedPayloads((buffer,), np.zeros(30, np.intp), np.array(starts), np.array(ends))
+    log_ns = np.array([7 * SECOND + 5_000_000 * i for i in range(30)], np.int64)
+    run = MessageRun(ROBOT, "/imu", IMU, None, packed, log_ns)
+    sink = RecordingSink()
+    robot_dispatcher = dispatcher(sink)
+    with caplog.at_level(logging.WARNING, logger="swanky.host"):
+        robot_dispatcher.dispatch(run)
+    counters = robot_dispatcher.counters[(ROBOT, "/imu")]
+    assert (counters.received, counters.converted, counters.dropped, counters.warnings) == (30, 29, 1, 1)
+    warnings = [r.getMessage() for r in caplog.records]
+    assert len(warnings) == 1
+    assert warnings[0].startswith("[tb3] /imu: ")
+    assert "payload does not deserialize" in warnings[0]
+    kept = [raw for i, raw in enumerate(raws("/imu", IMU, data)) if i != 11]
     assert rows(converted(sink)) == rows(message_path(kept))
 
 

@@ -19,7 +19,7 @@ from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
-from host_bridge.columns import MESSAGES_PER_BLOCK, Columns, read_columns
+from host_bridge.columns import MESSAGES_PER_BLOCK, Columns, PackedPayloads, read_columns
 from host_bridge.decode import Decoder, base_typestore
 from robot_relay.sources.bag import BagSource
 
@@ -558,3 +558,53 @@ def test_a_remembered_layout_claims_only_payloads_with_its_length_prefixes() -> 
         assert_equals_rosbags(columns, run, JOINT_STATE, store)
     assert columns is not None
     assert columns.blocks[0].strings == {"header.frame_id": "odom", "name": ("ab", "c")}
+
+
+# -- payloads packed in buffers (a bag's runs) ---------------------------------------------------
+
+
+def scattered(payloads: list[bytes], buffers: int) -> PackedPayloads:
+    """``payloads`` spread over ``buffers`` buffers, message i in buffer i % buffers, each after
+    a gap and a run of junk bytes (not back to back, as a chunk's record headers lie between)."""
+    parts: list[bytearray] = [bytearray() for _ in range(buffers)]
+    sources, starts, ends = [], [], []
+    for i, payload in enumerate(payloads):
+        part = parts[i % buffers]
+        part += b"\xff" * (1 + i % 5)
+        sources.append(i % buffers)
+        starts.append(len(part))
+        part += payload
+        ends.append(len(part))
+    return PackedPayloads(tuple(bytes(part) for part in parts), np.array(sources, np.intp),
+                          np.array(starts, np.intp), np.array(ends, np.intp))
+
+
+@pytest.mark.parametrize("buffers", [1, 3])
+def test_packed_payloads_of_several_lengths_in_several_buffers_equal_rosbags(buffers: int) -> None:
+    names = [["a"], ["shoulder", "elbow"], ["shoulder", "elbow", "wrist_roll"]]
+    payloads = [joint_state(names[i % 3], i, frame="f" * (1 + i % 4)) for i in range(60)]
+    packed = scattered(payloads, buffers)
+    assert list(packed) == payloads
+    assert len({int(end - start) for start, end in zip(packed.starts, packed.ends, strict=True)}) > 3
+    columns = read_columns(packed, JOINT_STATE, HUMBLE, max_blocks=len(payloads))
+    assert_equals_rosbags(columns, payloads, JOINT_STATE, HUMBLE)
+    listed = read_columns(payloads, JOINT_STATE, HUMBLE, max_blocks=len(payloads))
+    assert columns is not None
+    assert listed is not None
+    assert [block.rows.tolist() for block in columns.blocks] == [
+        block.rows.tolist() for block in listed.blocks]
+    assert len(columns.blocks) == 12  # 3 joint lists x 4 frame ids
+
+
+def test_a_truncated_packed_payload_refuses_the_run_and_only_it_fails_to_decode() -> None:
+    payloads = serialize_run(HUMBLE, IMU, 30, variants=1)
+    payloads[13] = payloads[13][:-40]
+    packed = scattered(payloads, 2)
+    assert read_columns(packed, IMU, HUMBLE) is None
+    refused = []
+    for i, payload in enumerate(packed):
+        try:
+            HUMBLE.deserialize_cdr(payload, IMU)
+        except SerdeError:
+            refused.append(i)
+    assert refused == [13]

@@ -20,6 +20,7 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.rosbag2 import Writer as BagWriter
 from rosbags.typesys import Stores, get_typestore
 
+from host_bridge.columns import PackedPayloads, read_columns
 from host_bridge.inputs.bag import bag_batches, bag_runs
 from host_bridge.inputs.base import MessageRun
 from host_bridge.inputs.mcap import LARGE_PAYLOAD, Chunk, McapFile, NotIndexedError
@@ -168,6 +169,32 @@ def test_runs_hold_at_most_their_bytes(tmp_path: Path) -> None:
            if len(data) >= LARGE_PAYLOAD]
     assert len(big) == 8
     assert all(isinstance(data, memoryview) for data in big)
+
+
+@pytest.mark.parametrize("compression", [CompressionType.ZSTD, CompressionType.NONE])
+def test_runs_across_chunks_read_as_columns_equal_rosbags(
+    tmp_path: Path, compression: CompressionType
+) -> None:
+    """A window's runs keep their payloads in the chunks' buffers (small ones) and memoryviews
+    (large ones); read as columns, a run spanning chunks, with payloads of many lengths, small
+    and large images mixed, gives what rosbags decodes from each message."""
+    bag = write_mcap(tmp_path / "bag.mcap", compression)
+    runs = [run for window in mcap_windows(bag, 64, 10**9) for run in window]
+    assert sum(map(len, runs)) == 280
+    assert all(isinstance(run.payloads, PackedPayloads) for run in runs)
+    spanning = [run for run in runs if len(set(run.payloads.sources.tolist())) > 1]  # type: ignore[attr-defined]
+    assert {run.topic for run in spanning} == {"/chatter", "/tie", "/camera/image_raw"}
+    for run in runs:
+        columns = read_columns(run.payloads, run.msgtype, STORE, max_blocks=len(run))
+        assert columns is not None
+        messages: list[Any] = [STORE.deserialize_cdr(bytes(data), run.msgtype) for data in run.payloads]
+        if run.msgtype == "std_msgs/msg/String":
+            assert columns["data"].tolist() == [message.data for message in messages]
+            continue
+        assert columns["width"].tolist() == [message.width for message in messages]
+        for block in columns.blocks:
+            for row, pixels in zip(block.rows.tolist(), block.numbers["data"], strict=True):
+                assert pixels.tobytes() == messages[row].data.tobytes(), (run.topic, row)
 
 
 def test_message_run_is_a_sequence_of_raw_messages() -> None:
