@@ -205,7 +205,8 @@ class _ViewerPacer:
         self.caught_up = threading.Event()
         self.caught_up.set()
         self.times_behind = 0
-        self.seconds_behind = 0.0
+        self._behind_since: float | None = None
+        self._seconds_caught_up = 0.0
         self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rerun-pacer", daemon=True)
         self._thread.start()
@@ -215,7 +216,7 @@ class _ViewerPacer:
             if self._flushed(PACE_BEHIND_S):
                 continue
             self.caught_up.clear()
-            since = time.monotonic()
+            self._behind_since = time.monotonic()
             if not self.times_behind:
                 log.warning(
                     "the Rerun viewer %s takes the data slower than it comes: logging waits for it "
@@ -225,7 +226,8 @@ class _ViewerPacer:
             self.times_behind += 1
             while not self._stopping.is_set() and not self._flushed(FLUSH_STEP_S):
                 pass
-            self.seconds_behind += time.monotonic() - since
+            self._seconds_caught_up += time.monotonic() - self._behind_since
+            self._behind_since = None
             self.caught_up.set()
 
     def _flushed(self, timeout_s: float) -> bool:
@@ -245,13 +247,16 @@ class _ViewerPacer:
                 return
 
     def stop(self) -> None:
+        """Stop pacing. Not waiting for the thread's flush step: the close that follows waits
+        for the viewers anyway, and the host must not be held longer for a slow one."""
         self._stopping.set()
         self.caught_up.set()
-        self._thread.join()
         if self.times_behind:
+            since = self._behind_since
+            seconds = self._seconds_caught_up + (0.0 if since is None else time.monotonic() - since)
             log.info(
                 "the Rerun viewer %s fell behind %d time%s, %.1f s in all", self._names,
-                self.times_behind, "" if self.times_behind == 1 else "s", self.seconds_behind,
+                self.times_behind, "" if self.times_behind == 1 else "s", seconds,
             )
 
 
