@@ -13,7 +13,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -40,6 +39,8 @@ def grid_to_image(cells: npt.NDArray[np.int8], occupied_threshold: int = 65) -> 
     Row 0 stays row 0 (at the grid origin), so image (col, row) is grid-local (x, y) in cells;
     values outside 0..100 (-1 and anything invalid) count as unknown.
     """
+    import cv2
+
     lut = np.full(256, UNKNOWN, dtype=np.uint8)
     lut[:occupied_threshold] = FREE
     lut[occupied_threshold:101] = OCCUPIED
@@ -63,6 +64,8 @@ def _tiled_hough(
     pixels. Tiles and windows are those of the whole image, so a part holding every window
     that has an edge pixel finds exactly what the whole image would.
     """
+    import cv2
+
     edges = np.zeros(part_shape, dtype=np.uint8)
     edges[rows, cols] = 255
     rows_at, cols_at = origin
@@ -93,6 +96,8 @@ def _occupied_part(image: npt.NDArray[np.uint8], tile: int) -> tuple[slice, slic
     see an edge: edges lie within two pixels of occupied ones (3x3 blur, 3x3 Sobel; frontiers
     between free and unknown stay below Canny's thresholds), windows reach a quarter tile past
     their tile. None when nothing is occupied."""
+    import cv2
+
     x, y, width, height = cv2.boundingRect((image == OCCUPIED).view(np.uint8))
     if width == 0:
         return None
@@ -134,6 +139,8 @@ def detect_segments(
     Walls cut at window borders, and the doubles of overlapping windows and classes, are
     joined again by the merge.
     """
+    import cv2
+
     part = _occupied_part(image, tile)
     if part is None:
         return np.zeros((0, 4), dtype=np.float64)

@@ -40,7 +40,6 @@ import re
 from collections.abc import Sequence
 from typing import Any
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
@@ -88,12 +87,13 @@ _CV_DTYPES: dict[str, np.dtype[Any]] = {
 _CHANNEL_MODELS = {3: rr.ColorModel.BGR, 4: rr.ColorModel.BGRA}
 
 # OpenCV names a Bayer pattern after the second row's 2nd and 3rd pixels, not the first row's
-# first two as ROS does: ROS rggb is OpenCV "BG".
-_BAYER: dict[str, tuple[rr.PixelFormat, int]] = {
-    "rggb": (rr.PixelFormat.BayerRGGB8, cv2.COLOR_BayerBG2RGB),
-    "bggr": (rr.PixelFormat.BayerBGGR8, cv2.COLOR_BayerRG2RGB),
-    "gbrg": (rr.PixelFormat.BayerGBRG8, cv2.COLOR_BayerGR2RGB),
-    "grbg": (rr.PixelFormat.BayerGRBG8, cv2.COLOR_BayerGB2RGB),
+# first two as ROS does: ROS rggb is OpenCV "BG". Codes by name: cv2 (20 ms) is imported by the
+# converters that call it, not by every run.
+_BAYER: dict[str, tuple[rr.PixelFormat, str]] = {
+    "rggb": (rr.PixelFormat.BayerRGGB8, "COLOR_BayerBG2RGB"),
+    "bggr": (rr.PixelFormat.BayerBGGR8, "COLOR_BayerRG2RGB"),
+    "gbrg": (rr.PixelFormat.BayerGBRG8, "COLOR_BayerGR2RGB"),
+    "grbg": (rr.PixelFormat.BayerGRBG8, "COLOR_BayerGB2RGB"),
 }
 _BAYER_ENCODING = re.compile(r"bayer_(rggb|bggr|gbrg|grbg)(8|16)")
 
@@ -323,7 +323,9 @@ def _bayer(msg: Any, ctx: ConvertContext, pattern: str, bits: str) -> Archetype:
     pixel_format, cv_code = _BAYER[pattern]
     if bits == "8":
         return _pixel_format_image(_rows(msg, ctx, width, height), width, height, pixel_format)
-    rgb = cv2.cvtColor(_pixels(msg, ctx, _U16, 1), cv_code)
+    import cv2
+
+    rgb = cv2.cvtColor(_pixels(msg, ctx, _U16, 1), getattr(cv2, cv_code))
     return _color_image(rgb, width, height, rr.ColorModel.RGB)
 
 
@@ -471,6 +473,8 @@ def _decode_compressed_depth(msg: Any, ctx: ConvertContext) -> tuple[Pixels, int
         declared = _png_size(body)
         if declared is not None:
             _check_declared_size(ctx, "compressedDepth PNG", *declared)
+        import cv2
+
         decoded = cv2.imdecode(body, cv2.IMREAD_UNCHANGED)
         if decoded is None or decoded.dtype != np.uint16 or decoded.ndim != 2:
             msg_ = (
