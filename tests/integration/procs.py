@@ -60,25 +60,33 @@ def listening(port: int) -> bool:
         return sock.connect_ex(("127.0.0.1", port)) == 0
 
 
+def rerun_binary() -> Path:
+    """rerun-sdk's viewer binary, beside its Python wrapper (started itself, signals reach it)."""
+    spec = importlib.util.find_spec("rerun_cli")
+    assert spec is not None
+    assert spec.origin is not None
+    return Path(spec.origin).parent / "rerun"
+
+
+def wait_listening(port: int, seconds: float, what: str) -> None:
+    deadline = time.monotonic() + seconds
+    while not listening(port):
+        assert time.monotonic() < deadline, f"{what} did not listen within {seconds} s"
+        time.sleep(0.1)
+
+
 @contextmanager
 def headless_viewer() -> Iterator[tuple[str, int, subprocess.Popen[bytes]]]:
     """A real Rerun gRPC server (``rerun --serve-grpc``, no window): its URL, port and process.
     The binary is started itself, not the ``rerun`` Python wrapper, so killing it kills the
     server."""
     port = free_port()
-    spec = importlib.util.find_spec("rerun_cli")  # rerun-sdk's viewer binary, beside its wrapper
-    assert spec is not None
-    assert spec.origin is not None
-    binary = Path(spec.origin).parent / "rerun"
     proc = subprocess.Popen(
-        [str(binary), "--serve-grpc", "--port", str(port)],
+        [str(rerun_binary()), "--serve-grpc", "--port", str(port)],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )
     try:
-        deadline = time.monotonic() + 30
-        while not listening(port):
-            assert time.monotonic() < deadline, "rerun --serve-grpc did not listen within 30 s"
-            time.sleep(0.1)
+        wait_listening(port, 30, "rerun --serve-grpc")
         yield f"rerun+http://127.0.0.1:{port}/proxy", port, proc
     finally:
         proc.kill()

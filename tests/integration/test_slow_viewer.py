@@ -7,7 +7,6 @@ newest ones. The viewer saves what it receives, so the test reads what it got.""
 
 from __future__ import annotations
 
-import importlib.util
 import re
 import signal
 import subprocess
@@ -24,7 +23,7 @@ from rosbags.rosbag2 import Writer
 
 from host_bridge.contract import TIMELINE_RECEIVE
 from tests.integration.proc_sampler import Sampler
-from tests.integration.procs import command, free_port, listening, running
+from tests.integration.procs import command, free_port, rerun_binary, running, wait_listening
 from tests.integration.robot_bags import START_NS, STORE, Lines
 from tests.integration.robot_traffic import IMAGE_HZ, IMAGE_PERIOD_NS, QOS, TYPES, image
 from tests.integration.test_bad_links import NO_SHM
@@ -67,16 +66,9 @@ def receive_times(path: Path, entity: str) -> list[int]:
 def saving_viewer(received: Path) -> Iterator[tuple[str, subprocess.Popen[str]]]:
     """A Rerun viewer without a window (the binary itself, so signals reach the server) that
     saves what it receives to ``received`` when it gets SIGINT: its URL and process."""
-    spec = importlib.util.find_spec("rerun_cli")
-    assert spec is not None
-    assert spec.origin is not None
     port = free_port()
-    binary = Path(spec.origin).parent / "rerun"
-    with running([str(binary), "--port", str(port), "--save", str(received)]) as viewer:
-        deadline = time.monotonic() + STARTUP_S
-        while not listening(port):
-            assert time.monotonic() < deadline, f"the viewer did not listen within {STARTUP_S} s"
-            time.sleep(0.1)
+    with running([str(rerun_binary()), "--port", str(port), "--save", str(received)]) as viewer:
+        wait_listening(port, STARTUP_S, "the viewer")
         yield f"rerun+http://127.0.0.1:{port}/proxy", viewer
 
 
