@@ -30,19 +30,17 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from jsonschema import Draft202012Validator
-from jsonschema.exceptions import best_match
 
 from host_bridge.errors import ConfigError, relay_errors
 from host_bridge.options import CONVERTER_OPTION, OPTIONS_BY_DEFINITION, fixed_defaults
 from robot_relay.configfile import (
-    FORMAT_CHECKER,
     ConfigDocument,
     KeyPath,
     check_topic_glob,
     first_match,
     load_config,
     schema,
+    schema_validator,
 )
 
 SCHEMA_NAME = "host"
@@ -248,6 +246,8 @@ class HostConfig:
             problems.append(self._error((*layer.path, "converter"), text))
             del settings["converter"]
         if "options" in settings:
+            from jsonschema.exceptions import best_match  # only where a config sets options
+
             options = dict(settings["options"])
             for name, value in settings["options"].items():
                 where = (*layer.path, "options", name)
@@ -258,8 +258,7 @@ class HostConfig:
                     problems.append(self._error(where, text))
                     del options[name]
                     continue
-                validator = Draft202012Validator({"$defs": self._schema["$defs"], **spec},
-                                                 format_checker=FORMAT_CHECKER)
+                validator = schema_validator({"$defs": self._schema["$defs"], **spec})
                 error = best_match(validator.iter_errors(value))
                 if error is not None:
                     text = f"{error.message} for {msgtype}"
