@@ -329,5 +329,5 @@ def test_relay_without_rosbags_says_what_to_install(
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
         'swanky-relay: error: reading bags needs rosbags: pip install ".[relay,bag]" '
-        "(import of rosbags.highlevel halted; None in sys.modules)"
+        "(import of rosbags.rosbag2 halted; None in sys.modules)"
     ]

@@ -66,13 +66,17 @@ def relay_command(link: Link, bag: Path, *flags: str) -> list[str]:
 
 
 def arrival_order(path: Path, entity: str) -> list[int]:
-    """The ros_time of each non-static row of ``entity`` in the order the host logged them
-    (tests.rrd.entity_rows sorts them)."""
-    times: list[int] = []
+    """The ros_time of each non-static row of ``entity`` in the order the host received them:
+    by its receive_time timeline, stamped on arrival. (Not the order of the chunks in the file:
+    Rerun's batcher holds the rows of ``rr.log`` a while, while ``send_columns`` chunks go out
+    at once, so a run of one message can land in the file after a later run's columns.)"""
+    arrivals: list[tuple[int, int]] = []
     for chunk in RrdReader(path).stream():
         if chunk.entity_path == entity and not chunk.is_static:
-            times += chunk.to_record_batch().column("ros_time").cast(pa.int64()).to_pylist()
-    return times
+            batch = chunk.to_record_batch()
+            arrivals += zip(batch.column("receive_time").cast(pa.int64()).to_pylist(),
+                            batch.column("ros_time").cast(pa.int64()).to_pylist(), strict=True)
+    return [ros_time for _, ros_time in sorted(arrivals)]
 
 
 def scalars(rows: dict[str, list[dict[str, Any]]], entity: str) -> list[float]:
