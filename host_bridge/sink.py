@@ -206,7 +206,7 @@ class _ViewerPacer:
         self.caught_up.set()
         self.times_behind = 0
         self._behind_since: float | None = None
-        self._seconds_caught_up = 0.0
+        self._seconds_behind = 0.0
         self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rerun-pacer", daemon=True)
         self._thread.start()
@@ -226,7 +226,7 @@ class _ViewerPacer:
             self.times_behind += 1
             while not self._stopping.is_set() and not self._flushed(FLUSH_STEP_S):
                 pass
-            self._seconds_caught_up += time.monotonic() - self._behind_since
+            self._seconds_behind += time.monotonic() - self._behind_since
             self._behind_since = None
             self.caught_up.set()
 
@@ -253,7 +253,7 @@ class _ViewerPacer:
         self.caught_up.set()
         if self.times_behind:
             since = self._behind_since
-            seconds = self._seconds_caught_up + (0.0 if since is None else time.monotonic() - since)
+            seconds = self._seconds_behind + (0.0 if since is None else time.monotonic() - since)
             log.info(
                 "the Rerun viewer %s fell behind %d time%s, %.1f s in all", self._names,
                 self.times_behind, "" if self.times_behind == 1 else "s", seconds,
