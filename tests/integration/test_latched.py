@@ -59,7 +59,13 @@ def latched_bag(path: Path, urdf: str) -> Path:
 
 def static_transform(rows: dict[str, list[dict[str, Any]]], child: str) -> tuple[Any, ...]:
     """The relation into ``child``; a URDF fixed joint may have written the same entity too,
-    and every static write there must agree."""
+    and every static write there must agree. A frame the host placed at the robot's root while
+    no transform had reached it yet (frames.py: parent ``tf#/<robot>``, no translation) sits on
+    that entity too, so that the transform replaces it: it must come before the transform."""
+    statics = [row for row in rows[f"/{ROBOT}/tf_static/{child}"] if row["static"]]
+    relations = [row for row in statics if row["Transform3D:parent_frame"] != [f"tf#/{ROBOT}"]]
+    assert relations, statics
+    assert statics[-1] is relations[-1], statics  # the viewer keeps the last
     (value,) = {
         (
             row["Transform3D:parent_frame"][0],
@@ -67,8 +73,7 @@ def static_transform(rows: dict[str, list[dict[str, Any]]], child: str) -> tuple
             tuple(row["Transform3D:translation"][0]),
             tuple(row["Transform3D:quaternion"][0]),
         )
-        for row in rows[f"/{ROBOT}/tf_static/{child}"]
-        if row["static"]
+        for row in relations
     }
     return value
 
