@@ -20,7 +20,7 @@ from host_bridge import cli
 from host_bridge.config import HostConfig, TopicSettings
 from host_bridge.contract import LogEntry, LogItem
 from host_bridge.converters import images, laser
-from host_bridge.dispatch import Dispatcher
+from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
 from host_bridge.errors import ConfigError
 from host_bridge.registry import default_registry
 from host_bridge.sink import RerunSink
@@ -292,6 +292,12 @@ class RecordingSink(RerunSink):
 
     def items(self, path: str) -> list[tuple[LogItem, dict[str, int]]]:
         return [(e, t) for e, t in self.logged if isinstance(e, LogItem) and e.path == path]
+
+    def warnings(self) -> list[str]:
+        """The texts logged under /_swanky/warnings, in order."""
+        return [text for item, _ in self.items(WARNINGS_PATH)
+                for a in item.archetypes if isinstance(a, rr.TextLog) and a.text is not None
+                for text in a.text.as_arrow_array().to_pylist()]
 
 
 def header(sec: int) -> Any:

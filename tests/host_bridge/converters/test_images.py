@@ -26,7 +26,7 @@ from host_bridge.converters.images import (
     convert_compressed_image_run,
     convert_image,
 )
-from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
+from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import ConvertError
 from robot_relay.wire import RawMessage
 from tests.host_bridge.sensor_test_support import make_ctx
@@ -694,10 +694,7 @@ def test_images_declaring_more_pixels_than_the_cap_are_refused_before_decoding(
     finally:
         tracemalloc.stop()
     dispatcher.close()
-    warnings = [text for entry, _ in sink.logged
-                if isinstance(entry, LogItem) and entry.path == WARNINGS_PATH
-                for a in entry.archetypes if isinstance(a, rr.TextLog) and a.text is not None
-                for text in a.text.as_arrow_array().to_pylist()]
+    warnings = sink.warnings()
     assert warnings == [
         f"[{ROBOT}] {topic}: {text} (further ConvertErrors on this topic are counted, not shown)"
         for topic, _, _, text in hostile

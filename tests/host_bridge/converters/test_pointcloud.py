@@ -18,7 +18,7 @@ from rosbags.typesys import Stores, get_typestore
 from host_bridge.colormap import apply_colormap
 from host_bridge.contract import LogItem
 from host_bridge.converters.pointcloud import convert_pointcloud2
-from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
+from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import ConvertError
 from robot_relay.wire import RawMessage
 from tests.host_bridge.sensor_test_support import (
@@ -500,10 +500,7 @@ def test_hostile_declared_sizes_are_refused_naming_the_topic_beside_good_clouds(
     finally:
         tracemalloc.stop()
     dispatcher.close()
-    warnings = [text for entry, _ in sink.logged
-                if isinstance(entry, LogItem) and entry.path == WARNINGS_PATH
-                for a in entry.archetypes if isinstance(a, rr.TextLog) and a.text is not None
-                for text in a.text.as_arrow_array().to_pylist()]
+    warnings = sink.warnings()
     assert warnings == [
         f"[{ROBOT}] {topic}: {text} (further ConvertErrors on this topic are counted, not shown)"
         for topic, *_, text in HOSTILE_SIZES
