@@ -1,10 +1,12 @@
 """Wall extraction on a 4000x4000 synthetic floor plan, against bare Canny + HoughLinesP.
 
-The baseline is one ``cv2.Canny`` + ``cv2.HoughLinesP`` call on the same grid image, the part of
-the pipeline OpenCV does in C++; the ratio shows what the blur, the merge, the mesh and the
-Rerun archetype add on top. Then each step of ``wall_items`` alone (medians), to show where the
-time goes: the occupancy image, edges + tiled Hough (``detect_segments``), the merge, corner
-joining, the box mesh + ``rr.Mesh3D``, and the digest that skips an unchanged map.
+The baseline is one ``cv2.Canny`` + ``cv2.HoughLinesP`` call on the same map's wall image, the
+edge detector the walls were found with before (with OpenCV doing all of it in C++); the ratio
+shows what ``wall_items`` (wall mask, axis runs + Hough on the rest, merge, corners, mesh, the
+Rerun archetype, the digest) costs against it. Then each step of ``wall_items`` alone (medians):
+the wall mask, the detection (``detect_segments``), the merge, corner joining, the box mesh +
+``rr.Mesh3D`` and the digest that skips an unchanged map; and the case the per-tile cache is
+for: the same map with one cell changed, converted by a topic that converted the map before.
 Run: ``.venv/bin/python benchmarks/walls_4000.py``.
 """
 
@@ -27,12 +29,14 @@ from host_bridge.converters import walls
 from host_bridge.converters.occupancy import grid_from_msg
 from host_bridge.options import GridOptions
 from host_bridge.segments import (
+    TileCache,
     detect_segments,
-    grid_to_image,
     join_corners,
     merge_segments,
+    occupied_mask,
     segments_to_mesh,
 )
+from host_bridge.state import RobotState, TopicState
 
 SIZE = 4000
 RESOLUTION = 0.05
@@ -76,11 +80,10 @@ def median_time(fn: Callable[[], object]) -> float:
     return statistics.median(times)
 
 
-def main() -> None:
-    cells = floor_plan(np.random.default_rng(7))
+def grid_message(cells: npt.NDArray[np.int8]) -> Any:
     store = get_typestore(Stores.ROS2_HUMBLE)
     t = store.types
-    msg = t["nav_msgs/msg/OccupancyGrid"](
+    return t["nav_msgs/msg/OccupancyGrid"](
         header=t["std_msgs/msg/Header"](
             stamp=t["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="map"
         ),
@@ -96,32 +99,58 @@ def main() -> None:
         ),
         data=cells.ravel(),
     )
-    image = grid_to_image(cells)
+
+
+def context(tiles: dict[bytes, Any] | None = None) -> ConvertContext:
+    """A fresh robot state (the digest would skip an unchanged map), the topic's tile cache
+    holding ``tiles``."""
+    topic_state = TopicState()
+    topic_state.state(TileCache).tiles = dict(tiles or {})
+    return ConvertContext(
+        robot="bench", topic="/map", entity_path="/bench/map", times={},
+        topic_state=topic_state, robot_state=RobotState(),
+    )
+
+
+def main() -> None:
+    cells = floor_plan(np.random.default_rng(7))
+    msg = grid_message(cells)
+    image = occupied_mask(cells) * np.uint8(255)
 
     def baseline() -> npt.NDArray[Any] | None:
         edges = cv2.Canny(image, 150.0, 250.0, L2gradient=True)
         return cv2.HoughLinesP(edges, 1.0, math.pi / 180.0, 8, minLineLength=4.0, maxLineGap=2.0)
-
-    def context() -> ConvertContext:
-        # A fresh robot state each run: the digest cache would otherwise skip the work.
-        return ConvertContext(robot="bench", topic="/map", entity_path="/bench/map", times={})
-
-    def extraction() -> list[LogEntry]:
-        return walls.wall_items(msg, context())
 
     segments = walls.wall_segments(
         grid_from_msg(msg, context()), walls.WallOptions.from_options(GridOptions(), RESOLUTION, "/map")
     )
     raw = baseline()
     base_s = median_time(baseline)
-    full_s = median_time(extraction)
+    full_s = median_time(lambda: walls.wall_items(msg, context()))
     print(
         f"map {SIZE}x{SIZE} cells at {RESOLUTION} m: baseline finds "
         f"{0 if raw is None else len(raw)} raw segments, wall_items {segments.shape[0]} walls"
     )
     print(f"baseline cv2.Canny + cv2.HoughLinesP: {base_s * 1e3:8.1f} ms")
-    print(f"walls.wall_items (image, blur, Canny, Hough, merge, mesh, hash): {full_s * 1e3:8.1f} ms")
+    print(f"walls.wall_items (mask, runs, Hough, merge, mesh, digest): {full_s * 1e3:8.1f} ms")
     print(f"ratio wall_items / baseline: {full_s / base_s:.2f}")
+
+    # One cell of one tile changed: a speck in a room of the tile at rows/cols 1024..1535.
+    first = context()
+    walls.wall_items(msg, first)
+    before = dict(first.topic_state.state(TileCache).tiles)
+    changed = cells.copy()
+    changed[1300, 1290] = 100
+    changed_msg = grid_message(changed)
+    again = context(before)
+    walls.wall_items(changed_msg, again)
+    redone = len(set(again.topic_state.state(TileCache).tiles) - set(before))
+    changed_s = median_time(lambda: walls.wall_items(changed_msg, context(before)))
+    print(
+        f"walls.wall_items, one cell changed, tile cache of the map before "
+        f"({redone} of {len(before)} tiles searched again): {changed_s * 1e3:8.1f} ms"
+    )
+    print(f"ratio changed map / baseline: {changed_s / base_s:.2f}")
     step_times(msg, context())
 
 
@@ -130,12 +159,9 @@ def step_times(msg: Any, ctx: ConvertContext) -> None:
     grid = grid_from_msg(msg, ctx)
     options = walls.WallOptions.from_options(grid.options, grid.resolution, grid.topic)
     res = grid.resolution
-    image = grid_to_image(grid.cells, options.occupied_threshold)
-    pixels = detect_segments(
-        image, canny_low=options.canny_low, canny_high=options.canny_high,
-        votes=options.hough_votes, min_line_length=options.hough_min_length / res,
-        max_line_gap=options.hough_max_gap / res,
-    )
+    settings = options.detector(res)
+    mask = occupied_mask(grid.cells, options.occupied_threshold)
+    pixels = detect_segments(mask, settings, anchor=walls.tile_anchor(grid))
     merged = merge_segments((pixels + 0.5) * res, angle_deg=options.merge_angle_deg,
                             distance=options.merge_distance, gap=options.merge_gap,
                             min_length=options.min_length)
@@ -148,11 +174,9 @@ def step_times(msg: Any, ctx: ConvertContext) -> None:
                          vertex_normals=boxes.normals, albedo_factor=options.color)
 
     steps: dict[str, Callable[[], object]] = {
-        "occupancy image": lambda: grid_to_image(grid.cells, options.occupied_threshold),
-        f"edges + tiled Hough ({pixels.shape[0]} raw segments)": lambda: detect_segments(
-            image, canny_low=options.canny_low, canny_high=options.canny_high,
-            votes=options.hough_votes, min_line_length=options.hough_min_length / res,
-            max_line_gap=options.hough_max_gap / res),
+        "wall mask": lambda: occupied_mask(grid.cells, options.occupied_threshold),
+        f"axis runs + Hough ({pixels.shape[0]} pieces)": lambda: detect_segments(
+            mask, settings, anchor=walls.tile_anchor(grid)),
         f"merge ({merged.shape[0]} walls)": lambda: merge_segments(
             (pixels + 0.5) * res, angle_deg=options.merge_angle_deg,
             distance=options.merge_distance, gap=options.merge_gap, min_length=options.min_length),

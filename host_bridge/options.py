@@ -73,8 +73,6 @@ class GridOptions:
     hough_votes: int = 8
     hough_min_length: float | None = None  # 4 cells
     hough_max_gap: float | None = None  # 2 cells
-    canny_low: float = 150.0
-    canny_high: float = 250.0
 
 
 @dataclass(frozen=True, slots=True)

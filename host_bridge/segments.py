@@ -1,8 +1,8 @@
-"""Wall segments from an occupancy image: pixels -> Canny + HoughLinesP -> merge -> corners -> boxes.
+"""Wall segments from an occupancy grid: wall pixels -> axis runs + Hough -> merge -> corners -> boxes.
 
-Pure numpy/OpenCV geometry with no ROS or Rerun types: :func:`grid_to_image` turns occupancy
-values into intensities an edge detector separates, :func:`detect_segments` finds edge segments
-in pixels, :func:`merge_segments` folds the edges and fragments of one wall into its centre line,
+Pure numpy/OpenCV geometry with no ROS or Rerun types: :func:`occupied_mask` marks the wall
+cells, :func:`detect_segments` finds wall pieces in pixels (runs along rows and columns, Hough
+for the rest), :func:`merge_segments` folds the sides and fragments of one wall into its centre line,
 :func:`join_corners` closes L corners and T junctions, and :func:`segments_to_mesh` extrudes the
 result into boxes. ``converters/walls.py`` chains them for OccupancyGrid messages and holds the
 options, their defaults and the reasoning behind them.
@@ -10,19 +10,16 @@ options, their defaults and the reasoning behind them.
 
 from __future__ import annotations
 
+import hashlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
 Float64Array = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
 
-# Image intensities: unknown sits close to free so that a frontier (free next to unknown) stays
-# below Canny's low threshold while walls next to either are strong edges. After the 3x3 blur
-# (measured, L2 Sobel): frontiers <= ~100, an isolated occupied cell ~190 (a weak edge, dropped
-# unless it touches a wall), a one-cell wall >= ~280 at any angle, next to free or unknown.
-FREE, UNKNOWN, OCCUPIED = 0, 32, 255
 
 @dataclass(frozen=True, slots=True)
 class WallMesh:
@@ -33,144 +30,535 @@ class WallMesh:
     normals: npt.NDArray[np.float32]
 
 
-def grid_to_image(cells: npt.NDArray[np.int8], occupied_threshold: int = 65) -> npt.NDArray[np.uint8]:
-    """Occupancy values -> FREE / UNKNOWN / OCCUPIED intensities, rows in grid order.
+# Maps are cut into TILE x TILE cells for the cache: small enough that a local change costs
+# little, large enough that the per-tile Python and OpenCV calls stay a few milliseconds for a
+# 4000x4000 map (64 tiles).
+TILE = 512
+# Residual pixels go to HoughLinesP in windows of this size (see :func:`_hough_pieces`).
+HOUGH_TILE = 64
+# A map whose walls are mostly not axis-aligned is searched again in the frame of its dominant
+# wall direction, when that is further than this from the grid axes; below it the row and
+# column runs of a wall are long and the line fit of their cluster follows the slope.
+AXIS_TOLERANCE_DEG = 2.0
+# The dominant direction is rounded to this step, so that a map changed in a few places turns
+# the same way again and its unchanged tiles hit the cache; the remainder is left to the fit.
+ANGLE_STEP_DEG = 0.25
 
-    Row 0 stays row 0 (at the grid origin), so image (col, row) is grid-local (x, y) in cells;
-    values outside 0..100 (-1 and anything invalid) count as unknown.
+
+def occupied_mask(cells: npt.NDArray[np.int8], occupied_threshold: int = 65) -> npt.NDArray[np.uint8]:
+    """1 where a cell is a wall (value ``occupied_threshold``..100), else 0; rows in grid order.
+
+    Row 0 stays row 0 (at the grid origin), so (col, row) is grid-local (x, y) in cells; -1
+    (unknown) and values outside 0..100 are no wall.
     """
     import cv2
 
-    lut = np.full(256, UNKNOWN, dtype=np.uint8)
-    lut[:occupied_threshold] = FREE
-    lut[occupied_threshold:101] = OCCUPIED
+    lut = np.zeros(256, dtype=np.uint8)
+    lut[occupied_threshold:101] = 1
     return np.asarray(cv2.LUT(np.ascontiguousarray(cells).view(np.uint8), lut), dtype=np.uint8)
 
 
-def _tiled_hough(
-    part_shape: tuple[int, ...],
+@dataclass(frozen=True, slots=True)
+class DetectorSettings:
+    """Detection lengths in cells: ``min_run`` is the shortest axis run and Hough line, ``gap``
+    the widest gap joined inside a run (the merge gap), ``fit_tolerance`` how far a run may lie
+    from the line fitted through its cluster (half the merge distance: the two sides of one
+    wall)."""
+
+    min_run: int
+    votes: int
+    max_line_gap: float
+    gap: int
+    fit_tolerance: float
+
+
+@dataclass(frozen=True, slots=True)
+class TileFindings:
+    """One tile's wall pixels, in cells from the tile's first row and column.
+
+    ``along_rows``: runs (row, first col, last col) of wall pixels with a non-wall pixel above
+    or below, part of a run at least ``min_run`` long; ``along_cols``: the same down columns,
+    (col, first row, last row); ``rest``: (row, col) of the boundary wall pixels no such run
+    holds (diagonal walls, clutter, noise).
+    """
+
+    along_rows: IntArray
+    along_cols: IntArray
+    rest: IntArray
+
+    def shifted(self, row: int, col: int) -> TileFindings:
+        return TileFindings(
+            self.along_rows + np.array([row, col, col]),
+            self.along_cols + np.array([col, row, row]),
+            self.rest + np.array([row, col]),
+        )
+
+
+@dataclass(slots=True)
+class TileCache:
+    """Findings per tile, keyed by a digest of everything the tile's detection reads (its
+    window of the mask with the halo, where the window sits, the settings, the frame); holds
+    the tiles of the last map searched only, so it never outgrows one map."""
+
+    tiles: dict[bytes, TileFindings] = field(default_factory=dict)
+
+
+def _runs(mask: npt.NDArray[np.uint8]) -> IntArray:
+    """Runs of 1s along each row: (row, first col, last col)."""
+    import cv2
+
+    padded = cv2.copyMakeBorder(mask, 0, 0, 1, 1, cv2.BORDER_CONSTANT, value=0)
+    change = np.flatnonzero(padded[:, 1:] != padded[:, :-1])
+    width = mask.shape[1] + 1
+    starts, ends = change[0::2], change[1::2]
+    return np.stack([starts // width, starts % width, ends % width - 1], axis=1).astype(np.int64)
+
+
+def _run_pixels(runs: IntArray) -> IntArray:
+    """Every pixel (line, position) of ``runs`` (line, first, last)."""
+    lengths = runs[:, 2] - runs[:, 1] + 1
+    owner = np.repeat(np.arange(runs.shape[0]), lengths)
+    step = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    return np.stack([runs[owner, 0], runs[owner, 1] + step], axis=1)
+
+
+def _in_runs(pixels: IntArray, runs: IntArray) -> npt.NDArray[np.bool_]:
+    """Whether each pixel (line, position) lies in one of ``runs``, sorted by (line, first)."""
+    if runs.shape[0] == 0:
+        return np.zeros(pixels.shape[0], dtype=bool)
+    stride = int(max(runs[:, 2].max(), pixels[:, 1].max(initial=0))) + 1
+    at = np.searchsorted(runs[:, 0] * stride + runs[:, 1], pixels[:, 0] * stride + pixels[:, 1], "right") - 1
+    run = runs[np.maximum(at, 0)]
+    inside: npt.NDArray[np.bool_] = (at >= 0) & (run[:, 0] == pixels[:, 0]) & (run[:, 2] >= pixels[:, 1])
+    return inside
+
+
+def _clipped(runs: IntArray, lines: tuple[int, int], span: tuple[int, int]) -> IntArray:
+    """``runs`` on lines [lines) cut to positions [span), both made relative to their starts."""
+    runs = runs[(runs[:, 0] >= lines[0]) & (runs[:, 0] < lines[1])]
+    first, last = np.maximum(runs[:, 1], span[0]), np.minimum(runs[:, 2], span[1] - 1)
+    keep = first <= last
+    return np.stack([runs[keep, 0] - lines[0], first[keep] - span[0], last[keep] - span[0]], axis=1)
+
+
+def _tile_findings(
+    mask: npt.NDArray[np.uint8], rows: tuple[int, int], cols: tuple[int, int], min_run: int
+) -> TileFindings:
+    """Axis runs and the rest of the wall pixels of mask[rows, cols] (tile-relative cells),
+    read from a window reaching ``min_run`` + 1 cells further, so that how long a pixel's run
+    is, and whether the pixel borders a non-wall pixel, is decided as on the whole mask."""
+    import cv2
+
+    reach = min_run + 1
+    (top, bottom), (left, right) = rows, cols
+    y0, x0 = max(top - reach, 0), max(left - reach, 0)
+    y1, x1 = min(bottom + reach, mask.shape[0]), min(right + reach, mask.shape[1])
+    window = cv2.copyMakeBorder(mask[y0:y1, x0:x1], 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+    wall = window[1:-1, 1:-1]
+    # A wall pixel with wall above and below is inside a wall seen along the row (or a crossing
+    # wall): only the two sides of a thick wall or blob make runs, as its two edges would.
+    along_rows = _runs(wall & ~(window[:-2, 1:-1] & window[2:, 1:-1]))
+    along_cols = _runs(cv2.transpose(wall & ~(window[1:-1, :-2] & window[1:-1, 2:])))
+    long_rows = along_rows[along_rows[:, 2] - along_rows[:, 1] + 1 >= min_run]
+    long_cols = along_cols[along_cols[:, 2] - along_cols[:, 1] + 1 >= min_run]
+    # The rest: pixels of short runs in one direction that no long run holds in the other.
+    short_rows = _run_pixels(along_rows[along_rows[:, 2] - along_rows[:, 1] + 1 < min_run])
+    short_cols = _run_pixels(along_cols[along_cols[:, 2] - along_cols[:, 1] + 1 < min_run])
+    rest = np.concatenate(
+        [
+            short_rows[~_in_runs(short_rows[:, ::-1], long_cols)],
+            short_cols[~_in_runs(short_cols[:, ::-1], long_rows)][:, ::-1],
+        ]
+    )
+    row_span, col_span = (top - y0, bottom - y0), (left - x0, right - x0)
+    rest = rest[
+        (rest[:, 0] >= row_span[0]) & (rest[:, 0] < row_span[1])
+        & (rest[:, 1] >= col_span[0]) & (rest[:, 1] < col_span[1])
+    ] - np.array([row_span[0], col_span[0]])
+    # A pixel of short runs both ways is there twice.
+    tile_width = right - left
+    rest_key = np.unique(rest[:, 0] * tile_width + rest[:, 1])
+    return TileFindings(
+        _clipped(long_rows, row_span, col_span),
+        _clipped(long_cols, col_span, row_span),
+        np.stack([rest_key // tile_width, rest_key % tile_width], axis=1),
+    )
+
+
+def _tile_edges(size: int, offset: int) -> list[tuple[int, int]]:
+    """[start, stop) of the tiles along one axis whose edges lie at k * TILE - offset."""
+    edges = np.unique(np.clip(np.arange(-(offset % TILE), size + TILE, TILE), 0, size)).tolist()
+    return list(zip(edges[:-1], edges[1:], strict=True))
+
+
+def _frame_findings(
+    mask: npt.NDArray[np.uint8],
     *,
-    rows: npt.NDArray[np.intp],
-    cols: npt.NDArray[np.intp],
-    origin: tuple[int, int],
-    shape: tuple[int, ...],
-    votes: int,
-    min_line_length: float,
-    max_line_gap: float,
-    tile: int,
-) -> Float64Array:
-    """HoughLinesP over the windows holding any of the edge pixels (rows, cols) of a part of
-    an image of ``shape``, the part starting at ``origin`` (row, col); segments in the image's
-    pixels. Tiles and windows are those of the whole image, so a part holding every window
-    that has an edge pixel finds exactly what the whole image would.
+    anchor: tuple[int, int],
+    min_run: int,
+    frame: bytes,
+    cache: TileCache,
+    used: dict[bytes, TileFindings],
+) -> TileFindings:
+    """Findings of every tile of ``mask`` holding a wall pixel, from ``cache`` where a tile's
+    window is unchanged; in mask cells. ``anchor`` (row, col) is the map cell of the mask's
+    first cell, so tiles stay on the same map cells when the grid grows by whole cells."""
+    reach = min_run + 1
+    height, width = mask.shape
+    parts = []
+    for top, bottom in _tile_edges(height, anchor[0]):
+        for left, right in _tile_edges(width, anchor[1]):
+            y0, x0 = max(top - reach, 0), max(left - reach, 0)
+            y1, x1 = min(bottom + reach, height), min(right + reach, width)
+            window = mask[y0:y1, x0:x1]
+            if not window.any():
+                continue
+            digest = hashlib.sha1(frame)
+            placement = (top - y0, left - x0, bottom - top, right - left, y1 - y0, x1 - x0, min_run)
+            digest.update(repr(placement).encode())
+            digest.update(np.ascontiguousarray(window).data)
+            key = digest.digest()
+            found = used.get(key) or cache.tiles.get(key)
+            if found is None:
+                found = _tile_findings(mask, (top, bottom), (left, right), min_run)
+            used[key] = found
+            parts.append(found.shifted(top, left))
+    if not parts:
+        empty = np.zeros((0, 3), dtype=np.int64)
+        return TileFindings(empty, empty, np.zeros((0, 2), dtype=np.int64))
+    return TileFindings(
+        np.concatenate([p.along_rows for p in parts]),
+        np.concatenate([p.along_cols for p in parts]),
+        np.concatenate([p.rest for p in parts]),
+    )
+
+
+def _joined(runs: IntArray, gap: int) -> IntArray:
+    """Runs sorted by (line, first), runs on one line at most ``gap`` cells apart joined: the
+    pieces of a run cut at tile edges, and the sides of a wall that a crossing wall, a speck
+    next to it or a missing cell cut (a door is wider than the merge gap)."""
+    runs = runs[np.lexsort((runs[:, 1], runs[:, 0]))]
+    if runs.shape[0] == 0:
+        return runs
+    new = np.ones(runs.shape[0], dtype=bool)
+    new[1:] = (runs[1:, 0] != runs[:-1, 0]) | (runs[1:, 1] > runs[:-1, 2] + 1 + gap)
+    first = np.flatnonzero(new)
+    last = np.append(first[1:], runs.shape[0]) - 1
+    return np.stack([runs[first, 0], runs[first, 1], runs[last, 2]], axis=1)
+
+
+def _components(count: int, a: npt.NDArray[np.intp], b: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
+    """Connected component labels 0..k-1 of ``count`` nodes and edges (a, b): every node
+    takes the lowest label of its neighbours and roots are hooked to it, with pointer jumping,
+    until nothing changes."""
+    label = np.arange(count)
+    while True:
+        low = np.minimum(label[a], label[b])
+        new = label.copy()
+        for side in (a, b):
+            np.minimum.at(new, side, low)
+            np.minimum.at(new, label[side], low)
+        while True:
+            jumped = new[new]
+            if np.array_equal(jumped, new):
+                break
+            new = jumped
+        if np.array_equal(new, label):
+            break
+        label = new
+    return np.unique(label, return_inverse=True)[1]
+
+
+def _run_clusters(runs: IntArray) -> npt.NDArray[np.intp]:
+    """Cluster labels of runs sorted by (line, first): runs on neighbouring lines that overlap
+    or touch at a corner (8-connected pixels) belong together, so the two sides of a wall and
+    the steps of a slightly sloping wall are one cluster."""
+    n = runs.shape[0]
+    stride = int(runs[:, 2].max()) + 3
+    line, first, last = runs[:, 0], runs[:, 1], runs[:, 2]
+    start_key, end_key = line * stride + first, line * stride + last
+    lo = np.searchsorted(end_key, (line + 1) * stride + first - 1, side="left")
+    hi = np.searchsorted(start_key, (line + 1) * stride + last + 1, side="right")
+    counts = np.maximum(hi - lo, 0)
+    a = np.repeat(np.arange(n), counts)
+    b = lo[a] + np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    return _components(n, a, b)
+
+
+def _fit_runs(runs: IntArray, settings: DetectorSettings) -> Float64Array:
+    """One segment (along, line, along, line) per cluster of runs: the least-squares line of
+    the cluster's pixels through their centroid, from the first to the last pixel projected
+    on it. A cluster some run of which lies further than ``fit_tolerance`` from that line (a
+    bend, a blob) gives its runs as they are, for the merge to sort out."""
+    if runs.shape[0] == 0:
+        return np.zeros((0, 4), dtype=np.float64)
+    runs = _joined(runs, settings.gap)
+    labels = _run_clusters(runs)
+    count = int(labels.max()) + 1
+    # Pixel moments per run about the first run of its cluster (small numbers, no cancellation).
+    ref = runs[np.unique(labels, return_index=True)[1]].astype(np.float64)
+    y = runs[:, 0] - ref[labels, 0]
+    a = runs[:, 1] - ref[labels, 1]
+    b = runs[:, 2] - ref[labels, 1]
+    n = b - a + 1.0
+
+    def square_sum(m: Float64Array) -> Float64Array:
+        total: Float64Array = m * (m + 1.0) * (2.0 * m + 1.0) / 6.0
+        return total
+
+    sx, sxx = n * (a + b) / 2.0, square_sum(b) - square_sum(a - 1.0)
+    sums = [np.bincount(labels, w, count) for w in (n, sx, n * y, sxx, n * y * y, y * sx)]
+    total, mx, my = sums[0], sums[1] / sums[0], sums[2] / sums[0]
+    cxx, cyy, cxy = sums[3] / total - mx * mx, sums[4] / total - my * my, sums[5] / total - mx * my
+    angle = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)
+    centre = np.stack([mx, my], axis=1)
+    ends = [np.stack([a, y], axis=1) - centre[labels], np.stack([b, y], axis=1) - centre[labels]]
+
+    def extent(angle: Float64Array) -> tuple[Float64Array, Float64Array, Float64Array]:
+        """First and last run end along each cluster's line, and the furthest across it."""
+        u = np.stack([np.cos(angle), np.sin(angle)], axis=1)[labels]
+        along = [_dot(e, u) for e in ends]
+        across = np.maximum(*(np.abs(e[:, 0] * u[:, 1] - e[:, 1] * u[:, 0]) for e in ends))
+        t_min, t_max, worst = np.full(count, np.inf), np.full(count, -np.inf), np.zeros(count)
+        np.minimum.at(t_min, labels, np.minimum(*along))
+        np.maximum.at(t_max, labels, np.maximum(*along))
+        np.maximum.at(worst, labels, across)
+        return t_min, t_max, worst
+
+    t_min, t_max, worst = extent(angle)
+    # A line rising less than a cell over its length is the axis: the slope of such a fit
+    # comes from the two sides of a wall ending at different places (an L corner), not from
+    # the wall.
+    level = np.abs(np.sin(angle)) * (t_max - t_min) < 1.0
+    if level.any():
+        angle = np.where(level, 0.0, angle)
+        t_min, t_max, worst = extent(angle)
+    fits = worst <= settings.fit_tolerance
+    u = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    centre += ref[:, [1, 0]]
+    fitted = np.concatenate([centre + t_min[:, None] * u, centre + t_max[:, None] * u], axis=1)[fits]
+    loose = runs[~fits[labels]].astype(np.float64)
+    as_is = np.stack([loose[:, 1], loose[:, 0], loose[:, 2], loose[:, 0]], axis=1)
+    return np.concatenate([fitted, as_is])
+
+
+def _with_neighbours(pixels: IntArray) -> IntArray:
+    """The (row, col) pixels with another of them among their 8 neighbours: isolated specks
+    (sensor noise) can never make a wall, and dropping them keeps Hough to the windows that
+    hold something."""
+    if pixels.shape[0] == 0:
+        return pixels
+    stride = int(pixels[:, 1].max()) + 3
+    key = (pixels[:, 0] + 1) * stride + pixels[:, 1] + 1
+    ordered = np.sort(key)
+    found = np.zeros(key.size, dtype=bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy or dx:
+                probe = key + dy * stride + dx
+                at = np.minimum(np.searchsorted(ordered, probe), key.size - 1)
+                found |= ordered[at] == probe
+    return pixels[found]
+
+
+def _hough_pieces(pixels: IntArray, shape: tuple[int, ...], settings: DetectorSettings) -> Float64Array:
+    """HoughLinesP over the HOUGH_TILE windows holding any of ``pixels`` (row, col) of an image
+    of ``shape``; segments (x0, y0, x1, y1) in its pixels, at 1 px and 1 degree.
+
+    Per window because the accumulator of a whole image collects votes from every wall on the
+    same line of it (about a sixth of the walls of a floor plan went undetected).
     """
     import cv2
 
-    edges = np.zeros(part_shape, dtype=np.uint8)
-    edges[rows, cols] = 255
-    rows_at, cols_at = origin
-    tiles_x = -(-shape[1] // tile)
-    occupied = np.unique(((rows + rows_at) // tile) * tiles_x + (cols + cols_at) // tile)
+    if pixels.shape[0] < settings.votes:
+        return np.zeros((0, 4), dtype=np.float64)
+    margin = HOUGH_TILE // 4
+    rows, cols = pixels[:, 0], pixels[:, 1]
+    y_lo = max(int(rows.min()) // HOUGH_TILE * HOUGH_TILE - margin, 0)
+    x_lo = max(int(cols.min()) // HOUGH_TILE * HOUGH_TILE - margin, 0)
+    y_hi = min((int(rows.max()) // HOUGH_TILE + 1) * HOUGH_TILE + margin, shape[0])
+    x_hi = min((int(cols.max()) // HOUGH_TILE + 1) * HOUGH_TILE + margin, shape[1])
+    image = np.zeros((y_hi - y_lo, x_hi - x_lo), dtype=np.uint8)
+    image[rows - y_lo, cols - x_lo] = 255
     # Windows overlap by a quarter tile on each side, so a wall ending just past a tile border
-    # is still long enough to be found in the neighbouring window.
-    margin = tile // 4
+    # is still long enough to be found in the neighbouring window. A window holding fewer
+    # pixels than the votes a line needs (specks, the stub a speck cuts off a wall) is skipped:
+    # counts per quarter tile, summed over the 6x6 quarters of each window.
+    quarters = np.zeros((-(-shape[0] // margin) + 2, -(-shape[1] // margin) + 2), dtype=np.int64)
+    np.add.at(quarters, (rows // margin + 1, cols // margin + 1), 1)
+    summed = np.pad(quarters.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    tile_rows, tile_cols = np.divmod(np.unique((rows // HOUGH_TILE) * shape[1] + cols // HOUGH_TILE), shape[1])
+    q0r, q0c = tile_rows * 4, tile_cols * 4  # the window's first quarter, padded by one
+    q1r, q1c = np.minimum(q0r + 6, quarters.shape[0]), np.minimum(q0c + 6, quarters.shape[1])
+    in_window = summed[q1r, q1c] - summed[q0r, q1c] - summed[q1r, q0c] + summed[q0r, q0c]
     found = [np.zeros((0, 4), dtype=np.float64)]
-    for index in occupied.tolist():
-        y0, x0 = (index // tiles_x) * tile, (index % tiles_x) * tile
-        y, x = max(y0 - margin, 0), max(x0 - margin, 0)
+    busy = in_window >= settings.votes
+    for tile_row, tile_col in zip(tile_rows[busy].tolist(), tile_cols[busy].tolist(), strict=True):
+        y0, x0 = tile_row * HOUGH_TILE, tile_col * HOUGH_TILE
+        y, x = max(y0 - margin, y_lo), max(x0 - margin, x_lo)
         lines = cv2.HoughLinesP(
-            edges[y - rows_at : y0 + tile + margin - rows_at, x - cols_at : x0 + tile + margin - cols_at],
+            image[y - y_lo : y0 + HOUGH_TILE + margin - y_lo, x - x_lo : x0 + HOUGH_TILE + margin - x_lo],
             1.0,
             math.pi / 180.0,
-            votes,
-            minLineLength=min_line_length,
-            maxLineGap=max_line_gap,
+            settings.votes,
+            minLineLength=float(settings.min_run),
+            maxLineGap=settings.max_line_gap,
         )
         if lines is not None:
-            found.append(lines.reshape(-1, 4).astype(np.float64) + np.array([x, y, x, y]))
+            window_rows, window_cols = np.nonzero(
+                image[y - y_lo : y0 + HOUGH_TILE + margin - y_lo, x - x_lo : x0 + HOUGH_TILE + margin - x_lo]
+            )
+            pixels_here = np.stack([window_cols, window_rows], axis=1).astype(np.float64)
+            refined = [_refined(line, pixels_here, settings.max_line_gap) for line in lines.reshape(-1, 4)]
+            found.append(np.array(refined) + np.array([x, y, x, y]))
     return np.concatenate(found)
 
 
-def _occupied_part(image: npt.NDArray[np.uint8], tile: int) -> tuple[slice, slice] | None:
-    """The rows and columns of ``image`` that hold every window of :func:`_tiled_hough` that can
-    see an edge: edges lie within two pixels of occupied ones (3x3 blur, 3x3 Sobel; frontiers
-    between free and unknown stay below Canny's thresholds), windows reach a quarter tile past
-    their tile. None when nothing is occupied."""
+def _refined(line: npt.NDArray[np.int32], pixels: Float64Array, max_gap: float) -> Float64Array:
+    """A Hough line refitted to the pixels (x, y) it stands for: those within 1.5 px of it, in
+    the chain (gaps up to ``max_gap``) along it that overlaps it; their least-squares line,
+    from the first to the last of them. HoughLinesP walks along its 1-degree angle and leaves
+    a long one-cell diagonal early, when that drifts a pixel off it."""
+    segment = line.astype(np.float64)
+    for _ in range(2):
+        start, direction = segment[:2], segment[2:] - segment[:2]
+        length = float(np.hypot(*direction))
+        if length == 0.0:
+            return segment
+        u = direction / length
+        relative = pixels - start
+        near = np.abs(relative @ np.array([-u[1], u[0]])) <= 1.5
+        along = np.sort(relative[near] @ u)
+        if along.size < 2:
+            return segment
+        breaks = np.flatnonzero(np.diff(along) > max_gap + 1.0)
+        firsts = along[np.concatenate([[0], breaks + 1])]
+        lasts = along[np.concatenate([breaks, [along.size - 1]])]
+        overlap = np.minimum(lasts, length) - np.maximum(firsts, 0.0)
+        best = int(np.argmax(overlap))
+        t = relative[near] @ u
+        chain = pixels[near][(t >= firsts[best]) & (t <= lasts[best])]
+        centre = chain.mean(axis=0)
+        spread = np.cov((chain - centre).T)
+        axis = np.linalg.eigh(spread)[1][:, 1]
+        ends = (chain - centre) @ axis
+        segment = np.concatenate([centre + ends.min() * axis, centre + ends.max() * axis])
+    return segment
+
+
+@dataclass(frozen=True, slots=True)
+class _FrameResult:
+    segments: Float64Array
+    explained: int  # wall pixels in axis runs
+    unexplained: int  # wall pixels of no run, specks left out
+
+
+def _frame_segments(
+    mask: npt.NDArray[np.uint8],
+    settings: DetectorSettings,
+    *,
+    anchor: tuple[int, int],
+    frame: bytes,
+    cache: TileCache,
+    used: dict[bytes, TileFindings],
+) -> _FrameResult:
+    found = _frame_findings(
+        mask, anchor=anchor, min_run=settings.min_run, frame=frame, cache=cache, used=used
+    )
+    rows = _fit_runs(found.along_rows, settings)
+    cols = _fit_runs(found.along_cols, settings)[:, [1, 0, 3, 2]]
+    rest = _with_neighbours(found.rest)
+    explained = int(sum(r[:, 2].sum() - r[:, 1].sum() + r.shape[0] for r in (found.along_rows, found.along_cols)))
+    return _FrameResult(
+        np.concatenate([rows, cols, _hough_pieces(rest, mask.shape, settings)]),
+        explained,
+        rest.shape[0],
+    )
+
+
+def dominant_angle_deg(mask: npt.NDArray[np.uint8]) -> float:
+    """Direction of most wall edges modulo 90 degrees, in [-45, 45): the peak of a histogram
+    of gradient angles (weighted by gradient strength, half-degree bins), refined by the mean
+    of the angles within 5 degrees of it (on the circle of 4x the angle, where the four
+    directions of a rectangular building coincide)."""
     import cv2
 
-    x, y, width, height = cv2.boundingRect((image == OCCUPIED).view(np.uint8))
-    if width == 0:
-        return None
-    reach = 2 + 1  # edge pixels beyond occupied ones, and one for the blur's own border
-    margin = tile // 4
+    blurred = cv2.GaussianBlur(mask.astype(np.float32), (5, 5), 0)
+    dx = cv2.Sobel(blurred, cv2.CV_32F, 1, 0, ksize=3)
+    dy = cv2.Sobel(blurred, cv2.CV_32F, 0, 1, ksize=3)
+    strength = cv2.magnitude(dx, dy)
+    edge = strength > 0.1 * float(strength.max(initial=0.0))
+    if not edge.any():
+        return 0.0
+    weight = strength[edge].astype(np.float64)
+    quarter = np.arctan2(dy[edge], dx[edge]).astype(np.float64) * 4.0
+    histogram = np.bincount(
+        (np.degrees(quarter / 4.0) % 90.0 * 2.0).astype(np.intp) % 180, weight, 180
+    )
+    smooth = histogram + np.roll(histogram, 1) + np.roll(histogram, -1)
+    peak = math.radians((int(np.argmax(smooth)) + 0.5) * 2.0)
+    near = np.abs(np.angle(np.exp(1j * (quarter - peak)))) < math.radians(20.0)
+    mean = np.angle(np.sum(weight[near] * np.exp(1j * quarter[near]))) / 4.0
+    return (math.degrees(mean) + 45.0) % 90.0 - 45.0
 
-    def span(low: int, high: int, size: int) -> slice:
-        first_tile = max(low - reach, 0) // tile * tile
-        last_tile = (min(high + reach, size - 1) // tile + 1) * tile
-        return slice(max(first_tile - margin, 0), min(last_tile + margin, size))
 
-    return span(y, y + height - 1, image.shape[0]), span(x, x + width - 1, image.shape[1])
+def _turned(mask: npt.NDArray[np.uint8], angle_deg: float) -> tuple[npt.NDArray[np.uint8], Float64Array]:
+    """``mask`` turned so that directions at ``angle_deg`` run along the rows, on a canvas
+    holding all of it; and the affine map from the turned pixels back to the mask's."""
+    import cv2
+
+    c, s = math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))
+    turn = np.array([[c, s], [-s, c]])
+    height, width = mask.shape
+    corners = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1]]) @ turn.T
+    low = corners.min(axis=0) - 2.0
+    size = np.ceil(corners.max(axis=0) - low + 3.0).astype(int)
+    forward = np.concatenate([turn, -low[:, None]], axis=1)
+    # Bilinear and a low threshold: a one-cell wall stays connected when turned.
+    turned = cv2.warpAffine(
+        mask * np.uint8(255), forward, (int(size[0]), int(size[1])), flags=cv2.INTER_LINEAR
+    )
+    back: Float64Array = cv2.invertAffineTransform(forward)
+    return (turned >= 64).view(np.uint8), back
 
 
 def detect_segments(
-    image: npt.NDArray[np.uint8],
+    mask: npt.NDArray[np.uint8],
+    settings: DetectorSettings,
     *,
-    canny_low: float = 150.0,
-    canny_high: float = 250.0,
-    votes: int = 8,
-    min_line_length: float = 4.0,
-    max_line_gap: float = 2.0,
-    tile: int = 64,
+    anchor: tuple[int, int] = (0, 0),
+    cache: TileCache | None = None,
 ) -> Float64Array:
-    """Edge segments (x0, y0, x1, y1) in pixels, shape (N, 4); Hough at 1 px and 1 degree.
+    """Wall pieces (x0, y0, x1, y1) in pixels of a wall ``mask`` (:func:`occupied_mask`),
+    shape (N, 4), for :func:`merge_segments`.
 
-    The blur gives Canny one gradient peak per side of a wall: on the raw two-level image a wall
-    two cells thick has a flat gradient plateau, and non-maximum suppression picks arbitrary
-    rows of it; a one-cell diagonal (a staircase) breaks into fragments.
+    Axis-aligned walls (most walls of a building map) are runs of boundary wall pixels along
+    rows and columns, found with a few whole-array operations per tile; the runs of one wall
+    (its two sides, the steps of a slight slope) are clustered and fitted with one line.
+    What no run explains (diagonal walls) goes to HoughLinesP, in the windows holding it only.
+    When most wall pixels are not explained and the map's dominant direction is more than
+    AXIS_TOLERANCE_DEG off its axes (a SLAM map whose first pose was turned), the map is
+    searched again turned into that direction, and the pieces turned back.
 
-    HoughLinesP misbehaves on whole floor plans in two ways, both measured on the benchmark
-    plan and the test grids. Its accumulator collects votes from every wall on the same line
-    of the image, so about a sixth of the wall edges went undetected; it runs per ``tile`` x
-    ``tile`` window instead. And a sampled pixel whose strongest angle belongs to another
-    wall (at a corner) walks off its edge and erases the pixels it passes without reporting
-    them: the first cells of an L corner went missing. So edge pixels are split by gradient
-    direction into four overlapping classes (0, 45, 90, 135 degrees, +-45 each) searched
-    separately: any straight edge lies wholly in one class, crossing walls never share one.
-    Walls cut at window borders, and the doubles of overlapping windows and classes, are
-    joined again by the merge.
+    ``cache`` keeps each tile's findings between calls (see :class:`TileCache`): a map that
+    changed in a few places is searched again only where its tiles' windows changed.
     """
-    import cv2
-
-    part = _occupied_part(image, tile)
-    if part is None:
-        return np.zeros((0, 4), dtype=np.float64)
-    blurred = cv2.GaussianBlur(image[part], (3, 3), 0)
-    # The derivatives Canny computes for itself (3x3 Sobel, 16-bit, replicated border), made
-    # once: they give the edge directions too.
-    dx = cv2.Sobel(blurred, cv2.CV_16S, 1, 0, ksize=3, borderType=cv2.BORDER_REPLICATE)
-    dy = cv2.Sobel(blurred, cv2.CV_16S, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE)
-    edges = cv2.Canny(dx, dy, canny_low, canny_high, L2gradient=True)
-    rows, cols = np.nonzero(edges)
-    # Edge direction modulo 180 degrees (the gradient turned by 90 degrees).
-    direction = (np.degrees(np.arctan2(dy[rows, cols], dx[rows, cols])) + 90.0) % 180.0
-    found = []
-    origin = (part[0].start, part[1].start)
-    for centre in (0.0, 45.0, 90.0, 135.0):
-        keep = np.abs((direction - centre + 90.0) % 180.0 - 90.0) < 45.0
-        found.append(
-            _tiled_hough(
-                edges.shape,
-                rows=rows[keep],
-                cols=cols[keep],
-                origin=origin,
-                shape=image.shape,
-                votes=votes,
-                min_line_length=min_line_length,
-                max_line_gap=max_line_gap,
-                tile=tile,
-            )
-        )
-    return np.concatenate(found)
+    cache = TileCache() if cache is None else cache
+    used: dict[bytes, TileFindings] = {}
+    result = _frame_segments(mask, settings, anchor=anchor, frame=b"axes", cache=cache, used=used)
+    segments = result.segments
+    if result.unexplained > result.explained:
+        angle = round(dominant_angle_deg(mask) / ANGLE_STEP_DEG) * ANGLE_STEP_DEG
+        if abs(angle) > AXIS_TOLERANCE_DEG:
+            turned, back = _turned(mask, angle)
+            pieces = _frame_segments(
+                turned, settings, anchor=(0, 0), frame=f"turned {angle}".encode(), cache=cache,
+                used=used,
+            ).segments
+            ends = pieces.reshape(-1, 2) @ back[:, :2].T + back[:, 2]
+            segments = ends.reshape(-1, 4)
+    cache.tiles = used
+    return segments
 
 
 def _canonical(segments: Float64Array) -> Float64Array:
@@ -406,14 +794,15 @@ def _cross(a: Float64Array, b: Float64Array) -> Float64Array:
 
 
 def join_corners(segments: npt.ArrayLike, *, reach: float, min_angle_deg: float = 30.0) -> Float64Array:
-    """Extend wall ends that stop short of a crossing wall to that wall's centre line.
+    """Move wall ends near a crossing wall onto that wall's centre line.
 
-    The edges of a wall stop at the edge of the wall they run into, so after merging, the walls
-    of an L corner or a T junction end half a wall thickness and a cell short of each other.
-    An end moves out to where its line meets the line of a segment at least ``min_angle_deg``
-    away in direction, when that point is at most ``reach`` beyond the end and on the other
-    segment or within ``reach`` of it; the nearest such point wins. Ends never move inwards,
-    and segments that cross already are left alone.
+    The sides of a wall stop at the side of the wall they run into, and the outer side of an L
+    corner runs on to the corner's outer edge, so after merging, the walls of an L corner or a
+    T junction end up to a few cells short of each other's centre lines, or half a wall past.
+    An end moves to where its line meets the line of a segment at least ``min_angle_deg`` away
+    in direction, when that point is on the other segment or within ``reach`` of it, and at
+    most ``reach`` beyond the end or ``reach / 2`` (and a quarter of the segment) back from
+    it; the nearest such point wins. Segments crossing further inside are left alone.
     """
     segs = np.array(segments, dtype=np.float64).reshape(-1, 4)
     g = _Geometry.of(segs)
@@ -427,12 +816,13 @@ def join_corners(segments: npt.ArrayLike, *, reach: float, min_angle_deg: float 
     t = _cross(offset, u[b]) / sine
     s = _cross(offset, u[a]) / sine
     on_b = (s >= -reach) & (s <= g.length[b] + reach)
-    before = on_b & (t < 0.0) & (t >= -reach)
-    beyond = on_b & (t > g.length[a]) & (t <= g.length[a] + reach)
-    seg = np.concatenate([a[before], a[beyond]])
-    end = np.concatenate([np.zeros(before.sum(), np.intp), np.ones(beyond.sum(), np.intp)])
-    t_end = np.concatenate([t[before], t[beyond]])
-    extension = np.concatenate([-t[before], t[beyond] - g.length[a[beyond]]])
+    back = np.minimum(reach / 2.0, g.length[a] / 4.0)
+    near_start = on_b & (t >= -reach) & (t <= back)
+    near_end = on_b & (t >= g.length[a] - back) & (t <= g.length[a] + reach)
+    seg = np.concatenate([a[near_start], a[near_end]])
+    end = np.concatenate([np.zeros(near_start.sum(), np.intp), np.ones(near_end.sum(), np.intp)])
+    t_end = np.concatenate([t[near_start], t[near_end]])
+    extension = np.abs(np.concatenate([t[near_start], t[near_end] - g.length[a[near_end]]]))
     order = np.lexsort((extension, end, seg))
     seg, end, t_end = seg[order], end[order], t_end[order]
     first = np.ones(seg.size, dtype=bool)

@@ -11,13 +11,10 @@ import pytest
 
 from host_bridge.converters.walls import wall_segments
 from host_bridge.segments import (
-    FREE,
-    OCCUPIED,
-    UNKNOWN,
     detect_segments,
-    grid_to_image,
     join_corners,
     merge_segments,
+    occupied_mask,
     segments_to_mesh,
 )
 from tests.host_bridge.converters.test_walls import RES, as_grid, default_options, floor_plan
@@ -85,11 +82,17 @@ def test_segments_that_merge_with_nothing_come_out_bit_exact() -> None:
 
 
 def test_merge_ignores_input_order_and_merging_again_changes_nothing() -> None:
-    cells = floor_plan()
-    pixels = detect_segments(grid_to_image(cells))
-    raw = (pixels + 0.5) * RES
-    assert raw.shape[0] > 20
+    # The pieces the detector finds on the test plan, each cut in three overlapping fragments
+    # and nudged across by up to a tenth of a cell, as an edge detector's would be.
+    pixels = detect_segments(occupied_mask(floor_plan()), default_options().detector(RES))
+    rng = np.random.default_rng(5)
+    cuts = [(0.0, 0.4), (0.35, 0.7), (0.65, 1.0)]
+    pieces = [
+        np.concatenate([p[:2] + a * (p[2:] - p[:2]), p[:2] + b * (p[2:] - p[:2])]) for p in pixels for a, b in cuts
+    ]
+    raw = (np.array(pieces) + rng.uniform(-0.1, 0.1, (len(pieces), 4)) + 0.5) * RES
     out = merge(raw)
+    assert out.shape[0] < raw.shape[0] / 2
     rng = np.random.default_rng(3)
     shuffled = raw[rng.permutation(raw.shape[0])]
     flip = rng.random(raw.shape[0]) < 0.5
@@ -146,11 +149,10 @@ def test_box_mesh_geometry_and_pose() -> None:
     assert ((tri.mean(axis=1) - centre) * winding).sum(axis=1).min() > 0.0
 
 
-def test_grid_to_image_keeps_unknown_free_and_occupied_apart() -> None:
+def test_occupied_mask_marks_wall_values_only() -> None:
     cells = np.array([[-1, 0, 64, 65, 100, 101, -50]], dtype=np.int8)
-    expected = [UNKNOWN, FREE, FREE, OCCUPIED, OCCUPIED, UNKNOWN, UNKNOWN]
-    assert grid_to_image(cells).tolist() == [expected]
-    assert len({UNKNOWN, FREE, OCCUPIED}) == 3
+    assert occupied_mask(cells).tolist() == [[0, 0, 0, 1, 1, 0, 0]]
+    assert occupied_mask(cells, occupied_threshold=50).tolist() == [[0, 0, 1, 1, 1, 0, 0]]
 
 
 def test_walls_of_a_plan_inside_a_large_unknown_map_are_found_where_it_lies() -> None:
@@ -169,5 +171,5 @@ def test_walls_of_a_plan_inside_a_large_unknown_map_are_found_where_it_lies() ->
 
 
 def test_an_image_without_occupied_cells_has_no_segments() -> None:
-    image = grid_to_image(np.array([[-1, 0, 0], [0, -1, 50]], dtype=np.int8))
-    assert detect_segments(image).shape == (0, 4)
+    mask = occupied_mask(np.array([[-1, 0, 0], [0, -1, 50]], dtype=np.int8))
+    assert detect_segments(mask, default_options().detector(RES)).shape == (0, 4)
