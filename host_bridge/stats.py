@@ -40,10 +40,13 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+import numpy as np
 import rerun as rr
 
+from host_bridge.columns import PackedPayloads
 from host_bridge.contract import TIMELINE_LOG, TIMELINE_RECEIVE, LogItem
-from host_bridge.dispatch import TopicCounters, sequence_gap
+from host_bridge.dispatch import TopicCounters, sequence_gap, sequence_gaps
+from host_bridge.inputs.base import MessageRun
 from robot_relay.errors import WireError
 from robot_relay.wire import RawMessage, RelayReport, parse_robot_key, stats_selector
 
@@ -140,8 +143,11 @@ class StatsTracker:
 
     def observe_batch(self, batch: Sequence[RawMessage], host_ns: int) -> list[TopicStats]:
         """:meth:`observe` a batch the host's queue handed over at once (a robot's worker took
-        it); host drops not found in its gaps were of messages older than any seen."""
+        it); host drops not found in its gaps were of messages older than any seen. A run
+        (a relay's bundles, a bag's window) is observed with arrays, a period at a time."""
         self._unmatched.clear()
+        if isinstance(batch, MessageRun):
+            return self._observe_run(batch, host_ns)
         closed: list[TopicStats] = []
         for raw in batch:
             closed += self.observe(raw, host_ns)
@@ -155,41 +161,77 @@ class StatsTracker:
             at, timeline = raw.log_ns, TIMELINE_LOG
         else:
             return []
-        robot = self._robots.get(raw.robot)
-        if robot is None:
-            robot = self._robots[raw.robot] = _RobotWindow(timeline, self._period_end(at))
-        closed: list[TopicStats] = []
-        while at >= robot.end_ns:
-            closed += self._close(raw.robot, robot)
-            if at >= robot.end_ns + MAX_EMPTY_PERIODS * self.period_ns:
-                closed += self._close(raw.robot, robot)  # one empty period shows the silence
-                robot.end_ns = self._period_end(at)
-        window = robot.topics.get(raw.topic)
-        if window is None:
-            window = robot.topics[raw.topic] = self._new_window(raw.robot, raw.topic)
+        closed, window = self._window(raw.robot, raw.topic, at, timeline)
         window.count += 1
         window.bytes += len(raw.data)
         if raw.sequence is not None:
             gap = sequence_gap(window.last_sequence, raw.sequence)
-            window.drops += gap - self._dropped_by_host(raw, window, gap)
+            window.drops += gap - self._dropped_by_host(raw.robot, raw.topic, window, gap)
             window.last_sequence = raw.sequence
         if raw.receive_ns is not None:
             window.latency_ns += host_ns - raw.receive_ns
             window.latency_count += 1
         return closed
 
+    def _observe_run(self, run: MessageRun, host_ns: int) -> list[TopicStats]:
+        """:meth:`observe` of every message of ``run``, each period's part of it at once."""
+        if run.receive_ns is not None:
+            times, timeline = run.receive_ns, TIMELINE_RECEIVE
+        elif run.log_ns is not None:
+            times, timeline = run.log_ns, TIMELINE_LOG
+        else:
+            return []
+        payloads = run.payloads
+        sizes = (payloads.ends - payloads.starts if isinstance(payloads, PackedPayloads)
+                 else np.fromiter(map(len, payloads), np.int64, len(payloads)))
+        closed: list[TopicStats] = []
+        begin = 0
+        while begin < len(run):
+            closed_now, window = self._window(run.robot, run.topic, int(times[begin]), timeline)
+            closed += closed_now
+            later = np.flatnonzero(times[begin:] >= self._robots[run.robot].end_ns)
+            end = begin + int(later[0]) if len(later) else len(run)
+            window.count += end - begin
+            window.bytes += int(sizes[begin:end].sum())
+            if run.sequence is not None:
+                part = run.sequence[begin:end]
+                gap = sequence_gaps(window.last_sequence, part)
+                window.drops += gap - self._dropped_by_host(run.robot, run.topic, window, gap)
+                window.last_sequence = int(part[-1])
+            if run.receive_ns is not None:
+                window.latency_ns += host_ns * (end - begin) - int(run.receive_ns[begin:end].sum())
+                window.latency_count += end - begin
+            begin = end
+        return closed
+
+    def _window(self, name: str, topic: str, at: int, timeline: str) -> tuple[list[TopicStats], _TopicWindow]:
+        """The periods a message at ``at`` closes, and its topic's window of the period it is in."""
+        robot = self._robots.get(name)
+        if robot is None:
+            robot = self._robots[name] = _RobotWindow(timeline, self._period_end(at))
+        closed: list[TopicStats] = []
+        while at >= robot.end_ns:
+            closed += self._close(name, robot)
+            if at >= robot.end_ns + MAX_EMPTY_PERIODS * self.period_ns:
+                closed += self._close(name, robot)  # one empty period shows the silence
+                robot.end_ns = self._period_end(at)
+        window = robot.topics.get(topic)
+        if window is None:
+            window = robot.topics[topic] = self._new_window(name, topic)
+        return closed, window
+
     def _new_window(self, robot: str, topic: str) -> _TopicWindow:
         converted, seconds = self.convert_totals(robot, topic)
         return _TopicWindow(converted_before=converted, convert_seconds_before=seconds)
 
-    def _dropped_by_host(self, raw: RawMessage, window: _TopicWindow, gap: int) -> int:
-        """How much of the sequence ``gap`` before ``raw`` the host's own queue dropped."""
+    def _dropped_by_host(self, robot: str, topic: str, window: _TopicWindow, gap: int) -> int:
+        """How much of the sequence ``gap`` the host's own queue dropped."""
         if self.host_dropped is None:
             return 0
-        key = (raw.robot, raw.topic)
+        key = (robot, topic)
         unmatched = self._unmatched.get(key)
         if unmatched is None:  # the topic's first message in this batch
-            dropped = self.host_dropped(raw.robot).get(raw.topic, 0)
+            dropped = self.host_dropped(robot).get(topic, 0)
             unmatched, window.host_dropped_seen = dropped - window.host_dropped_seen, dropped
         matched = min(unmatched, gap)
         self._unmatched[key] = unmatched - matched

@@ -12,17 +12,18 @@ from __future__ import annotations
 import logging
 import math
 import threading
+from collections.abc import Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from robot_relay.config import DEFAULT_ALLOW, DEFAULT_DENY
-from robot_relay.files import FileService, serve_files
+from robot_relay.files import FileService, is_robot_description, serve_files
 from robot_relay.policy import PolicyTable
 from robot_relay.relay import Relay
 from robot_relay.session import ZenohOptions, close_session, open_session
 from robot_relay.sources.base import Source, topic_filter
-from robot_relay.wire import Catalog, RawMessage, check_robot_name
+from robot_relay.wire import Catalog, RawMessage, TopicInfo, check_robot_name
 
 log = logging.getLogger("swanky.relay")
 
@@ -64,6 +65,15 @@ class RelayOutlet:
     def publish(self, raw: RawMessage) -> None:
         self.files.learn(raw)
         self.relay.publish(raw)
+
+    def publish_run(
+        self, info: TopicInfo, payloads: Sequence[bytes | memoryview], log_ns: Sequence[int]
+    ) -> None:
+        if is_robot_description(RawMessage(self.relay.robot, info.topic, info.msgtype, b"")):
+            for data, stamp in zip(payloads, log_ns, strict=True):
+                self.publish(RawMessage(self.relay.robot, info.topic, info.msgtype, data, log_ns=stamp))
+            return
+        self.relay.publish_run(info.topic, payloads, log_ns)
 
     def update_catalog(self, catalog: Catalog) -> None:
         self.relay.update_catalog(catalog)

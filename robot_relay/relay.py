@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import Any, Protocol
 
 import zenoh
@@ -32,8 +32,10 @@ from robot_relay.errors import ConfigError, RelayError
 from robot_relay.policy import Policy, PolicyTable, RateLimiter
 from robot_relay.stats import RelayStatsPublisher
 from robot_relay.wire import (
+    BUNDLE_ENTRY_SIZE,
     COMPRESSION_FLAGS,
     COMPRESSION_PACKAGES,
+    FLAG_BUNDLE,
     Attachment,
     Catalog,
     RawMessage,
@@ -44,6 +46,7 @@ from robot_relay.wire import (
     check_robot_name,
     compressor,
     data_key,
+    pack_bundle,
 )
 
 log = logging.getLogger("swanky.relay")
@@ -71,11 +74,33 @@ def _compressor(policy: Policy, topic: str) -> Callable[[bytes], bytes] | None:
         raise ConfigError(msg) from err
 
 
+# A bundle stays under Zenoh's default 64 KiB batch, so it is never fragmented; larger
+# messages go alone (bundling saves a sample's overhead, which a large payload dwarfs).
+MAX_BUNDLE_BYTES = 60_000
+MAX_BUNDLE_MESSAGES = 1000
+
+
+def bundle_bounds(payloads: Sequence[bytes | memoryview]) -> Iterator[int]:
+    """Where the bundles of a run end: each at most MAX_BUNDLE_MESSAGES messages and
+    MAX_BUNDLE_BYTES of payload, a larger payload on its own; in the run's order."""
+    size = count = 0
+    for index, payload in enumerate(payloads):
+        length = len(payload) + BUNDLE_ENTRY_SIZE
+        if count and (size + length > MAX_BUNDLE_BYTES or count == MAX_BUNDLE_MESSAGES):
+            yield index
+            size = count = 0
+        size += length
+        count += 1
+    if count:
+        yield len(payloads)
+
+
 class _TopicPublisher:
     def __init__(
         self, session: zenoh.Session, robot: str, info: TopicInfo, policy: Policy,
-        on_sent: Callable[[int], None],
+        on_sent: Callable[[int, int], None],
     ) -> None:
+        self.robot = robot
         self.info = info
         self.policy = policy
         self.key = data_key(robot, info.topic)
@@ -166,7 +191,51 @@ class _TopicPublisher:
             source_info = zenoh.SourceInfo(self.publisher.id, self.sequence)
             self.publisher.put(payload, attachment=attachment.pack(), source_info=source_info)
         self.sequence = (self.sequence + 1) & 0xFFFFFFFF
-        self._on_sent(len(payload))
+        self._on_sent(1, len(payload))
+
+    @property
+    def bundles(self) -> bool:
+        """Whether a run of this topic goes as bundles: not when latched (the cache keeps
+        ``depth`` samples, each must be one message) nor rate-capped (one message per period)."""
+        return not self.info.latched and self.limiter is None
+
+    def offer_run(
+        self, payloads: Sequence[bytes | memoryview], log_ns: Sequence[int], receive_ns: int,
+        now: float,
+    ) -> float | None:
+        """Send a run of messages, as bundles where the topic allows (:attr:`bundles`), each
+        message alone otherwise; returns when to flush, as :meth:`offer`."""
+        if not self.bundles:
+            due = None
+            for data, stamp in zip(payloads, log_ns, strict=True):
+                raw = RawMessage(self.robot, self.info.topic, self.info.msgtype, data, log_ns=stamp)
+                due = self.offer(raw, receive_ns, now)
+            return due
+        with self._lock:
+            begin = 0
+            for end in bundle_bounds(payloads):
+                if end - begin == 1:
+                    raw = RawMessage(self.robot, self.info.topic, self.info.msgtype,
+                                     payloads[begin], log_ns=log_ns[begin])
+                    self._put(raw, receive_ns)
+                else:
+                    self._put_bundle(payloads[begin:end], log_ns[begin:end], receive_ns)
+                begin = end
+        return None
+
+    def _put_bundle(
+        self, payloads: Sequence[bytes | memoryview], log_ns: Sequence[int], receive_ns: int
+    ) -> None:
+        payload, flags = pack_bundle(payloads, log_ns), FLAG_BUNDLE
+        if self._compress is not None:
+            packed = self._compress(payload)
+            if len(packed) < len(payload):
+                payload, flags = packed, flags | self._flag
+        attachment = Attachment(self.sequence, receive_ns, 0, flags)
+        source_info = zenoh.SourceInfo(self.publisher.id, self.sequence)
+        self.publisher.put(payload, attachment=attachment.pack(), source_info=source_info)
+        self.sequence = (self.sequence + len(payloads)) & 0xFFFFFFFF
+        self._on_sent(len(payloads), len(payload))
 
     def undeclare(self) -> None:
         self.flush(time.monotonic(), force=True)  # the newest message is never lost
@@ -251,9 +320,9 @@ class Relay:
             session, self.robot, lambda: (self.published, self.published_bytes), source_drops
         )
 
-    def _count_sent(self, size: int) -> None:
+    def _count_sent(self, messages: int, size: int) -> None:
         with self._lock:
-            self.published += 1
+            self.published += messages
             self.published_bytes += size
 
     def _add(self, info: TopicInfo) -> None:
@@ -341,6 +410,16 @@ class Relay:
         if publisher is None:  # the topic vanished from the live graph meanwhile
             return
         self._flusher.schedule(publisher, publisher.offer(raw, time.time_ns(), time.monotonic()))
+
+    def publish_run(self, topic: str, payloads: Sequence[bytes | memoryview], log_ns: Sequence[int]) -> None:
+        """Publish a run of ``topic``'s messages that are all due now (a replay that is behind,
+        or not paced): bundled into fewer samples where the topic allows, each message's wire
+        sequence number and source time kept (schemas/wire.md, Bundles)."""
+        publisher = self._publishers.get(topic)
+        if publisher is None:
+            return
+        due = publisher.offer_run(payloads, log_ns, time.time_ns(), time.monotonic())
+        self._flusher.schedule(publisher, due)
 
     def publish_all(self, messages: Iterable[RawMessage], stop: threading.Event) -> None:
         for raw in messages:

@@ -10,14 +10,17 @@ import json
 import math
 import re
 import struct
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, TypeVar
 
 from robot_relay.errors import GraphError, WireError
 
 PREFIX = "swanky"
-ATTACHMENT_VERSION = 1
+# Version 2 added bundles (FLAG_BUNDLE). A relay marks a single message's attachment version 1,
+# which every host reads, and a bundle's version 2, which a version-1 host refuses by name.
+ATTACHMENT_VERSION = 2
+SINGLE_MESSAGE_VERSION = 1
 CATALOG_VERSION = 1
 STATS_VERSION = 1
 CDR_ENCODING = "application/cdr"
@@ -25,10 +28,16 @@ ROBOT_NAME_PATTERN = re.compile(r"^[A-Za-z0-9_-]+$")
 
 FLAG_LZ4 = 0x01
 FLAG_ZSTD = 0x02
-_KNOWN_FLAGS = FLAG_LZ4 | FLAG_ZSTD
+FLAG_BUNDLE = 0x04
+_KNOWN_FLAGS = FLAG_LZ4 | FLAG_ZSTD | FLAG_BUNDLE
 
 _ATTACHMENT = struct.Struct("<BBHIqqQ")
 ATTACHMENT_SIZE = _ATTACHMENT.size
+
+# A bundle: u32 message count, u32 reserved, then i64 source times, u32 payload sizes, payloads.
+_BUNDLE_HEAD = struct.Struct("<II")
+BUNDLE_HEAD_SIZE = _BUNDLE_HEAD.size
+BUNDLE_ENTRY_SIZE = 8 + 4
 
 # The most a compressed payload may inflate to. Zeros compress a thousandfold, so without a bound
 # a 300 KB sample would hold 300 MB of the host's memory; no ROS message a robot sends over its
@@ -129,17 +138,22 @@ def parse_cdr_encoding(encoding: str, key: str) -> str:
 
 @dataclass(frozen=True, slots=True)
 class Attachment:
-    """Per-sample metadata sent beside the CDR bytes."""
+    """Per-sample metadata sent beside the CDR bytes; for a bundle, ``sequence`` is its first
+    message's and ``source_ns`` 0 (each message's is in the bundle)."""
 
     sequence: int
     receive_ns: int
     source_ns: int = 0
     flags: int = 0
 
+    @property
+    def bundle(self) -> bool:
+        return bool(self.flags & FLAG_BUNDLE)
+
     def pack(self) -> bytes:
+        version = ATTACHMENT_VERSION if self.bundle else SINGLE_MESSAGE_VERSION
         return _ATTACHMENT.pack(
-            ATTACHMENT_VERSION, self.flags, 0, self.sequence & 0xFFFFFFFF, self.receive_ns,
-            self.source_ns, 0,
+            version, self.flags, 0, self.sequence & 0xFFFFFFFF, self.receive_ns, self.source_ns, 0,
         )
 
     @classmethod
@@ -151,16 +165,48 @@ class Attachment:
             )
             raise WireError(msg)
         version, flags, _, sequence, receive_ns, source_ns, _ = _ATTACHMENT.unpack(data)
-        if version != ATTACHMENT_VERSION:
+        if not SINGLE_MESSAGE_VERSION <= version <= ATTACHMENT_VERSION:
             msg = (
                 f"attachment on {key!r} has wire version {version}, this host speaks "
                 f"{ATTACHMENT_VERSION}: upgrade the older side"
             )
             raise WireError(msg)
-        if flags & ~_KNOWN_FLAGS or flags == _KNOWN_FLAGS:
+        known = _KNOWN_FLAGS if version == ATTACHMENT_VERSION else _KNOWN_FLAGS & ~FLAG_BUNDLE
+        if flags & ~known or flags & (FLAG_LZ4 | FLAG_ZSTD) == FLAG_LZ4 | FLAG_ZSTD:
             msg = f"attachment on {key!r} has unknown flags {flags:#04x}"
             raise WireError(msg)
+        if version == ATTACHMENT_VERSION and not flags & FLAG_BUNDLE:
+            msg = f"attachment on {key!r} has wire version {version} but is not a bundle"
+            raise WireError(msg)
         return cls(sequence, receive_ns, source_ns, flags)
+
+
+def pack_bundle(payloads: Sequence[bytes | memoryview], source_ns: Sequence[int]) -> bytes:
+    """Several CDR payloads of one topic as one sample's payload (schemas/wire.md, Bundles)."""
+    count = len(payloads)
+    return b"".join([
+        _BUNDLE_HEAD.pack(count, 0),
+        struct.pack(f"<{count}q", *source_ns),
+        struct.pack(f"<{count}I", *map(len, payloads)),
+        *payloads,
+    ])
+
+
+def bundle_count(data: bytes | memoryview, key: str) -> int:
+    """How many messages the bundle ``data`` holds, once its header is checked against its
+    length; WireError naming ``key`` when it cannot be a bundle (the sizes are the reader's
+    to check against the rest)."""
+    if len(data) < BUNDLE_HEAD_SIZE:
+        msg = f"bundle on {key!r} is {len(data)} bytes, shorter than its {BUNDLE_HEAD_SIZE}-byte header"
+        raise WireError(msg)
+    count, reserved = _BUNDLE_HEAD.unpack_from(data)
+    if not count or reserved or BUNDLE_HEAD_SIZE + count * BUNDLE_ENTRY_SIZE > len(data):
+        msg = (
+            f"bundle on {key!r} says it holds {count} messages (reserved {reserved}), which "
+            f"its {len(data)} bytes cannot: a corrupt or cut-short sample"
+        )
+        raise WireError(msg)
+    return int(count)
 
 
 COMPRESSION_FLAGS = {"lz4": FLAG_LZ4, "zstd": FLAG_ZSTD}

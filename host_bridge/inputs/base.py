@@ -20,6 +20,7 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
+from host_bridge.columns import PackedPayloads
 from host_bridge.contract import TIMELINE_RECEIVE, LogItem
 from robot_relay.wire import MessageDefinition, RawMessage
 
@@ -57,9 +58,10 @@ def presence_items(event: RobotEvent, now_ns: int) -> list[LogItem]:
 @dataclass(frozen=True, slots=True, eq=False)
 class MessageRun(Sequence[RawMessage]):
     """Messages of one topic (one type and definition) in their order, as a bag input reads
-    them: the payloads and their times as arrays, not a record per message. The dispatcher
-    reads a columnar type's run straight from :attr:`payloads` and :attr:`log_ns`; whoever
-    iterates it (a tap, the message path) gets RawMessages, built as they are asked for."""
+    them and a relay's bundles bring them: the payloads, their times and wire sequence numbers
+    as arrays, not a record per message. The dispatcher reads a columnar type's run straight
+    from :attr:`payloads` and :attr:`log_ns`; whoever iterates it (a tap, the message path)
+    gets RawMessages, built as they are asked for."""
 
     robot: str
     topic: str
@@ -68,6 +70,7 @@ class MessageRun(Sequence[RawMessage]):
     payloads: Sequence[bytes | memoryview]
     log_ns: npt.NDArray[np.int64] | None = None
     receive_ns: npt.NDArray[np.int64] | None = None
+    sequence: npt.NDArray[np.int64] | None = None
 
     def __len__(self) -> int:
         return len(self.payloads)
@@ -79,21 +82,75 @@ class MessageRun(Sequence[RawMessage]):
     def __getitem__(self, index: int | slice) -> RawMessage | Sequence[RawMessage]:
         if isinstance(index, slice):
             return [self[i] for i in range(*index.indices(len(self)))]
-        return self._message(
-            self.payloads[index],
-            None if self.receive_ns is None else int(self.receive_ns[index]),
-            None if self.log_ns is None else int(self.log_ns[index]),
+        return RawMessage(
+            self.robot, self.topic, self.msgtype, self.payloads[index], self.definition,
+            *(None if column is None else int(column[index])
+              for column in (self.receive_ns, self.log_ns, self.sequence)),
         )
 
     def __iter__(self) -> Iterator[RawMessage]:
         count = len(self.payloads)
-        receive = [None] * count if self.receive_ns is None else self.receive_ns.tolist()
-        logged = [None] * count if self.log_ns is None else self.log_ns.tolist()
-        for data, receive_ns, log_ns in zip(self.payloads, receive, logged, strict=True):
-            yield self._message(data, receive_ns, log_ns)
+        columns = [[None] * count if column is None else column.tolist()
+                   for column in (self.receive_ns, self.log_ns, self.sequence)]
+        for data, receive_ns, log_ns, sequence in zip(self.payloads, *columns, strict=True):
+            yield RawMessage(self.robot, self.topic, self.msgtype, data, self.definition,
+                             receive_ns, log_ns, sequence)
 
-    def _message(self, data: bytes | memoryview, receive_ns: int | None, log_ns: int | None) -> RawMessage:
-        return RawMessage(self.robot, self.topic, self.msgtype, data, self.definition, receive_ns, log_ns)
+
+def _joinable(run: MessageRun, after: MessageRun) -> bool:
+    """Whether ``after`` can follow ``run`` in one run: same type and definition, payloads in
+    buffers, and the same times and sequence columns present."""
+    return (
+        (run.msgtype, run.definition) == (after.msgtype, after.definition)
+        and isinstance(run.payloads, PackedPayloads) and isinstance(after.payloads, PackedPayloads)
+        and all((mine is None) == (theirs is None) for mine, theirs in (
+            (run.log_ns, after.log_ns), (run.receive_ns, after.receive_ns),
+            (run.sequence, after.sequence)))
+    )
+
+
+def _concatenated(runs: Sequence[MessageRun]) -> MessageRun:
+    """One run of ``runs`` (joinable, of one topic) after each other."""
+    first = runs[0]
+    buffers: list[bytes | memoryview] = []
+    sources = []
+    for run in runs:
+        assert isinstance(run.payloads, PackedPayloads)
+        sources.append(run.payloads.sources + len(buffers))
+        buffers.extend(run.payloads.buffers)
+    payloads = PackedPayloads(
+        tuple(buffers), np.concatenate(sources),
+        *(np.concatenate([getattr(run.payloads, name) for run in runs]) for name in ("starts", "ends")),
+    )
+    columns = [None if getattr(first, name) is None
+               else np.concatenate([getattr(run, name) for run in runs])
+               for name in ("log_ns", "receive_ns", "sequence")]
+    return MessageRun(first.robot, first.topic, first.msgtype, first.definition, payloads, *columns)
+
+
+def gathered(items: Sequence[InputItem]) -> list[InputItem]:
+    """``items`` with the runs of each topic joined into one where nothing of that topic lies
+    between them (each topic's order kept): a live host behind takes what waits as one run per
+    topic, as long as the wait, since the run's conversion costs Rerun calls, not its length."""
+    out: list[InputItem | list[MessageRun]] = []
+    open_runs: dict[tuple[str, str], list[MessageRun]] = {}
+    for item in items:
+        if isinstance(item, MessageRun):
+            key = (item.robot, item.topic)
+            joined = open_runs.get(key)
+            if joined is not None and _joinable(joined[0], item):
+                joined.append(item)
+                continue
+            open_runs[key] = [item]
+            out.append(open_runs[key])
+        else:
+            if isinstance(item, RawMessage):
+                open_runs.pop((item.robot, item.topic), None)
+            out.append(item)
+    return [
+        (item[0] if len(item) == 1 else _concatenated(item)) if isinstance(item, list) else item
+        for item in out
+    ]
 
 
 InputItem = RawMessage | MessageRun | InputProblem | RobotEvent

@@ -9,7 +9,7 @@ import logging
 import zenoh
 
 from host_bridge.errors import relay_errors
-from host_bridge.inputs.base import Deliver
+from host_bridge.inputs.base import Deliver, gathered
 from host_bridge.inputs.queues import RobotQueues
 from host_bridge.inputs.rmw_zenoh import RmwZenohInput
 from host_bridge.inputs.zenoh import ZenohInput
@@ -51,7 +51,7 @@ class LiveInput:
         return self.queues.last_activity
 
     def start(self, deliver: Deliver) -> None:
-        self.queues.serve(deliver)
+        self.queues.serve(lambda items: deliver(gathered(items)))
 
     def ended(self) -> bool:
         if self.queues.error is not None:

@@ -9,23 +9,29 @@ host's threads.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
 
+import numpy as np
 import zenoh
 from zenoh import ext
 
+from host_bridge.columns import PackedPayloads
 from host_bridge.errors import ConfigError
-from host_bridge.inputs.base import InputItem, InputProblem, RobotEvent
+from host_bridge.inputs.base import InputItem, InputProblem, MessageRun, RobotEvent
 from host_bridge.inputs.queues import RobotQueues
 from robot_relay.errors import WireError
 from robot_relay.wire import (
+    BUNDLE_ENTRY_SIZE,
+    BUNDLE_HEAD_SIZE,
     Attachment,
     Catalog,
     RawMessage,
     TopicInfo,
     alive_selector,
+    bundle_count,
     catalog_key,
     data_selector,
     decompress,
@@ -72,20 +78,48 @@ def fetch_catalog(session: zenoh.Session, robot: str, timeout: float) -> Catalog
     return None
 
 
-def _defined(raw: RawMessage, info: TopicInfo) -> RawMessage:
-    """``raw`` with the definition its relay's catalog gives; built directly, as this runs per
-    sample on Zenoh's thread (2 us against dataclasses.replace's 3)."""
+def bundle_run(
+    data: bytes, attachment: Attachment, key: str, *, robot: str, topic: str, msgtype: str
+) -> MessageRun:
+    """The messages of a relay's bundle (schemas/wire.md, Bundles) as a run, its payloads
+    slices of ``data``; WireError naming ``key`` when the bundle does not hold together."""
+    count = bundle_count(data, key)
+    log_ns = np.frombuffer(data, "<i8", count, BUNDLE_HEAD_SIZE).astype(np.int64)
+    sizes = np.frombuffer(data, "<u4", count, BUNDLE_HEAD_SIZE + 8 * count).astype(np.intp)
+    first = BUNDLE_HEAD_SIZE + BUNDLE_ENTRY_SIZE * count
+    ends = first + np.cumsum(sizes)
+    if ends[-1] != len(data):
+        msg = (
+            f"bundle on {key!r}: its {count} payload sizes add up to {int(sizes.sum())} bytes "
+            f"but {len(data) - first} follow them: a corrupt or cut-short sample"
+        )
+        raise WireError(msg)
+    payloads = PackedPayloads((data,), np.zeros(count, np.intp), ends - sizes, ends)
+    return MessageRun(
+        robot, topic, msgtype, None, payloads,
+        # 0: unknown, as a single message's source time; a run's times are all known or none.
+        log_ns=log_ns if log_ns.all() else None,
+        receive_ns=np.full(count, attachment.receive_ns, np.int64),
+        sequence=(attachment.sequence + np.arange(count, dtype=np.int64)) & 0xFFFFFFFF,
+    )
+
+
+def _defined(item: RawMessage | MessageRun, info: TopicInfo) -> RawMessage | MessageRun:
+    """``item`` with the definition its relay's catalog gives; a RawMessage built directly, as
+    this runs per sample on Zenoh's thread (2 us against dataclasses.replace's 3)."""
+    if isinstance(item, MessageRun):
+        return dataclasses.replace(item, definition=info.definition)
     return RawMessage(
-        robot=raw.robot, topic=raw.topic, msgtype=raw.msgtype, data=raw.data,
-        definition=info.definition, receive_ns=raw.receive_ns, log_ns=raw.log_ns,
-        sequence=raw.sequence,
+        robot=item.robot, topic=item.topic, msgtype=item.msgtype, data=item.data,
+        definition=info.definition, receive_ns=item.receive_ns, log_ns=item.log_ns,
+        sequence=item.sequence,
     )
 
 
 class _Robot:
     def __init__(self) -> None:
         self.topics: dict[str, TopicInfo] | None = None
-        self.pending: list[RawMessage] = []
+        self.pending: list[RawMessage | MessageRun] = []
         self.fetching = False
         self.last_fetch = 0.0
 
@@ -147,20 +181,28 @@ class ZenohInput:
         except WireError as err:
             self._put(InputProblem(robot, topic, err))
             return
-        raw = RawMessage(
-            robot=robot,
-            topic=topic,
-            msgtype=msgtype,
-            data=payload,
-            receive_ns=attachment.receive_ns,
-            log_ns=attachment.source_ns or None,
-            sequence=attachment.sequence,
-        )
-        self._route(raw)
+        item: RawMessage | MessageRun
+        if attachment.bundle:
+            try:
+                item = bundle_run(payload, attachment, key, robot=robot, topic=topic, msgtype=msgtype)
+            except WireError as err:
+                self._put(InputProblem(robot, topic, err))
+                return
+        else:
+            item = RawMessage(
+                robot=robot,
+                topic=topic,
+                msgtype=msgtype,
+                data=payload,
+                receive_ns=attachment.receive_ns,
+                log_ns=attachment.source_ns or None,
+                sequence=attachment.sequence,
+            )
+        self._route(item)
 
     # -- routing -----------------------------------------------------------------------------
 
-    def _route(self, raw: RawMessage) -> None:
+    def _route(self, raw: RawMessage | MessageRun) -> None:
         with self._lock:
             state = self._robots.setdefault(raw.robot, _Robot())
             deliver = state.topics is not None

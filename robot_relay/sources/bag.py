@@ -18,6 +18,7 @@ Needs rosbags (``pip install ".[relay,bag]"``); the live ROS 2 source does not.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -43,6 +44,9 @@ log = logging.getLogger("swanky.relay")
 # Bags recorded without QoS metadata (ROS 1, old rosbag2) still have these latched in ROS.
 CONVENTIONALLY_LATCHED = frozenset({"/tf_static", "/robot_description", "/map"})
 ROSBAGS_MISSING = 'reading bags needs rosbags: pip install ".[relay,bag]"'
+# An unpaced (or late) replay hands the relay what it read of this many messages at once,
+# a run per topic: a few milliseconds of reading, so the first ones wait little.
+RUN_WINDOW = 4096
 
 
 def _all_topics(topic: str) -> bool:
@@ -372,10 +376,10 @@ class BagSource:
         """Replay on a thread of its own, to the end or until :meth:`close`."""
 
         def replay() -> None:
-            for raw in self.messages():
+            for info, payloads, log_ns in self.runs():
                 if self._closing.is_set():
                     return
-                outlet.publish(raw)
+                outlet.publish_run(info, payloads, log_ns)
 
         self._replay = SourceThread("bag-replay", replay)
         self._replay.start()
@@ -478,6 +482,45 @@ class BagSource:
 
     def messages(self) -> Iterator[RawMessage]:
         """Every message once (or forever with ``loop``), paced by ``rate`` (0: no pacing)."""
+        for info, log_ns, data, due in self._timed():
+            delay = due - time.monotonic()
+            if delay > 0:
+                self._sleep(delay)
+            yield RawMessage(
+                robot=self.robot,
+                topic=info.topic,
+                msgtype=info.msgtype,
+                data=data,
+                definition=info.definition,
+                log_ns=log_ns,
+            )
+
+    def runs(self) -> Iterator[tuple[TopicInfo, list[bytes | memoryview], list[int]]]:
+        """What :meth:`messages` yields, paced alike, as runs of one topic's messages that are
+        due at once: (topic, payloads, log times). A replay keeping up yields each message as
+        its time comes, one a run; one behind (or unpaced) gathers every message due, up to
+        RUN_WINDOW messages, into a run per topic, in the order each topic first appears
+        there, each topic's messages in their order: the relay bundles them (schemas/wire.md)."""
+        gathered: dict[str, tuple[TopicInfo, list[bytes | memoryview], list[int]]] = {}
+        count = 0
+        for info, log_ns, data, due in self._timed():
+            delay = due - time.monotonic()
+            if gathered and (delay > 0 or count >= RUN_WINDOW):
+                yield from gathered.values()
+                gathered, count = {}, 0
+            if delay > 0:
+                self._sleep(delay)
+            run = gathered.get(info.topic)
+            if run is None:
+                run = gathered[info.topic] = (info, [], [])
+            run[1].append(data)
+            run[2].append(log_ns)
+            count += 1
+        yield from gathered.values()
+
+    def _timed(self) -> Iterator[tuple[TopicInfo, int, bytes | memoryview, float]]:
+        """Every message once (or forever with ``loop``): its topic, log time, CDR, and the
+        ``time.monotonic()`` at which ``rate`` makes it due (-inf unpaced); the caller waits."""
         if not self.connections:
             return
         self.log_undefined()
@@ -487,22 +530,12 @@ class BagSource:
             for connection, log_ns, raw in self._read():
                 if first_ns is None:
                     first_ns = log_ns
-                if self.rate > 0:
-                    delay = (log_ns - first_ns) / 1e9 / self.rate - (time.monotonic() - started)
-                    if delay > 0:
-                        self._sleep(delay)
                 info = self._infos[connection.id]
                 data = self._cdr(raw, info)
                 if data is None:
                     continue
-                yield RawMessage(
-                    robot=self.robot,
-                    topic=info.topic,
-                    msgtype=info.msgtype,
-                    data=data,
-                    definition=info.definition,
-                    log_ns=log_ns,
-                )
+                due = started + (log_ns - first_ns) / 1e9 / self.rate if self.rate > 0 else -math.inf
+                yield info, log_ns, data, due
             self._name_damage()
             if not self.loop:
                 return

@@ -16,7 +16,7 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 from typing import Protocol
 
-from robot_relay.wire import Catalog, RawMessage
+from robot_relay.wire import Catalog, RawMessage, TopicInfo
 
 TopicFilter = Callable[[str], bool]
 
@@ -40,6 +40,11 @@ class Outlet(Protocol):
 
     def publish(self, raw: RawMessage) -> None:
         """Forward one message (from the source's thread)."""
+
+    def publish_run(
+        self, info: TopicInfo, payloads: Sequence[bytes | memoryview], log_ns: Sequence[int]
+    ) -> None:
+        """Forward several messages of one topic, all due now, in their order (a replay)."""
 
     def update_catalog(self, catalog: Catalog) -> None:
         """The robot's topics changed (a live graph); the relay re-declares its publishers."""

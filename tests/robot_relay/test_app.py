@@ -11,10 +11,19 @@ from pathlib import Path
 
 import zenoh
 
+from host_bridge.inputs.zenoh import bundle_run
 from robot_relay import app
 from robot_relay.session import ZenohOptions
 from robot_relay.sources.base import Outlet, Source
-from robot_relay.wire import Catalog, RawMessage, TopicInfo, alive_key, catalog_key, data_key
+from robot_relay.wire import (
+    Attachment,
+    Catalog,
+    RawMessage,
+    TopicInfo,
+    alive_key,
+    catalog_key,
+    data_key,
+)
 from tests.integration.procs import free_port, open_loopback
 from tests.robot_relay.test_bag_source import chatter_bag, chatter_cdr
 
@@ -127,9 +136,17 @@ def test_the_app_replays_a_bag_to_a_host_and_ends(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     host = open_loopback("-l", endpoint)
     received: list[bytes] = []
-    subscriber = host.declare_subscriber(
-        data_key(ROBOT, "/chatter"), lambda sample: received.append(sample.payload.to_bytes())
-    )
+    samples: list[Attachment] = []
+
+    def unbundle(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        assert sample.attachment is not None
+        samples.append(Attachment.unpack(sample.attachment.to_bytes(), key))
+        run = bundle_run(sample.payload.to_bytes(), samples[-1], key, robot=ROBOT,
+                         topic="/chatter", msgtype=STRING)
+        received.extend(bytes(payload) for payload in run.payloads)
+
+    subscriber = host.declare_subscriber(data_key(ROBOT, "/chatter"), unbundle)
     options = app.RelayOptions(
         robot=ROBOT, zenoh=ZenohOptions(connect=(endpoint,), multicast_scouting=False),
         bag=chatter_bag(tmp_path / "bag"), rate=0, wait_for_host=20.0,
@@ -138,6 +155,8 @@ def test_the_app_replays_a_bag_to_a_host_and_ends(tmp_path: Path) -> None:
         assert app.run(options, threading.Event()) == 0
         wait_until(lambda: len(received) == 3)
         assert received == [chatter_cdr(f"hello {i}") for i in range(3)]
+        # Unpaced, the replay hands the three over at once: one bundle, sequence numbers 0-2.
+        assert [(a.bundle, a.sequence) for a in samples] == [(True, 0)]
         # Nothing of the bag matches: said, and nothing is opened.
         nothing = app.RelayOptions(robot=ROBOT, bag=options.bag, topics=("/none",))
         assert app.run(nothing, threading.Event()) == 1

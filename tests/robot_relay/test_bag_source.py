@@ -5,14 +5,15 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from robot_relay.sources.bag import BagSource
+from robot_relay.sources.bag import RUN_WINDOW, BagSource
 from robot_relay.sources.base import Source, topic_filter
-from robot_relay.wire import Catalog, QosProfile, RawMessage
+from robot_relay.wire import Catalog, QosProfile, RawMessage, TopicInfo
 
 T0 = 1_700_000_000_000_000_000
 STRING = "std_msgs/msg/String"
@@ -44,6 +45,14 @@ class Collected:
 
     def publish(self, raw: RawMessage) -> None:
         self.messages.append(raw)
+
+    def publish_run(
+        self, info: TopicInfo, payloads: Sequence[bytes | memoryview], log_ns: Sequence[int]
+    ) -> None:
+        self.messages += [
+            RawMessage("tb3", info.topic, info.msgtype, data, info.definition, log_ns=stamp)
+            for data, stamp in zip(payloads, log_ns, strict=True)
+        ]
 
     def update_catalog(self, catalog: Catalog) -> None:
         self.catalogs.append(catalog)
@@ -110,3 +119,42 @@ def test_close_ends_a_paced_replay_without_waiting_for_the_next_message(tmp_path
     assert time.monotonic() - started < 5.0
     assert bag.ended()
     assert [m.topic for m in outlet.messages] == ["/robot_description", "/chatter"]
+
+
+def run_shapes(bag: BagSource) -> list[tuple[str, int, list[int]]]:
+    return [(info.topic, len(payloads), [stamp - T0 for stamp in log_ns])
+            for info, payloads, log_ns in bag.runs()]
+
+
+def test_unpaced_runs_gather_each_topic_in_order_of_first_appearance_up_to_the_window(
+    tmp_path: Path,
+) -> None:
+    with BagSource(chatter_bag(tmp_path / "bag", count=RUN_WINDOW + 5, spacing_ns=1), "tb3") as bag:
+        shapes = run_shapes(bag)
+        first, *_ = bag.runs()
+    # The window closes after RUN_WINDOW messages: the description and RUN_WINDOW - 1 chatters.
+    assert [(topic, size) for topic, size, _ in shapes] == [
+        ("/robot_description", 1), ("/chatter", RUN_WINDOW - 1), ("/chatter", 6)]
+    assert shapes[1][2] == list(range(1, RUN_WINDOW))
+    assert shapes[2][2] == list(range(RUN_WINDOW, RUN_WINDOW + 6))
+    info, payloads, _ = first
+    assert (info.topic, bytes(payloads[0])) == ("/robot_description", chatter_cdr("<robot name='r'/>"))
+
+
+def test_a_paced_replay_sends_each_message_alone_when_on_time_and_gathers_those_due_together(
+    tmp_path: Path,
+) -> None:
+    waits: list[float] = []
+    # A sleep that returns at once: every message is then still ahead of its time, so none
+    # may wait in a run for the next one.
+    on_time = BagSource(chatter_bag(tmp_path / "spaced", count=3, spacing_ns=10**9), "tb3",
+                        rate=1, sleep=waits.append).open()
+    with on_time:
+        assert run_shapes(on_time) == [
+            ("/robot_description", 1, [0]), ("/chatter", 1, [1]),
+            ("/chatter", 1, [1 + 10**9]), ("/chatter", 1, [1 + 2 * 10**9])]
+    # The second and third /chatter are 1 and 2 s after the first (less what reading took).
+    assert len(waits) == 2 and 0.5 < waits[0] <= 1.0 and 1.5 < waits[1] <= 2.0
+    # Three messages with the same log time are due at once, as the description just before.
+    with BagSource(chatter_bag(tmp_path / "together", count=3, spacing_ns=0), "tb3", rate=1) as bag:
+        assert run_shapes(bag) == [("/robot_description", 1, [0]), ("/chatter", 3, [1, 1, 1])]

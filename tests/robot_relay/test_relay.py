@@ -7,11 +7,15 @@ import time
 
 import zenoh
 
-from robot_relay.relay import Relay
+from host_bridge.inputs.zenoh import bundle_run
+from robot_relay.policy import PolicyTable
+from robot_relay.relay import MAX_BUNDLE_BYTES, MAX_BUNDLE_MESSAGES, Relay, bundle_bounds
 from robot_relay.wire import (
+    BUNDLE_ENTRY_SIZE,
     Attachment,
     Catalog,
     MessageDefinition,
+    QosProfile,
     RawMessage,
     TopicInfo,
     catalog_key,
@@ -55,3 +59,70 @@ def test_a_message_goes_out_with_its_key_encoding_and_attachment(
     assert replies[0] is not None
     catalog = Catalog.from_json(replies[0].payload.to_bytes(), "test")
     assert catalog == Catalog("tb3", "bag", (CHATTER,))
+
+
+def cdr(text: str) -> bytes:
+    return b"\x00\x01\x00\x00" + text.encode()
+
+
+def test_bundle_bounds_cut_at_the_byte_and_message_limits_and_leave_large_payloads_alone() -> None:
+    small = b"x" * (1000 - BUNDLE_ENTRY_SIZE)  # 1000 bytes a message in the bundle
+    assert list(bundle_bounds([small] * 150)) == [60, 120, 150]
+    tiny = [b"y"] * (MAX_BUNDLE_MESSAGES + 5)
+    assert list(bundle_bounds(tiny)) == [MAX_BUNDLE_MESSAGES, MAX_BUNDLE_MESSAGES + 5]
+    large = b"z" * MAX_BUNDLE_BYTES
+    assert list(bundle_bounds([small, small, large, small])) == [2, 3, 4]
+    assert list(bundle_bounds([])) == []
+
+
+def test_a_run_goes_as_bundles_with_every_message_numbered_except_on_latched_and_capped_topics(
+    sessions: tuple[zenoh.Session, zenoh.Session],
+) -> None:
+    host, robot = sessions
+    latched = TopicInfo("/map_text", STRING, None, QosProfile(durability="transient_local", depth=5))
+    capped = TopicInfo("/capped", STRING, None)
+    received: list[zenoh.Sample] = []
+    subscriber = host.declare_subscriber("swanky/tb3/data/**", received.append)
+    relay = Relay(robot, Catalog("tb3", "bag", (CHATTER, latched, capped)),
+                  PolicyTable(topics={"/capped": {"max_rate": 0.001}}))
+    large = cdr("L" * MAX_BUNDLE_BYTES)
+    try:
+        assert relay.wait_for_host(20.0)
+        relay.publish_run("/chatter", [cdr(f"c{i}") for i in range(3)] + [large, cdr("c4")],
+                          [100, 101, 102, 103, 104])
+        relay.publish_run("/map_text", [cdr("m0"), cdr("m1")], [1, 2])
+        relay.publish_run("/capped", [cdr("k0"), cdr("k1")], [1, 2])
+        deadline = time.monotonic() + 20
+        while len(received) < 6 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        relay.close()  # sends the capped topic's waiting message
+    try:
+        while len(received) < 7 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.2)  # nothing more comes
+    finally:
+        subscriber.undeclare()
+    by_topic: dict[str, list[tuple[int, bool, list[bytes], list[int | None]]]] = {}
+    for sample in received:
+        key = str(sample.key_expr)
+        assert sample.attachment is not None
+        attachment = Attachment.unpack(sample.attachment.to_bytes(), key)
+        data = sample.payload.to_bytes()
+        if attachment.bundle:
+            run = bundle_run(data, attachment, key, robot="tb3", topic="", msgtype=STRING)
+            assert run.log_ns is not None
+            entry = (attachment.sequence, True, [bytes(p) for p in run.payloads], run.log_ns.tolist())
+        else:
+            entry = (attachment.sequence, False, [data], [attachment.source_ns])
+        by_topic.setdefault(key.rsplit("/", 1)[-1], []).append(entry)
+    assert by_topic["chatter"] == [
+        (0, True, [cdr("c0"), cdr("c1"), cdr("c2")], [100, 101, 102]),
+        (3, False, [large], [103]),  # too large to bundle
+        (4, False, [cdr("c4")], [104]),  # a bundle of one goes as a single message
+    ]
+    # A latched topic's cache keeps messages, never bundles; a capped one keeps the first
+    # (sent at once) and the newest (flushed when the relay closes).
+    assert by_topic["map_text"] == [(0, False, [cdr("m0")], [1]), (1, False, [cdr("m1")], [2])]
+    assert by_topic["capped"] == [(0, False, [cdr("k0")], [1]), (1, False, [cdr("k1")], [2])]
+    assert relay.published == 9

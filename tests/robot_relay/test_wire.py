@@ -7,6 +7,9 @@ import pytest
 from robot_relay.errors import WireError
 from robot_relay.wire import (
     ATTACHMENT_SIZE,
+    BUNDLE_ENTRY_SIZE,
+    BUNDLE_HEAD_SIZE,
+    FLAG_BUNDLE,
     FLAG_LZ4,
     FLAG_ZSTD,
     Attachment,
@@ -14,11 +17,13 @@ from robot_relay.wire import (
     MessageDefinition,
     QosProfile,
     TopicInfo,
+    bundle_count,
     cdr_encoding,
     check_robot_name,
     data_key,
     decompress,
     files_key,
+    pack_bundle,
     parse_cdr_encoding,
     parse_data_key,
 )
@@ -98,3 +103,43 @@ def test_catalog_json_round_trip() -> None:
     assert [t.latched for t in back.topics] == [False, True]
     with pytest.raises(WireError, match="swanky/pupper/catalog"):
         Catalog.from_json('{"version": 1}', "swanky/pupper/catalog")
+
+
+def test_a_bundle_packs_count_source_times_sizes_then_payloads() -> None:
+    payloads = [b"\x00\x01\x00\x00a", b"\x00\x01\x00\x00bcd", b""]
+    packed = pack_bundle(payloads, [10, -2, 30])
+    assert struct.unpack_from("<II", packed) == (3, 0)
+    assert struct.unpack_from("<3q", packed, 8) == (10, -2, 30)
+    assert struct.unpack_from("<3I", packed, 32) == (5, 7, 0)
+    assert packed[44:] == b"".join(payloads)
+    assert len(packed) == BUNDLE_HEAD_SIZE + 3 * BUNDLE_ENTRY_SIZE + 12
+    assert bundle_count(packed, "k") == 3
+
+
+def test_a_bundle_header_that_cannot_fit_its_sample_is_refused_naming_the_key() -> None:
+    with pytest.raises(WireError, match=r"bundle on 'swanky/tb3/data/imu' is 5 bytes"):
+        bundle_count(b"12345", "swanky/tb3/data/imu")
+    with pytest.raises(WireError, match=r"'swanky/tb3/data/imu' says it holds 0 messages"):
+        bundle_count(struct.pack("<II", 0, 0), "swanky/tb3/data/imu")
+    with pytest.raises(WireError, match=r"says it holds 2 messages .*cut-short"):
+        bundle_count(pack_bundle([b"ab", b"cd"], [1, 2])[:20], "swanky/tb3/data/imu")
+    with pytest.raises(WireError, match=r"\(reserved 7\)"):
+        bundle_count(struct.pack("<II", 1, 7) + bytes(12), "k")
+
+
+def test_singles_keep_wire_version_1_and_bundles_are_version_2() -> None:
+    single = Attachment(3, 4, 5, FLAG_LZ4).pack()
+    bundle = Attachment(3, 4, 0, FLAG_BUNDLE | FLAG_ZSTD).pack()
+    # A version-1 host reads every single message a bundling relay sends, and refuses its
+    # bundles naming the version.
+    assert (single[0], bundle[0]) == (1, 2)
+    assert Attachment.unpack(single, "k") == Attachment(3, 4, 5, FLAG_LZ4)
+    assert Attachment.unpack(bundle, "k").bundle
+    v1_bundle = bytearray(bundle)
+    v1_bundle[0] = 1
+    with pytest.raises(WireError, match="unknown flags 0x06"):
+        Attachment.unpack(bytes(v1_bundle), "k")
+    v2_single = bytearray(single)
+    v2_single[0] = 2
+    with pytest.raises(WireError, match="wire version 2 but is not a bundle"):
+        Attachment.unpack(bytes(v2_single), "k")

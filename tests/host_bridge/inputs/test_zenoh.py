@@ -136,7 +136,7 @@ def test_unknown_attachment_version_is_a_problem_naming_the_key_and_the_next_sam
     assert isinstance(problem, InputProblem)
     assert (problem.robot, problem.topic) == ("tb3", "/chat")
     assert str(problem.error) == (
-        "attachment on 'swanky/tb3/data/chat' has wire version 7, this host speaks 1: "
+        "attachment on 'swanky/tb3/data/chat' has wire version 7, this host speaks 2: "
         "upgrade the older side"
     )
     assert message == RawMessage("tb3", "/chat", STRING, data, None, 3, None, 2)
