@@ -99,6 +99,18 @@ def sequence_gap(last: int | None, sequence: int) -> int:
     return gap if 0 < gap < 0x80000000 and sequence != 0 else 0
 
 
+def sequence_gaps(last: int | None, sequence: npt.NDArray[np.int64]) -> int:
+    """:func:`sequence_gap` summed over a run's sequence numbers, ``last`` before the first."""
+    if not len(sequence):
+        return 0
+    before = np.concatenate([[-1 if last is None else last], sequence[:-1]])
+    gaps = (sequence - before - 1) & 0xFFFFFFFF
+    counted = (gaps > 0) & (gaps < 0x80000000) & (sequence != 0)
+    if last is None:
+        counted[0] = False
+    return int(gaps[counted].sum())
+
+
 Arrivals = tuple[npt.NDArray[np.int64] | None, npt.NDArray[np.int64] | None]
 
 
@@ -240,10 +252,11 @@ class Dispatcher:
         if counters is None:
             counters = self.counters[key] = TopicCounters(first.msgtype)
         counters.received += len(run)
-        # A bag's runs carry no wire sequence.
-        if not isinstance(run, MessageRun) and (
-            first.sequence is not None or run[-1].sequence is not None
-        ):
+        if isinstance(run, MessageRun):  # a bag's runs carry no wire sequence, bundles do
+            if run.sequence is not None:
+                counters.sequence_gaps += sequence_gaps(counters.last_sequence, run.sequence)
+                counters.last_sequence = int(run.sequence[-1])
+        elif first.sequence is not None or run[-1].sequence is not None:
             for raw in run:
                 if raw.sequence is not None:
                     counters.sequence_gaps += sequence_gap(counters.last_sequence, raw.sequence)
@@ -253,9 +266,12 @@ class Dispatcher:
     def take(self, items: Sequence[InputItem]) -> None:
         """A run from an input (inputs/base.py): problems warned about, robots joining or
         leaving logged under /_swanky/robots, messages dispatched."""
-        batch = []
+        batch: list[RawMessage] = []
         for item in items:
             if isinstance(item, MessageRun):
+                if batch:  # the messages before it first: a topic's order is kept
+                    self.dispatch(batch)
+                    batch = []
                 self.dispatch(item)
             elif isinstance(item, InputProblem):
                 self.warn(item.robot, item.topic, item.error)
