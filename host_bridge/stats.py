@@ -199,7 +199,7 @@ class StatsTracker:
                 window.drops += gap - self._dropped_by_host(run.robot, run.topic, window, gap)
                 window.last_sequence = int(part[-1])
             if run.receive_ns is not None:
-                window.latency_ns += host_ns * (end - begin) - int(run.receive_ns[begin:end].sum())
+                window.latency_ns += int((host_ns - run.receive_ns[begin:end]).sum())
                 window.latency_count += end - begin
             begin = end
         return closed

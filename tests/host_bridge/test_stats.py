@@ -5,11 +5,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
+from host_bridge.columns import PackedPayloads
 from host_bridge.contract import TIMELINE_LOG, TIMELINE_RECEIVE
 from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import TopicCounters
+from host_bridge.dispatch import TopicCounters, sequence_gap, sequence_gaps
+from host_bridge.inputs.base import MessageRun
 from host_bridge.sink import RerunSink
 from host_bridge.stats import (
     HostDrops,
@@ -189,3 +192,47 @@ def test_stats_tap_logs_scalars_into_rerun(tmp_path: Path) -> None:
     # The host clock is read once per run (as it is taken from the input queue).
     assert series("latency_ms") == [(T0 + S, pytest.approx(950 - 450)),
                                     (T0 + 2 * S, pytest.approx(450 - 200))]
+
+
+def as_run(messages: list[RawMessage]) -> MessageRun:
+    """``messages`` (one topic) as the run a relay's bundles bring: arrays, payloads packed."""
+    first = messages[0]
+    return MessageRun(
+        first.robot, first.topic, first.msgtype, None,
+        PackedPayloads.of([m.data for m in messages]),
+        log_ns=np.array([m.log_ns for m in messages], np.int64),
+        receive_ns=np.array([m.receive_ns for m in messages], np.int64),
+        sequence=np.array([m.sequence for m in messages], np.int64),
+    )
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_a_run_counts_as_its_messages_one_by_one(seed: int) -> None:
+    """Random runs over period ends, with sequence gaps, wraps and host drops: the closed
+    periods are the same whether the batch is a run or its messages."""
+    rng = np.random.default_rng(seed)
+    dropped = {"/imu": 0}
+    by_message = StatsTracker(host_dropped=lambda robot: dict(dropped))
+    by_run = StatsTracker(host_dropped=lambda robot: dict(dropped))
+    at, sequence = T0, int(rng.choice([0, 0xFFFFFFF0]))
+    closed: tuple[list[TopicStats], list[TopicStats]] = ([], [])
+    for _ in range(30):
+        messages = []
+        for _ in range(int(rng.integers(1, 40))):
+            at += int(rng.integers(0, 300)) * MS
+            sequence = (sequence + 1 + int(rng.choice([0, 0, 0, 1, 3]))) & 0xFFFFFFFF
+            messages.append(live("/imu", at, sequence, size=int(rng.integers(10, 500))))
+        dropped["/imu"] += int(rng.choice([0, 0, 1, 2]))
+        host_ns = at + int(rng.integers(0, 50)) * MS
+        closed[0].extend(by_message.observe_batch(messages, host_ns))
+        closed[1].extend(by_run.observe_batch(as_run(messages), host_ns))
+    assert len(closed[0]) > 5
+    assert closed[0] == closed[1]
+
+
+def test_sequence_gaps_of_a_run_sum_the_gaps_between_its_messages() -> None:
+    numbers = [5, 6, 9, 0xFFFFFFFF, 0, 2]
+    gaps = sum(sequence_gap(last, n) for last, n in zip([3, *numbers], numbers, strict=False))
+    assert sequence_gaps(3, np.array(numbers, np.int64)) == gaps == 1 + 2 + 0 + 0 + 1
+    assert sequence_gaps(None, np.array(numbers, np.int64)) == 2 + 0 + 0 + 1  # nothing before
+    assert sequence_gaps(7, np.array([], np.int64)) == 0

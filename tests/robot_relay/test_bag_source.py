@@ -154,7 +154,9 @@ def test_a_paced_replay_sends_each_message_alone_when_on_time_and_gathers_those_
             ("/robot_description", 1, [0]), ("/chatter", 1, [1]),
             ("/chatter", 1, [1 + 10**9]), ("/chatter", 1, [1 + 2 * 10**9])]
     # The second and third /chatter are 1 and 2 s after the first (less what reading took).
-    assert len(waits) == 2 and 0.5 < waits[0] <= 1.0 and 1.5 < waits[1] <= 2.0
+    assert len(waits) == 2
+    assert 0.5 < waits[0] <= 1.0
+    assert 1.5 < waits[1] <= 2.0
     # Three messages with the same log time are due at once, as the description just before.
     with BagSource(chatter_bag(tmp_path / "together", count=3, spacing_ns=0), "tb3", rate=1) as bag:
         assert run_shapes(bag) == [("/robot_description", 1, [0]), ("/chatter", 3, [1, 1, 1])]

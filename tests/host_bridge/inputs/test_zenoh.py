@@ -10,10 +10,11 @@ import pytest
 import zenoh
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from host_bridge.inputs.base import InputItem, InputProblem, RobotEvent
+from host_bridge.inputs.base import InputItem, InputProblem, MessageRun, RobotEvent
 from host_bridge.inputs.queues import RobotQueues
 from host_bridge.inputs.zenoh import ZenohInput, check_robot_pattern, robot_matches
 from robot_relay.wire import (
+    FLAG_BUNDLE,
     Attachment,
     Catalog,
     MessageDefinition,
@@ -24,6 +25,7 @@ from robot_relay.wire import (
     catalog_key,
     cdr_encoding,
     data_key,
+    pack_bundle,
 )
 from tests.host_bridge.inputs.received import TIMEOUT_S, Received
 
@@ -183,3 +185,48 @@ def test_robot_patterns() -> None:
     assert robot_matches("east-a", "east-$*")
     assert not robot_matches("west-c", "east-$*")
     assert robot_matches("tb3", "*")
+
+
+def test_a_bundle_becomes_one_run_with_each_message_and_a_broken_one_a_problem(
+    sessions: tuple[zenoh.Session, zenoh.Session], queues: RobotQueues
+) -> None:
+    host, robot = sessions
+    received = Received()
+    queues.serve(received.take)
+    queryable = serve_catalog(robot, host, "tb3")
+    source = ZenohInput(host, queues=queues)
+    readings = [reading_cdr(20.0 + i, f"s{i}") for i in range(3)]
+    try:
+        pub = publisher(robot, "tb3", "/temperature")
+        bundle = Attachment(sequence=5, receive_ns=1_000, flags=FLAG_BUNDLE)
+        pub.put(pack_bundle(readings, [11, 12, 13]), encoding=cdr_encoding(READING),
+                attachment=bundle.pack())
+        cut = pack_bundle(readings, [11, 12, 13])[:-3]
+        pub.put(cut, encoding=cdr_encoding(READING), attachment=bundle.pack())
+        after = Attachment(sequence=8, receive_ns=2_000, source_ns=14)
+        pub.put(readings[0], encoding=cdr_encoding(READING), attachment=after.pack())
+        items = received.wait_for(lambda items: len(items) >= 3)
+    finally:
+        source.close()
+        queryable.undeclare()
+    # The problem is reported at once; the messages wait for the robot's catalog, in order.
+    problem, run, single = sorted(items, key=lambda item: not isinstance(item, InputProblem))
+    assert isinstance(run, MessageRun)
+    assert (run.robot, run.topic, run.msgtype, run.definition) == (
+        "tb3", "/temperature", READING, READING_DEFINITION)
+    assert [bytes(p) for p in run.payloads] == readings
+    assert run.log_ns is not None
+    assert run.log_ns.tolist() == [11, 12, 13]
+    assert run.receive_ns is not None
+    assert run.receive_ns.tolist() == [1_000] * 3
+    assert run.sequence is not None
+    assert run.sequence.tolist() == [5, 6, 7]
+    assert list(run)[2] == RawMessage("tb3", "/temperature", READING, readings[2],
+                                      READING_DEFINITION, 1_000, 13, 7)
+    assert isinstance(problem, InputProblem)
+    assert str(problem.error) == (
+        "bundle on 'swanky/tb3/data/temperature': its 3 payload sizes add up to "
+        f"{sum(map(len, readings))} bytes but {sum(map(len, readings)) - 3} follow them: "
+        "a corrupt or cut-short sample")
+    assert isinstance(single, RawMessage)
+    assert single.sequence == 8
