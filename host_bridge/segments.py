@@ -449,8 +449,8 @@ def _refined(line: npt.NDArray[np.int32], pixels: Float64Array, max_gap: float) 
 @dataclass(frozen=True, slots=True)
 class _FrameResult:
     segments: Float64Array
-    explained: int  # wall pixels in axis runs
-    unexplained: int  # wall pixels of no run, specks left out
+    aligned: float  # length of the walls fitted to runs within AXIS_TOLERANCE_DEG of an axis
+    other: float  # length of the other fitted walls, and the pixels no run holds (specks out)
 
 
 def _frame_segments(
@@ -465,36 +465,42 @@ def _frame_segments(
     found = _frame_findings(
         mask, anchor=anchor, min_run=settings.min_run, frame=frame, cache=cache, used=used
     )
-    rows = _fit_runs(found.along_rows, settings)
-    cols = _fit_runs(found.along_cols, settings)[:, [1, 0, 3, 2]]
+    fitted = np.concatenate(
+        [_fit_runs(found.along_rows, settings), _fit_runs(found.along_cols, settings)[:, [1, 0, 3, 2]]]
+    )
     rest = _with_neighbours(found.rest)
-    explained = int(sum(r[:, 2].sum() - r[:, 1].sum() + r.shape[0] for r in (found.along_rows, found.along_cols)))
+    delta = fitted[:, 2:] - fitted[:, :2]
+    length = np.hypot(delta[:, 0], delta[:, 1])
+    off_axis = np.abs(np.degrees(np.arctan2(delta[:, 1], delta[:, 0])) % 90.0 - 45.0) < 45.0 - AXIS_TOLERANCE_DEG
     return _FrameResult(
-        np.concatenate([rows, cols, _hough_pieces(rest, mask.shape, settings)]),
-        explained,
-        rest.shape[0],
+        np.concatenate([fitted, _hough_pieces(rest, mask.shape, settings)]),
+        float(length[~off_axis].sum()),
+        float(length[off_axis].sum()) + rest.shape[0],
     )
 
 
 def dominant_angle_deg(mask: npt.NDArray[np.uint8]) -> float:
-    """Direction of most wall edges modulo 90 degrees, in [-45, 45): the peak of a histogram
-    of gradient angles (weighted by gradient strength, half-degree bins), refined by the mean
-    of the angles within 5 degrees of it (on the circle of 4x the angle, where the four
-    directions of a rectangular building coincide)."""
+    """Direction of most wall edges modulo 90 degrees, in [-45, 45).
+
+    Edge directions come from the structure tensor (gradient products averaged over 9x9
+    cells): single gradients of a turned, one-cell wall point along its stair steps, their
+    average across the steps along the wall. The peak of a histogram of these directions
+    (weighted by edge strength, half-degree bins, on the circle of 4x the angle where the four
+    directions of a rectangular building coincide) is refined by the mean within 5 degrees.
+    """
     import cv2
 
-    blurred = cv2.GaussianBlur(mask.astype(np.float32), (5, 5), 0)
+    blurred = cv2.GaussianBlur(mask.astype(np.float32), (9, 9), 0)
     dx = cv2.Sobel(blurred, cv2.CV_32F, 1, 0, ksize=3)
     dy = cv2.Sobel(blurred, cv2.CV_32F, 0, 1, ksize=3)
-    strength = cv2.magnitude(dx, dy)
+    jxx, jyy, jxy = (cv2.boxFilter(p, -1, (9, 9)) for p in (dx * dx, dy * dy, dx * dy))
+    strength = cv2.sqrt((jxx - jyy) ** 2 + 4.0 * jxy * jxy)
     edge = strength > 0.1 * float(strength.max(initial=0.0))
     if not edge.any():
         return 0.0
     weight = strength[edge].astype(np.float64)
-    quarter = np.arctan2(dy[edge], dx[edge]).astype(np.float64) * 4.0
-    histogram = np.bincount(
-        (np.degrees(quarter / 4.0) % 90.0 * 2.0).astype(np.intp) % 180, weight, 180
-    )
+    quarter = 2.0 * np.arctan2(2.0 * jxy[edge], (jxx - jyy)[edge]).astype(np.float64)
+    histogram = np.bincount((np.degrees(quarter) % 360.0 / 2.0).astype(np.intp) % 180, weight, 180)
     smooth = histogram + np.roll(histogram, 1) + np.roll(histogram, -1)
     peak = math.radians((int(np.argmax(smooth)) + 0.5) * 2.0)
     near = np.abs(np.angle(np.exp(1j * (quarter - peak)))) < math.radians(20.0)
@@ -519,7 +525,10 @@ def _turned(mask: npt.NDArray[np.uint8], angle_deg: float) -> tuple[npt.NDArray[
         mask * np.uint8(255), forward, (int(size[0]), int(size[1])), flags=cv2.INTER_LINEAR
     )
     back: Float64Array = cv2.invertAffineTransform(forward)
-    return (turned >= 64).view(np.uint8), back
+    # Closing fills the one-cell notches resampling leaves along the sides of a wall, which
+    # would cut its runs into pieces too short to keep.
+    closed = cv2.morphologyEx((turned >= 64).view(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+    return np.asarray(closed, dtype=np.uint8), back
 
 
 def detect_segments(
@@ -536,9 +545,10 @@ def detect_segments(
     rows and columns, found with a few whole-array operations per tile; the runs of one wall
     (its two sides, the steps of a slight slope) are clustered and fitted with one line.
     What no run explains (diagonal walls) goes to HoughLinesP, in the windows holding it only.
-    When most wall pixels are not explained and the map's dominant direction is more than
-    AXIS_TOLERANCE_DEG off its axes (a SLAM map whose first pose was turned), the map is
-    searched again turned into that direction, and the pieces turned back.
+    When most of what was found is off the axes (walls fitted more than AXIS_TOLERANCE_DEG
+    off them, pixels no run holds) and so is the map's dominant direction (a SLAM map whose
+    first pose was turned), the map is searched again turned into that direction, and the
+    pieces turned back: runs break up on walls turned much more than a few degrees.
 
     ``cache`` keeps each tile's findings between calls (see :class:`TileCache`): a map that
     changed in a few places is searched again only where its tiles' windows changed.
@@ -547,7 +557,7 @@ def detect_segments(
     used: dict[bytes, TileFindings] = {}
     result = _frame_segments(mask, settings, anchor=anchor, frame=b"axes", cache=cache, used=used)
     segments = result.segments
-    if result.unexplained > result.explained:
+    if result.other > result.aligned:
         angle = round(dominant_angle_deg(mask) / ANGLE_STEP_DEG) * ANGLE_STEP_DEG
         if abs(angle) > AXIS_TOLERANCE_DEG:
             turned, back = _turned(mask, angle)

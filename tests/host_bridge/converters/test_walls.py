@@ -224,3 +224,130 @@ def test_update_rebuilds_the_walls_of_the_patched_grid() -> None:
     entries = walls.update_wall_items(patch, update_ctx)
     mesh = archetype(log_item(entries, "/r/map/walls"), rr.Mesh3D)
     assert flat(mesh.vertex_positions, 3).shape == (3 * 24, 3)
+
+
+def cell_segments(cells: npt.NDArray[np.int8]) -> Float64Array:
+    """Walls of ``cells`` in cell units (cell centres at integers)."""
+    return walls.wall_segments(as_grid(cells), default_options()) / RES - 0.5
+
+
+def test_floor_plan_walls_have_exact_endpoints() -> None:
+    # One-cell walls: a room with a door in its bottom wall and an inner wall from the top.
+    cells = np.zeros((80, 100), dtype=np.int8)
+    cells[10, 10:91] = 100
+    cells[70, 10:91] = 100
+    cells[70, 40:58] = 0  # the door, 18 cells
+    cells[10:71, 10] = 100
+    cells[10:71, 90] = 100
+    cells[10:41, 50] = 100
+    found = {tuple(s) for s in np.round(cell_segments(cells), 9).tolist()}
+    assert found == {
+        (10.0, 10.0, 90.0, 10.0),  # top
+        (10.0, 10.0, 10.0, 70.0),  # left
+        (90.0, 10.0, 90.0, 70.0),  # right
+        (10.0, 70.0, 39.0, 70.0),  # bottom, left of the door
+        (58.0, 70.0, 90.0, 70.0),  # bottom, right of the door
+        (50.0, 10.0, 50.0, 40.0),  # inner wall, joined to the top one
+    }
+
+
+def turned_plan(angle_deg: float) -> tuple[npt.NDArray[np.int8], list[Float64Array]]:
+    """Two rooms with two-cell walls, turned by ``angle_deg`` (cv2.warpAffine, nearest cell, as
+    a map whose first pose was turned); and the turned centre lines of the walls, in cells."""
+    cells = np.zeros((200, 240), dtype=np.uint8)
+    centre_lines = [
+        (20.5, 20.5, 219.5, 20.5), (20.5, 179.5, 219.5, 179.5), (20.5, 20.5, 20.5, 179.5),
+        (219.5, 20.5, 219.5, 179.5), (120.5, 20.5, 120.5, 179.5),
+    ]
+    cells[20:22, 20:221] = cells[179:181, 20:221] = 1
+    cells[20:181, 20:22] = cells[20:181, 219:221] = cells[20:181, 120:122] = 1
+    turn = cv2.getRotationMatrix2D((120.0, 100.0), angle_deg, 1.0)
+    turn[:, 2] += (80.0, 80.0)  # room on the canvas for the turned corners
+    turned = cv2.warpAffine(cells, turn, (400, 360), flags=cv2.INTER_NEAREST)
+    grid = np.where(turned > 0, 100, 0).astype(np.int8)
+    # Pixel centres: warpAffine maps pixel centres, the centre lines run between them (+0.5).
+    truth = [
+        np.concatenate([turn[:, :2] @ (np.array(p) - 0.5) + turn[:, 2] for p in (line[:2], line[2:])])
+        for line in centre_lines
+    ]
+    return grid, truth
+
+
+@pytest.mark.parametrize("turn_deg", [20.0, 37.0])
+def test_walls_of_a_turned_map_are_found_at_their_angle_and_length(turn_deg: float) -> None:
+    cells, truth = turned_plan(turn_deg)
+    found = cell_segments(cells)
+    assert found.shape == (5, 4)
+    for expected in truth:
+        best = min(found, key=lambda s: endpoint_error(s, expected))
+        # Within two cells at both ends (the walls are two cells thick and resampled) ...
+        assert endpoint_error(best, expected) <= 2.0
+        length = np.hypot(*(best[2:] - best[:2]))
+        assert length == pytest.approx(np.hypot(*(expected[2:] - expected[:2])), abs=3.0)
+        # ... and at the angle they were turned to, within 0.6 degrees (the dominant direction is
+        # estimated to a few tenths and rounded to ANGLE_STEP_DEG; the line fit levels what is
+        # left when it rises less than a cell).
+        difference = (angle_deg(best) - angle_deg(expected) + 90.0) % 180.0 - 90.0
+        assert abs(difference) <= 0.6
+
+
+def rooms(size: int) -> npt.NDArray[np.int8]:
+    """Rooms on a 5 m pitch with two-cell walls and a door in every wall, as the benchmark's."""
+    cells = np.zeros((size, size), dtype=np.int8)
+    for at in range(10, size - 10, 100):
+        cells[at : at + 2, 10 : size - 10] = 100
+        cells[10 : size - 10, at : at + 2] = 100
+        for door in range(at + 40, size - 30, 100):
+            cells[at : at + 2, door : door + 18] = 0
+            cells[door : door + 18, at : at + 2] = 0
+    return cells
+
+
+def test_tile_cache_searches_again_only_changed_tiles_and_matches_a_full_search(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from host_bridge import segments
+
+    searched: list[tuple[tuple[int, int], tuple[int, int]]] = []
+    search = segments._tile_findings
+
+    def counted(mask: Any, rows: tuple[int, int], cols: tuple[int, int], min_run: int) -> Any:
+        searched.append((rows, cols))
+        return search(mask, rows, cols, min_run)
+
+    monkeypatch.setattr(segments, "_tile_findings", counted)
+    options, cache = default_options(), segments.TileCache()
+    cells = rooms(1100)  # 3 x 3 tiles of 512 cells
+    walls.wall_segments(as_grid(cells), options, cache)
+    # Nine tiles, each window searched once: two windows of this regular plan hold the same
+    # cells at the same place in their tile, and share their findings.
+    assert len(searched) == len(cache.tiles) == 8
+    # A short wall in a room deep inside the middle tile: only that tile is searched again.
+    searched.clear()
+    changed = cells.copy()
+    changed[700, 660:680] = 100
+    cached = walls.wall_segments(as_grid(changed), options, cache)
+    assert searched == [((512, 1024), (512, 1024))]
+    np.testing.assert_array_equal(cached, walls.wall_segments(as_grid(changed), options))
+    # A cell two cells from a tile edge is in the window of the neighbour tile too.
+    searched.clear()
+    changed[514, 700] = 100
+    cached = walls.wall_segments(as_grid(changed), options, cache)
+    assert sorted(searched) == [((0, 512), (512, 1024)), ((512, 1024), (512, 1024))]
+    np.testing.assert_array_equal(cached, walls.wall_segments(as_grid(changed), options))
+
+
+def test_walls_cover_the_wall_cells_as_the_canny_hough_detector_did() -> None:
+    # The benchmark's plan (noise, doors, 37-degree walls), its first 1000 x 1000 cells. The
+    # Canny + tiled Hough detector this one replaced found 192 walls there, covering 97.18 % of
+    # the wall cells within a cell (the rest are noise specks).
+    from benchmarks.walls_4000 import floor_plan as benchmark_plan
+
+    cells = benchmark_plan(np.random.default_rng(7))[:1000, :1000].copy()
+    found = np.round(walls.wall_segments(as_grid(cells), default_options()) / RES - 0.5).astype(int)
+    wall = (cells >= 65) & (cells <= 100)
+    near = np.zeros(cells.shape, dtype=np.uint8)
+    for x0, y0, x1, y1 in found:
+        cv2.line(near, (x0, y0), (x1, y1), 1, 3)
+    assert (near[wall] > 0).mean() >= 0.9717
+    assert 0.9 * 192 <= found.shape[0] <= 1.1 * 192
