@@ -24,7 +24,7 @@ import numpy.typing as npt
 import rerun as rr
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.contract import ConvertContext, LogEntry
+from host_bridge.contract import ConvertContext
 from host_bridge.converters import walls
 from host_bridge.converters.occupancy import grid_from_msg
 from host_bridge.options import GridOptions
@@ -119,7 +119,10 @@ def main() -> None:
 
     def baseline() -> npt.NDArray[Any] | None:
         edges = cv2.Canny(image, 150.0, 250.0, L2gradient=True)
-        return cv2.HoughLinesP(edges, 1.0, math.pi / 180.0, 8, minLineLength=4.0, maxLineGap=2.0)
+        lines: npt.NDArray[Any] | None = cv2.HoughLinesP(
+            edges, 1.0, math.pi / 180.0, 8, minLineLength=4.0, maxLineGap=2.0
+        )
+        return lines
 
     segments = walls.wall_segments(
         grid_from_msg(msg, context()), walls.WallOptions.from_options(GridOptions(), RESOLUTION, "/map")

@@ -11,6 +11,7 @@ options, their defaults and the reasoning behind them.
 from __future__ import annotations
 
 import hashlib
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -153,12 +154,14 @@ def _tile_findings(
     (top, bottom), (left, right) = rows, cols
     y0, x0 = max(top - reach, 0), max(left - reach, 0)
     y1, x1 = min(bottom + reach, mask.shape[0]), min(right + reach, mask.shape[1])
-    window = cv2.copyMakeBorder(mask[y0:y1, x0:x1], 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+    window = np.asarray(
+        cv2.copyMakeBorder(mask[y0:y1, x0:x1], 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0), np.uint8
+    )
     wall = window[1:-1, 1:-1]
     # A wall pixel with wall above and below is inside a wall seen along the row (or a crossing
     # wall): only the two sides of a thick wall or blob make runs, as its two edges would.
     along_rows = _runs(wall & ~(window[:-2, 1:-1] & window[2:, 1:-1]))
-    along_cols = _runs(cv2.transpose(wall & ~(window[1:-1, :-2] & window[1:-1, 2:])))
+    along_cols = _runs(np.asarray(cv2.transpose(wall & ~(window[1:-1, :-2] & window[1:-1, 2:])), np.uint8))
     long_rows = along_rows[along_rows[:, 2] - along_rows[:, 1] + 1 >= min_run]
     long_cols = along_cols[along_cols[:, 2] - along_cols[:, 1] + 1 >= min_run]
     # The rest: pixels of short runs in one direction that no long run holds in the other.
@@ -188,7 +191,7 @@ def _tile_findings(
 def _tile_edges(size: int, offset: int) -> list[tuple[int, int]]:
     """[start, stop) of the tiles along one axis whose edges lie at k * TILE - offset."""
     edges = np.unique(np.clip(np.arange(-(offset % TILE), size + TILE, TILE), 0, size)).tolist()
-    return list(zip(edges[:-1], edges[1:], strict=True))
+    return list(itertools.pairwise(edges))
 
 
 def _frame_findings(
@@ -387,7 +390,8 @@ def _hough_pieces(pixels: IntArray, shape: tuple[int, ...], settings: DetectorSe
     quarters = np.zeros((-(-shape[0] // margin) + 2, -(-shape[1] // margin) + 2), dtype=np.int64)
     np.add.at(quarters, (rows // margin + 1, cols // margin + 1), 1)
     summed = np.pad(quarters.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
-    tile_rows, tile_cols = np.divmod(np.unique((rows // HOUGH_TILE) * shape[1] + cols // HOUGH_TILE), shape[1])
+    tile_index = np.unique((rows // HOUGH_TILE) * shape[1] + cols // HOUGH_TILE)
+    tile_rows, tile_cols = np.divmod(tile_index, shape[1])
     q0r, q0c = tile_rows * 4, tile_cols * 4  # the window's first quarter, padded by one
     q1r, q1c = np.minimum(q0r + 6, quarters.shape[0]), np.minimum(q0c + 6, quarters.shape[1])
     in_window = summed[q1r, q1c] - summed[q0r, q1c] - summed[q1r, q0c] + summed[q0r, q0c]
@@ -409,17 +413,20 @@ def _hough_pieces(pixels: IntArray, shape: tuple[int, ...], settings: DetectorSe
                 image[y - y_lo : y0 + HOUGH_TILE + margin - y_lo, x - x_lo : x0 + HOUGH_TILE + margin - x_lo]
             )
             pixels_here = np.stack([window_cols, window_rows], axis=1).astype(np.float64)
-            refined = [_refined(line, pixels_here, settings.max_line_gap) for line in lines.reshape(-1, 4)]
+            refined = [
+                _refined(line, pixels_here, settings.max_line_gap)
+                for line in np.asarray(lines, dtype=np.float64).reshape(-1, 4)
+            ]
             found.append(np.array(refined) + np.array([x, y, x, y]))
     return np.concatenate(found)
 
 
-def _refined(line: npt.NDArray[np.int32], pixels: Float64Array, max_gap: float) -> Float64Array:
+def _refined(line: Float64Array, pixels: Float64Array, max_gap: float) -> Float64Array:
     """A Hough line refitted to the pixels (x, y) it stands for: those within 1.5 px of it, in
     the chain (gaps up to ``max_gap``) along it that overlaps it; their least-squares line,
     from the first to the last of them. HoughLinesP walks along its 1-degree angle and leaves
     a long one-cell diagonal early, when that drifts a pixel off it."""
-    segment = line.astype(np.float64)
+    segment = line
     for _ in range(2):
         start, direction = segment[:2], segment[2:] - segment[:2]
         length = float(np.hypot(*direction))
@@ -471,7 +478,8 @@ def _frame_segments(
     rest = _with_neighbours(found.rest)
     delta = fitted[:, 2:] - fitted[:, :2]
     length = np.hypot(delta[:, 0], delta[:, 1])
-    off_axis = np.abs(np.degrees(np.arctan2(delta[:, 1], delta[:, 0])) % 90.0 - 45.0) < 45.0 - AXIS_TOLERANCE_DEG
+    direction = np.degrees(np.arctan2(delta[:, 1], delta[:, 0]))
+    off_axis = np.abs(direction % 90.0 - 45.0) < 45.0 - AXIS_TOLERANCE_DEG
     return _FrameResult(
         np.concatenate([fitted, _hough_pieces(rest, mask.shape, settings)]),
         float(length[~off_axis].sum()),
@@ -524,7 +532,7 @@ def _turned(mask: npt.NDArray[np.uint8], angle_deg: float) -> tuple[npt.NDArray[
     turned = cv2.warpAffine(
         mask * np.uint8(255), forward, (int(size[0]), int(size[1])), flags=cv2.INTER_LINEAR
     )
-    back: Float64Array = cv2.invertAffineTransform(forward)
+    back = np.asarray(cv2.invertAffineTransform(forward), dtype=np.float64)
     # Closing fills the one-cell notches resampling leaves along the sides of a wall, which
     # would cut its runs into pieces too short to keep.
     closed = cv2.morphologyEx((turned >= 64).view(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))

@@ -88,7 +88,9 @@ def test_merge_ignores_input_order_and_merging_again_changes_nothing() -> None:
     rng = np.random.default_rng(5)
     cuts = [(0.0, 0.4), (0.35, 0.7), (0.65, 1.0)]
     pieces = [
-        np.concatenate([p[:2] + a * (p[2:] - p[:2]), p[:2] + b * (p[2:] - p[:2])]) for p in pixels for a, b in cuts
+        np.concatenate([p[:2] + a * (p[2:] - p[:2]), p[:2] + b * (p[2:] - p[:2])])
+        for p in pixels
+        for a, b in cuts
     ]
     raw = (np.array(pieces) + rng.uniform(-0.1, 0.1, (len(pieces), 4)) + 0.5) * RES
     out = merge(raw)

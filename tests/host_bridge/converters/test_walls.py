@@ -3,6 +3,7 @@ of the same grid (the geometry's own rules are tests/host_bridge/test_segments.p
 
 from __future__ import annotations
 
+import importlib
 import math
 from typing import Any
 
@@ -261,8 +262,8 @@ def turned_plan(angle_deg: float) -> tuple[npt.NDArray[np.int8], list[Float64Arr
     ]
     cells[20:22, 20:221] = cells[179:181, 20:221] = 1
     cells[20:181, 20:22] = cells[20:181, 219:221] = cells[20:181, 120:122] = 1
-    turn = cv2.getRotationMatrix2D((120.0, 100.0), angle_deg, 1.0)
-    turn[:, 2] += (80.0, 80.0)  # room on the canvas for the turned corners
+    turn = np.asarray(cv2.getRotationMatrix2D((120.0, 100.0), angle_deg, 1.0), dtype=np.float64)
+    turn[:, 2] += 80.0  # room on the canvas for the turned corners
     turned = cv2.warpAffine(cells, turn, (400, 360), flags=cv2.INTER_NEAREST)
     grid = np.where(turned > 0, 100, 0).astype(np.int8)
     # Pixel centres: warpAffine maps pixel centres, the centre lines run between them (+0.5).
@@ -341,9 +342,9 @@ def test_walls_cover_the_wall_cells_as_the_canny_hough_detector_did() -> None:
     # The benchmark's plan (noise, doors, 37-degree walls), its first 1000 x 1000 cells. The
     # Canny + tiled Hough detector this one replaced found 192 walls there, covering 97.18 % of
     # the wall cells within a cell (the rest are noise specks).
-    from benchmarks.walls_4000 import floor_plan as benchmark_plan
-
-    cells = benchmark_plan(np.random.default_rng(7))[:1000, :1000].copy()
+    # By name: mypy checks benchmarks/ as scripts, and would see the module twice.
+    benchmark = importlib.import_module("benchmarks.walls_4000")
+    cells = benchmark.floor_plan(np.random.default_rng(7))[:1000, :1000].copy()
     found = np.round(walls.wall_segments(as_grid(cells), default_options()) / RES - 0.5).astype(int)
     wall = (cells >= 65) & (cells <= 100)
     near = np.zeros(cells.shape, dtype=np.uint8)
