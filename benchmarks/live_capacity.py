@@ -45,6 +45,9 @@ from collections.abc import Sequence
 from contextlib import ExitStack
 from pathlib import Path
 
+import numpy as np
+import numpy.typing as npt
+
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
@@ -105,20 +108,31 @@ class TimedDelivery:
         for topic, run in runs.items():
             self.dispatcher.take(run)
             converted_ns = time.time_ns()
-            if self.measuring:
+            received = received_ns(run)
+            if self.measuring and len(received):
                 with self._lock:
-                    for item in run:
-                        if isinstance(item, RawMessage) and item.receive_ns is not None:
-                            self.converted_ms.setdefault(topic, []).append(
-                                (converted_ns - item.receive_ns) / 1e6)
-                            self.entered_ms.setdefault(topic, []).append(
-                                (entered_ns - item.receive_ns) / 1e6)
+                    self.converted_ms.setdefault(topic, []).extend(
+                        ((converted_ns - received) / 1e6).tolist())
+                    self.entered_ms.setdefault(topic, []).extend(
+                        ((entered_ns - received) / 1e6).tolist())
         self.last_end = time.perf_counter()
 
     def reset(self) -> None:
         with self._lock:
             self.converted_ms.clear()
             self.entered_ms.clear()
+
+
+def received_ns(run: Sequence[InputItem]) -> npt.NDArray[np.int64]:
+    """The relay receive times of a run's messages: a record's, and a bundle's (MessageRun)
+    array."""
+    times: list[npt.NDArray[np.int64]] = [np.zeros(0, np.int64)]
+    for item in run:
+        if isinstance(item, MessageRun) and item.receive_ns is not None:
+            times.append(item.receive_ns)
+        elif isinstance(item, RawMessage) and item.receive_ns is not None:
+            times.append(np.array([item.receive_ns], np.int64))
+    return np.concatenate(times)
 
 
 def host_pipeline(closing: ExitStack) -> tuple[Dispatcher, TimedDelivery]:

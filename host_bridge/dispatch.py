@@ -14,7 +14,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -88,6 +88,8 @@ class _Robot:
 
     state: RobotState
     frames: RobotFrames
+    # Held from observing logged frames to logging the placements they call for (see log).
+    placing: threading.Lock = field(default_factory=threading.Lock)
 
 
 def sequence_gap(last: int | None, sequence: int) -> int:
@@ -193,12 +195,22 @@ class Dispatcher:
         return self._robot(robot).frames
 
     def log(self, robot: str, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
-        """Log ``robot``'s entries, then what its frames need now (placements, target)."""
-        self.sink.log(entries, times)
+        """Log ``robot``'s entries, then what its frames need now (placements, target).
+
+        A robot's small topics, its heavy ones (inputs/queues.py) and the slow converters log
+        from threads of their own. A frame placed at the robot's root shares its static entity
+        with the frame's real transform and must never be written after it: entries are observed
+        before they are logged, and those that call for placements are logged with them under
+        the robot's lock, so a transform observed later is also logged later. Other entries
+        (nearly all) are logged outside it: a small topic does not wait for a cloud's log."""
         known = self._robot(robot)
-        updates = known.frames.observe(entries, known.state)
-        if updates:
-            self.sink.log(updates, times)
+        with known.placing:
+            updates = known.frames.observe(entries, known.state)
+            if updates:
+                self.sink.log(entries, times)
+                self.sink.log(updates, times)
+                return
+        self.sink.log(entries, times)
 
     def _topic(self, robot: str, name: str, msgtype: str) -> _Topic:
         key = (robot, name)

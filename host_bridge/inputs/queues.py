@@ -1,38 +1,50 @@
 """Per-robot bounded queues between the Zenoh callbacks and the dispatcher.
 
-Each robot gets its own queue and, once :meth:`RobotQueues.serve` runs, its own worker thread,
+Each robot gets its own queue and, once :meth:`RobotQueues.serve` runs, its own worker threads,
 so a robot whose messages are slow to convert (or that floods the host) only delays itself:
 its queue fills and drops its own oldest messages while the other robots keep flowing. Latched
 messages (``/tf_static``, ``/robot_description``, maps) are never the ones dropped: a late copy
 of them is all a viewer will ever get.
 
-Heavy topics (the type table's ``heavy`` rows: images, point clouds, maps) go latest-only first:
-once more than :data:`HEAVY_BACKLOG` items wait for a robot, its worker is behind, and a new
-message of a heavy topic replaces the ones of that topic still waiting. The small topics queued
-with them (IMU, TF, scans) then wait for one conversion of each heavy topic, not for a pile of
-stale frames, and are themselves dropped only when the whole queue is full. Within a batch the
-worker hands over the small topics' messages before the heavy ones (each topic's own order
-kept), so they do not wait for the heavy ones that came with them either.
+Heavy topics (the type table's ``heavy`` rows: images, point clouds, maps) are converted on a
+thread of their own per robot, latest-only: while that thread converts, a heavy topic keeps only
+its newest waiting message (or run), and a newer one replaces it. The small topics (IMU, TF,
+scans) never wait behind a heavy conversion: in the issue's mixed load a 300k-point cloud took
+its robot's one worker for 5-10 ms (more on a loaded host), and every scan, IMU and TF message
+that came meanwhile waited for it (``benchmarks/live_capacity.py``). A robot's small topics are
+dropped only when its whole queue is full.
+
+Order: each topic's messages are handed over in order, on one thread (a topic's type decides
+its thread). Between a heavy topic and a small one there is no order, as there is none between
+two robots; the dispatcher keeps what a robot's threads share consistent (frames, the model).
+
+Items are counted in messages: a :class:`~host_bridge.inputs.base.MessageRun` (a bundle of one
+topic's messages from the wire) counts ``len(run)`` against the bound, and in the drops when it
+is dropped or replaced; a heavy topic's run is replaced as a whole, like one heavy message.
 
 Every message dropped here is counted per topic (:attr:`RobotQueues.dropped`, the drop summary
 the host prints when it stops) and shows in ``/_stats/<robot><topic>/host_drops`` (stats.py reads
 :meth:`RobotQueues.dropped_when_taken` and keeps these drops out of the wire ``drops``, though
 they leave sequence gaps too). A topic's first drop is warned about once, in
-``/_swanky/warnings`` as well: the warning leads the robot's next batch, so it shows when the
-drops begin, not after the backlog (and takes no message's place in the queue).
+``/_swanky/warnings`` as well: the warning leads the next batch of the topic's thread, so it
+shows when the drops begin, not after the backlog (and takes no message's place in the queue).
 """
 
 from __future__ import annotations
 
+import functools
+import gc
 import logging
+import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from host_bridge.errors import HostError
-from host_bridge.inputs.base import InputItem, InputProblem
+from host_bridge.inputs.base import InputItem, InputProblem, MessageRun
 from host_bridge.stats import STATS_ROOT
 from robot_relay.wire import RawMessage
 
@@ -42,22 +54,24 @@ if TYPE_CHECKING:
 log = logging.getLogger("swanky.host")
 
 MAX_PER_ROBOT = 5000
-# A worker takes everything waiting, up to this many, at once: what arrived while it converted one
-# batch is the next, so a loaded host converts runs (send_columns) that grow with the load, and
-# an idle one converts a message as soon as it comes. A fixed 5 ms wait for more added its whole
-# length to the latency of the issue's mixed load (p50 15 ms against 5 ms without;
-# benchmarks/live_capacity.py) and converted no more per second when flooded.
+"""Messages waiting per robot, small and heavy topics together, beyond which the oldest go."""
+# A worker takes everything waiting, up to this many messages, at once: what arrived while it
+# converted one batch is the next, so a loaded host converts runs (send_columns) that grow with
+# the load, and an idle one converts a message as soon as it comes. A fixed 5 ms wait for more
+# added its whole length to the latency of the issue's mixed load (p50 15 ms against 5 ms
+# without; benchmarks/live_capacity.py) and converted no more per second when flooded.
 MAX_BATCH = 1024
-# Items waiting for a robot beyond which its worker is behind and heavy topics go latest-only:
-# more than arrive during one conversion while it keeps up (a 40 ms cloud at 400 messages/s).
-HEAVY_BACKLOG = 32
+# How long a thread that wants the GIL waits for the one holding it before asking it to let go
+# (Python's default is 5 ms). The Zenoh callbacks and a robot's two workers hand messages to
+# each other all the time: at 5 ms, a small message waited that long behind a heavy conversion
+# running in Python on the robot's other thread.
+GIL_SWITCH_INTERVAL_S = 0.0005
 
 ItemDeliver = Callable[[Sequence[InputItem]], None]
-"""Where the workers put each robot's runs: live items one record each, never a MessageRun (any
+"""Where the workers put each robot's batches: live records and the MessageRuns of bundles (any
 :data:`~host_bridge.inputs.base.Deliver` takes them)."""
 
-# (item, latched, its topic if it is a non-latched message of a heavy topic, else None)
-_Entry = tuple[InputItem, bool, str | None]
+Heavy = Callable[[RawMessage | MessageRun], bool]
 
 
 class HostBehindError(HostError):
@@ -66,14 +80,14 @@ class HostBehindError(HostError):
 
 
 class HeavyTypes:
-    """Whether a message is of a heavy type (its type table row says ``heavy``), remembered per
-    type and topic; the table is built on first use unless given."""
+    """Whether a message (or run) is of a heavy type (its type table row says ``heavy``),
+    remembered per type and topic; the table is built on first use unless given."""
 
     def __init__(self, registry: Registry | None = None) -> None:
         self._registry = registry
         self._known: dict[tuple[str, str], bool] = {}
 
-    def __call__(self, raw: RawMessage) -> bool:
+    def __call__(self, raw: RawMessage | MessageRun) -> bool:
         key = (raw.msgtype, raw.topic)
         heavy = self._known.get(key)
         if heavy is None:
@@ -85,48 +99,105 @@ class HeavyTypes:
         return heavy
 
 
-class _RobotQueue:
-    def __init__(self, lock: threading.Lock) -> None:
+def _topic(item: InputItem) -> str:
+    return item.topic if isinstance(item, RawMessage | MessageRun | InputProblem) else ""
+
+
+@dataclass(slots=True)
+class _Entry:
+    item: InputItem
+    topic: str
+    latched: bool
+    size: int
+    """Messages it holds: a MessageRun's length, else 1."""
+    order: int
+    """When it came among its robot's items: the oldest is dropped first."""
+
+
+class _Lane:
+    """One worker thread's share of a robot's queue: its small topics, or its heavy ones."""
+
+    def __init__(self, lock: threading.Lock, thread_name: str, heavy: bool) -> None:
+        self.thread_name = thread_name
+        self.heavy = heavy
         self.items: deque[_Entry] = deque()
-        # Non-latched heavy messages waiting, per topic: most are none, and then nothing is
-        # searched when a new one comes.
-        self.heavy_waiting: dict[str, int] = {}
+        self.messages = 0
+        # Heavy lane: the waiting non-latched entries per topic (one, but for the moment a newer
+        # one comes), so nothing is searched when none waits.
+        self.replaceable: dict[str, int] = {}
         self.ready = threading.Condition(lock)
         self.worker: threading.Thread | None = None
         self.dropped: dict[str, int] = {}
-        # ``dropped`` as it was when the worker took its current batch: replaced, never changed.
-        self.dropped_when_taken: Mapping[str, int] = {}
+        # ``dropped`` as it was when the worker took its current batch.
+        self.dropped_taken: dict[str, int] = {}
         self.dropped_since_taken = False
         # Each topic's first drop, to be warned about ahead of the waiting messages.
         self.warnings: list[InputProblem] = []
 
     def append(self, entry: _Entry) -> None:
         self.items.append(entry)
-        heavy_topic = entry[2]
-        if heavy_topic is not None:
-            self.heavy_waiting[heavy_topic] = self.heavy_waiting.get(heavy_topic, 0) + 1
+        self.messages += entry.size
+        if self.heavy and not entry.latched:
+            self.replaceable[entry.topic] = self.replaceable.get(entry.topic, 0) + 1
 
     def forget(self, entry: _Entry) -> None:
         """``entry`` has left the queue (taken by the worker or dropped)."""
-        heavy_topic = entry[2]
-        if heavy_topic is not None:
-            self.heavy_waiting[heavy_topic] -= 1
+        self.messages -= entry.size
+        if self.heavy and not entry.latched:
+            self.replaceable[entry.topic] -= 1
+
+    def oldest_droppable(self) -> int | None:
+        """The index of the oldest entry that may be dropped (a non-latched message or run)."""
+        for index, entry in enumerate(self.items):
+            if not entry.latched and isinstance(entry.item, RawMessage | MessageRun):
+                return index
+        return None
+
+
+@dataclass(slots=True)
+class _Robot:
+    small: _Lane
+    heavy: _Lane
+    arrivals: int = 0
+    # Both lanes' drops per topic as counted when each took its current batch: replaced, never
+    # changed (read without the lock by the /_stats tap).
+    dropped_when_taken: Mapping[str, int] = field(default_factory=dict)
+
+    @property
+    def lanes(self) -> tuple[_Lane, _Lane]:
+        return self.small, self.heavy
+
+    @property
+    def messages(self) -> int:
+        return self.small.messages + self.heavy.messages
+
+
+def _summed(counts: Iterable[Mapping[str, int]]) -> dict[str, int]:
+    total: dict[str, int] = {}
+    for count in counts:
+        for topic, n in count.items():
+            total[topic] = total.get(topic, 0) + n
+    return total
+
+
+@functools.cache
+def _tune_for_latency() -> None:
+    """Once per process, when live messages start to flow between threads: a short GIL switch
+    interval (see :data:`GIL_SWITCH_INTERVAL_S`), and the start-up's objects (modules, type
+    stores, the registry) moved out of the garbage collector's sight: they live as long as the
+    host, and each full collection walked them all (a 27 ms pause in the live benchmark)."""
+    sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH_INTERVAL_S))
+    gc.collect()
+    gc.freeze()
 
 
 class RobotQueues:
-    """Bounded per-robot FIFOs; heavy topics keep only their newest message once a robot's
-    worker is behind, full queues drop their oldest non-latched message; each drop counted."""
+    """Bounded per-robot queues, two threads per robot: heavy topics latest-only on their own,
+    full queues drop their oldest non-latched message; each drop counted."""
 
-    def __init__(
-        self,
-        max_per_robot: int = MAX_PER_ROBOT,
-        *,
-        heavy: Callable[[RawMessage], bool] | None = None,
-        heavy_backlog: int = HEAVY_BACKLOG,
-    ) -> None:
+    def __init__(self, max_per_robot: int = MAX_PER_ROBOT, *, heavy: Heavy | None = None) -> None:
         self.max_per_robot = max_per_robot
         self.heavy = heavy if heavy is not None else HeavyTypes()
-        self.heavy_backlog = heavy_backlog
         self.superseded: dict[tuple[str, str], int] = {}
         """Of those, the heavy ones a newer message of their topic replaced."""
         # Data, problems and robots joining or leaving: what --until-idle waits on, so a robot
@@ -134,128 +205,136 @@ class RobotQueues:
         self.last_activity = time.monotonic()
         self.error: BaseException | None = None
         self._lock = threading.Lock()
-        self._any = threading.Condition(self._lock)
-        self._robots: dict[str, _RobotQueue] = {}
+        self._robots: dict[str, _Robot] = {}
         self._handler: ItemDeliver | None = None
         self._closing = False
 
     def put(self, item: InputItem, latched: bool = False) -> None:
-        robot = item.robot
-        heavy_topic = (
-            item.topic if not latched and isinstance(item, RawMessage) and self.heavy(item) else None
-        )
+        name, topic = item.robot, _topic(item)
+        size = len(item) if isinstance(item, MessageRun) else 1
+        heavy = isinstance(item, RawMessage | MessageRun) and self.heavy(item)
         with self._lock:
-            state = self._robots.get(robot)
-            if state is None:
-                state = self._robots[robot] = _RobotQueue(self._lock)
-                self._start_worker(robot, state)
-            if (heavy_topic is not None and len(state.items) > self.heavy_backlog
-                    and state.heavy_waiting.get(heavy_topic)):
-                self._supersede(robot, state, heavy_topic)
-            full = len(state.items) >= self.max_per_robot
-            if full and not self._make_room(robot, state) and not latched:
-                self._count_drop(robot, state, item)
+            robot = self._robots.get(name)
+            if robot is None:
+                robot = self._robots[name] = _Robot(
+                    _Lane(self._lock, f"robot-{name}", heavy=False),
+                    _Lane(self._lock, f"robot-{name}-heavy", heavy=True),
+                )
+            lane = robot.heavy if heavy else robot.small
+            if heavy and not latched and lane.replaceable.get(topic):
+                self._supersede(name, lane, topic)
+            if (robot.messages + size > self.max_per_robot and not self._make_room(name, robot, size)
+                    and not latched):
+                self._count_drop(name, lane, topic, size)
             else:
-                state.append((item, latched, heavy_topic))
+                robot.arrivals += 1
+                lane.append(_Entry(item, topic, latched, size, robot.arrivals))
             self.last_activity = time.monotonic()
-            state.ready.notify()
-            self._any.notify()
+            self._start_worker(robot, lane)
+            lane.ready.notify()
 
-    def _supersede(self, robot: str, state: _RobotQueue, topic: str) -> None:
+    def _supersede(self, robot: str, lane: _Lane, topic: str) -> None:
         """Drop the waiting non-latched messages of heavy ``topic``: a newer one has come."""
         kept: deque[_Entry] = deque()
-        for entry in state.items:
-            if entry[2] == topic:
-                state.forget(entry)
-                self._count_drop(robot, state, entry[0], superseded=True)
+        for entry in lane.items:
+            if not entry.latched and entry.topic == topic:
+                lane.forget(entry)
+                self._count_drop(robot, lane, topic, entry.size, superseded=True)
             else:
                 kept.append(entry)
-        state.items = kept
+        lane.items = kept
 
-    def _make_room(self, robot: str, state: _RobotQueue) -> bool:
-        """Drop the oldest non-latched message of a full queue; False if all are latched."""
-        for index, entry in enumerate(state.items):
-            item, latched, _ = entry
-            if not latched and isinstance(item, RawMessage):
-                del state.items[index]
-                state.forget(entry)
-                self._count_drop(robot, state, item)
-                return True
-        return False
+    def _make_room(self, name: str, robot: _Robot, size: int) -> bool:
+        """Drop the oldest non-latched messages of a full queue until ``size`` more fit; False
+        if they do not (all that waits is latched), unless the queue is empty."""
+        while robot.messages and robot.messages + size > self.max_per_robot:
+            found = [(lane, index) for lane in robot.lanes
+                     if (index := lane.oldest_droppable()) is not None]
+            if not found:
+                return False
+            lane, index = min(found, key=lambda at: at[0].items[at[1]].order)
+            entry = lane.items[index]
+            del lane.items[index]
+            lane.forget(entry)
+            self._count_drop(name, lane, entry.topic, entry.size)
+            lane.ready.notify()  # a lane left with only the warning delivers it
+        return True
 
     def _count_drop(
-        self, robot: str, state: _RobotQueue, item: InputItem, superseded: bool = False
+        self, robot: str, lane: _Lane, topic: str, size: int, superseded: bool = False
     ) -> None:
-        topic = item.topic if isinstance(item, RawMessage | InputProblem) else ""
-        if topic not in state.dropped:
+        if topic not in lane.dropped:
             # The dispatcher warns (stderr and /_swanky/warnings) once per topic and kind.
-            state.warnings.append(InputProblem(robot, topic, HostBehindError(
+            lane.warnings.append(InputProblem(robot, topic, HostBehindError(
                 "the host converts this robot's messages slower than they arrive; "
                 + ("converting only the newest message of this heavy topic" if superseded
                    else "dropping its oldest ones")
                 + f" (counted in {STATS_ROOT}/{robot}{topic}/host_drops, other robots unaffected)"
             )))
-        state.dropped[topic] = state.dropped.get(topic, 0) + 1
-        state.dropped_since_taken = True
+        lane.dropped[topic] = lane.dropped.get(topic, 0) + size
+        lane.dropped_since_taken = True
         if superseded:
             key = (robot, topic)
-            self.superseded[key] = self.superseded.get(key, 0) + 1
+            self.superseded[key] = self.superseded.get(key, 0) + size
 
     @property
     def dropped(self) -> dict[tuple[str, str], int]:
         """Messages dropped per (robot, topic), for either reason."""
         with self._lock:
             return {
-                (robot, topic): count
-                for robot, state in self._robots.items()
-                for topic, count in state.dropped.items()
+                (name, topic): count
+                for name, robot in self._robots.items()
+                for topic, count in _summed(lane.dropped for lane in robot.lanes).items()
             }
 
     def dropped_when_taken(self, robot: str) -> Mapping[str, int]:
-        """``robot``'s messages dropped per topic, as counted when its worker took the batch it
-        hands over now: each older than every message of its topic still to be handed over
-        after it. Read without the lock on that worker's thread (the /_stats tap); never changed
-        once returned."""
+        """``robot``'s messages dropped per topic, as counted when the thread of that topic took
+        the batch it hands over now: each older than every message of its topic still to be
+        handed over after it. Read without the lock on the robot's threads (the /_stats tap);
+        never changed once returned."""
         state = self._robots.get(robot)
         return {} if state is None else state.dropped_when_taken
 
-    # -- one worker thread per robot ---------------------------------------------------------
+    # -- two worker threads per robot --------------------------------------------------------
 
     def serve(self, handler: ItemDeliver) -> None:
-        """From now on every robot's items go to ``handler`` from that robot's own thread."""
+        """From now on every robot's items go to ``handler`` from that robot's own threads."""
+        _tune_for_latency()
         with self._lock:
             self._handler = handler
-            for robot, state in self._robots.items():
-                self._start_worker(robot, state)
+            for robot in self._robots.values():
+                for lane in robot.lanes:
+                    if lane.items or lane.warnings:
+                        self._start_worker(robot, lane)
 
-    def _start_worker(self, robot: str, state: _RobotQueue) -> None:
-        if self._handler is None or state.worker is not None:
+    def _start_worker(self, robot: _Robot, lane: _Lane) -> None:
+        if self._handler is None or lane.worker is not None:
             return
-        state.worker = threading.Thread(
-            target=self._work, args=(state, self._handler), name=f"robot-{robot}", daemon=True
+        lane.worker = threading.Thread(
+            target=self._work, args=(robot, lane, self._handler), name=lane.thread_name,
+            daemon=True,
         )
-        state.worker.start()
+        lane.worker.start()
 
-    def _work(self, state: _RobotQueue, handler: ItemDeliver) -> None:
+    def _work(self, robot: _Robot, lane: _Lane, handler: ItemDeliver) -> None:
         while True:
             with self._lock:
-                while not state.items and not self._closing:
-                    state.ready.wait()
-                if not state.items:
+                while not lane.items and not lane.warnings and not self._closing:
+                    lane.ready.wait()
+                if not lane.items and not lane.warnings:
                     return
-                batch: list[InputItem] = list(state.warnings)  # a drop leaves items waiting
-                state.warnings.clear()
-                heavy: list[InputItem] = []
-                for _ in range(min(len(state.items), MAX_BATCH)):
-                    entry = state.items.popleft()
-                    state.forget(entry)
-                    (batch if entry[2] is None else heavy).append(entry[0])
-                if state.dropped_since_taken:
-                    state.dropped_when_taken = dict(state.dropped)
-                    state.dropped_since_taken = False
-                # The dispatcher converts a batch topic by topic anyway; the small topics go
-                # first, so they do not wait for the frames and clouds that came with them.
-                batch += heavy
+                batch: list[InputItem] = list(lane.warnings)  # a drop leaves items waiting
+                lane.warnings.clear()
+                taken = 0
+                while lane.items and taken < MAX_BATCH:
+                    entry = lane.items.popleft()
+                    lane.forget(entry)
+                    taken += entry.size
+                    batch.append(entry.item)
+                if lane.dropped_since_taken:
+                    lane.dropped_taken = dict(lane.dropped)
+                    lane.dropped_since_taken = False
+                    robot.dropped_when_taken = _summed(other.dropped_taken for other in robot.lanes)
             try:
                 handler(batch)
             except BaseException as err:  # --strict: the main thread re-raises it
@@ -266,12 +345,13 @@ class RobotQueues:
         """Let the workers finish what is queued (a saved .rrd is then complete)."""
         with self._lock:
             self._closing = True
-            workers = [s.worker for s in self._robots.values() if s.worker is not None]
-            for state in self._robots.values():
-                state.ready.notify_all()
+            lanes = [lane for robot in self._robots.values() for lane in robot.lanes]
+            for lane in lanes:
+                lane.ready.notify_all()
         deadline = time.monotonic() + timeout
-        for worker in workers:
-            worker.join(max(0.0, deadline - time.monotonic()))
+        for lane in lanes:
+            if lane.worker is not None:
+                lane.worker.join(max(0.0, deadline - time.monotonic()))
 
     def drop_summary(self) -> str:
         """One line per topic that lost messages here, saying why."""

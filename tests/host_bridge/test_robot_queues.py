@@ -1,21 +1,24 @@
-"""Per-robot queues: bounded, drop-oldest for non-latched messages, heavy topics latest-only once
-behind, one worker per robot."""
+"""Per-robot queues: bounded (in messages, a MessageRun counting its own), drop-oldest for
+non-latched messages, heavy topics latest-only on a thread of their own, small topics on another
+per robot."""
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+
+import numpy as np
 
 from host_bridge.destinations import SinkOptions
 from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
-from host_bridge.inputs.base import InputItem, InputProblem, RobotEvent
+from host_bridge.inputs.base import InputItem, InputProblem, MessageRun, RobotEvent
 from host_bridge.inputs.queues import HeavyTypes, HostBehindError, RobotQueues
 from host_bridge.sink import RerunSink
 from host_bridge.stats import StatsTracker, topic_stats_items
 from robot_relay.wire import RawMessage
-from tests.host_bridge.inputs.received import Received
+from tests.host_bridge.inputs.received import TIMEOUT_S, Received
 from tests.rrd import entity_rows
 
 
@@ -118,7 +121,7 @@ def test_robot_events_count_as_activity() -> None:
 
 
 IMAGE, CLOUD, IMU = "sensor_msgs/msg/Image", "sensor_msgs/msg/PointCloud2", "sensor_msgs/msg/Imu"
-GRID = "nav_msgs/msg/OccupancyGrid"
+GRID, TF = "nav_msgs/msg/OccupancyGrid", "tf2_msgs/msg/TFMessage"
 
 
 def typed(robot: str, topic: str, msgtype: str, n: int) -> RawMessage:
@@ -126,54 +129,93 @@ def typed(robot: str, topic: str, msgtype: str, n: int) -> RawMessage:
     return RawMessage(robot, topic, msgtype, bytes([n]), receive_ns=T0 + n * MS, sequence=n)
 
 
+def run_of(robot: str, topic: str, msgtype: str, numbers: Sequence[int]) -> MessageRun:
+    """A bundle of ``topic``'s messages ``numbers`` (payload bytes), as a live input puts it."""
+    return MessageRun(
+        robot, topic, msgtype, None, [bytes([n]) for n in numbers],
+        receive_ns=np.array([T0 + n * MS for n in numbers], np.int64),
+    )
+
+
 S, MS = 10**9, 10**6
 T0 = 1_700_000_000 * S
 
 
+class ByThread:
+    """Batches as the workers hand them over, each item with the thread that handed it."""
+
+    def __init__(self) -> None:
+        self.items: list[tuple[str, InputItem]] = []
+        self._changed = threading.Condition()
+
+    def take(self, batch: Sequence[InputItem]) -> None:
+        name = threading.current_thread().name
+        with self._changed:
+            self.items.extend((name, item) for item in batch)
+            self._changed.notify_all()
+
+    def wait_for(
+        self, done: Callable[[list[tuple[str, InputItem]]], bool]
+    ) -> list[tuple[str, InputItem]]:
+        with self._changed:
+            self._changed.wait_for(lambda: done(self.items), TIMEOUT_S)
+            return list(self.items)
+
+    def messages(self, count: int) -> dict[str, list[tuple[str, int]]]:
+        """Per thread, (topic, payload byte) of the first ``count`` messages handed over (a
+        MessageRun's each), in order; the warnings of first drops are left out (see
+        test_a_topics_first_drop_is_warned_about_once_ahead_of_the_backlog)."""
+
+        def numbers(items: list[tuple[str, InputItem]]) -> int:
+            return sum(len(i) if isinstance(i, MessageRun) else isinstance(i, RawMessage)
+                       for _, i in items)
+
+        found: dict[str, list[tuple[str, int]]] = {}
+        for name, item in self.wait_for(lambda items: numbers(items) >= count):
+            if isinstance(item, InputProblem):
+                assert isinstance(item.error, HostBehindError)
+                continue
+            assert isinstance(item, RawMessage | MessageRun)
+            runs = item if isinstance(item, MessageRun) else [item]
+            found.setdefault(name, []).extend((raw.topic, raw.data[0]) for raw in runs)
+        return found
+
+
 def delivered(queues: RobotQueues, count: int) -> dict[str, list[tuple[str, int]]]:
-    """Serve the filled queues; per robot, (topic, payload byte) of the ``count`` messages
-    delivered, in order (robots are served on threads of their own, so only each robot's order
-    is defined). The warnings of first drops are left out (see
-    test_a_topics_first_drop_is_warned_about_once_ahead_of_the_backlog)."""
-    received = Received()
-    queues.serve(received.take)
-    items = received.wait_for(
-        lambda items: sum(isinstance(i, RawMessage) for i in items) >= count
-    )
+    """Serve the filled queues; per worker thread, (topic, payload byte) of the ``count``
+    messages delivered, in order (each thread's order is defined, not the order between
+    threads)."""
+    by_thread = ByThread()
+    queues.serve(by_thread.take)
+    found = by_thread.messages(count)
     queues.close(timeout=5)
-    by_robot: dict[str, list[tuple[str, int]]] = {}
-    for item in items:
-        if isinstance(item, InputProblem):
-            assert isinstance(item.error, HostBehindError)
-            continue
-        assert isinstance(item, RawMessage)
-        by_robot.setdefault(item.robot, []).append((item.topic, item.data[0]))
-    return by_robot
+    return found
 
 
 def test_heavy_types_come_from_the_type_table() -> None:
     heavy = HeavyTypes()
     types = (IMAGE, CLOUD, GRID, IMU, "std_msgs/msg/Int32", "sensor_msgs/msg/CompressedImage")
     assert [heavy(typed("a", "/t", t, 0)) for t in types] == [True, True, True, False, False, False]
+    assert heavy(run_of("a", "/t", CLOUD, [0, 1]))
+    assert not heavy(run_of("a", "/t", IMU, [0]))
 
 
-def test_behind_a_backlog_heavy_topics_keep_only_their_newest_and_small_ones_all_wait() -> None:
-    queues = RobotQueues(heavy_backlog=3)  # heavy: the type table's rows (Image, PointCloud2)
-    queues.put(typed("a", "/camera", IMAGE, 100))  # not behind: queued
+def test_heavy_topics_go_to_a_thread_of_their_own_keeping_only_their_newest() -> None:
+    queues = RobotQueues()  # heavy: the type table's rows (Image, PointCloud2)
+    queues.put(typed("a", "/camera", IMAGE, 100))
     for n in range(3):
         queues.put(typed("a", "/imu", IMU, n))
-    queues.put(typed("a", "/camera", IMAGE, 101))  # 4 waiting > 3: replaces 100
+    queues.put(typed("a", "/camera", IMAGE, 101))  # its thread is busy (not started): replaces 100
     queues.put(typed("a", "/points", CLOUD, 200))  # no cloud waiting: queued
     queues.put(typed("a", "/imu", IMU, 3))
     queues.put(typed("a", "/camera", IMAGE, 102))  # replaces 101
     queues.put(typed("a", "/points", CLOUD, 201))  # replaces 200
     queues.put(typed("a", "/imu", IMU, 4))
-    queues.put(typed("b", "/camera", IMAGE, 150))  # another robot, with no backlog of its own
-    queues.put(typed("b", "/camera", IMAGE, 151))
-    assert delivered(queues, 9) == {
-        "a": [("/imu", 0), ("/imu", 1), ("/imu", 2), ("/imu", 3), ("/imu", 4), ("/camera", 102),
-              ("/points", 201)],  # one batch: the small topics first
-        "b": [("/camera", 150), ("/camera", 151)],
+    queues.put(typed("b", "/camera", IMAGE, 150))  # another robot's own
+    assert delivered(queues, 8) == {
+        "robot-a": [("/imu", 0), ("/imu", 1), ("/imu", 2), ("/imu", 3), ("/imu", 4)],
+        "robot-a-heavy": [("/camera", 102), ("/points", 201)],
+        "robot-b-heavy": [("/camera", 150)],
     }
     assert queues.dropped == {("a", "/camera"): 2, ("a", "/points"): 1}
     assert queues.superseded == queues.dropped
@@ -183,35 +225,63 @@ def test_behind_a_backlog_heavy_topics_keep_only_their_newest_and_small_ones_all
     )
 
 
-def test_once_behind_one_heavy_message_replaces_all_its_topic_had_waiting() -> None:
-    queues = RobotQueues(heavy_backlog=3)
-    for n in range(4):  # 0, 1, 2 and 3 each come with at most 3 waiting: all queued
-        queues.put(typed("a", "/camera", IMAGE, n))
-    queues.put(typed("a", "/camera", IMAGE, 4))
-    assert delivered(queues, 1) == {"a": [("/camera", 4)]}
-    assert queues.dropped == {("a", "/camera"): 4}
+def test_small_topics_never_wait_for_a_heavy_conversion() -> None:
+    queues = RobotQueues()
+    converting, release = threading.Event(), threading.Event()
+    small: list[int] = []
+    heavy: list[int] = []
+
+    def handle(batch: Sequence[InputItem]) -> None:
+        for item in batch:
+            if not isinstance(item, RawMessage):
+                continue  # the warning of /points' first drop
+            if item.msgtype == CLOUD:
+                converting.set()
+                release.wait(20)  # a cloud that takes long to convert
+                heavy.append(item.data[0])
+            else:
+                small.append(item.data[0])
+
+    queues.serve(handle)
+    queues.put(typed("a", "/points", CLOUD, 0))
+    assert converting.wait(20)
+    for n in range(1, 6):
+        queues.put(typed("a", "/imu", IMU, n))
+        queues.put(typed("a", "/points", CLOUD, 100 + n))  # each replaces the one before
+    deadline = time.monotonic() + 20
+    while len(small) < 5 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert small == [1, 2, 3, 4, 5]
+    assert heavy == []  # still converting cloud 0
+    release.set()
+    queues.close(timeout=10)
+    assert heavy == [0, 105]
+    assert queues.dropped == {("a", "/points"): 4}
+    assert queues.error is None
 
 
 def test_latched_heavy_messages_are_never_replaced() -> None:
-    queues = RobotQueues(heavy_backlog=1)
+    queues = RobotQueues()
     for n in range(3):
         queues.put(typed("a", "/map", GRID, n), latched=True)
     queues.put(typed("a", "/camera", IMAGE, 10))
     queues.put(typed("a", "/camera", IMAGE, 11))
     assert delivered(queues, 4) == {
-        "a": [("/map", 0), ("/map", 1), ("/map", 2), ("/camera", 11)]
+        "robot-a-heavy": [("/map", 0), ("/map", 1), ("/map", 2), ("/camera", 11)]
     }
     assert queues.dropped == {("a", "/camera"): 1}
 
 
 def test_a_full_queue_and_replacement_count_each_drop_once() -> None:
-    queues = RobotQueues(max_per_robot=4, heavy_backlog=2)
+    queues = RobotQueues(max_per_robot=4)
     queues.put(typed("a", "/camera", IMAGE, 0))
-    for n in range(1, 5):  # the fourth small one finds the queue full: the image goes
+    for n in range(1, 5):  # the fourth small one finds the queue full: the image, oldest, goes
         queues.put(typed("a", "/imu", IMU, n))
     queues.put(typed("a", "/camera", IMAGE, 5))  # full: /imu 1 goes; no image waits to replace
-    queues.put(typed("a", "/camera", IMAGE, 6))  # behind: replaces 5, which makes the room
-    assert delivered(queues, 4) == {"a": [("/imu", 2), ("/imu", 3), ("/imu", 4), ("/camera", 6)]}
+    queues.put(typed("a", "/camera", IMAGE, 6))  # replaces 5, which makes the room
+    assert delivered(queues, 4) == {
+        "robot-a": [("/imu", 2), ("/imu", 3), ("/imu", 4)], "robot-a-heavy": [("/camera", 6)]
+    }
     assert queues.dropped == {("a", "/camera"): 2, ("a", "/imu"): 1}
     assert queues.superseded == {("a", "/camera"): 1}
     assert queues.drop_summary() == (
@@ -220,18 +290,41 @@ def test_a_full_queue_and_replacement_count_each_drop_once() -> None:
     )
 
 
+def test_a_heavy_message_dropped_for_a_small_one_is_warned_about_on_its_own_thread() -> None:
+    queues = RobotQueues(max_per_robot=2)
+    queues.put(typed("a", "/camera", IMAGE, 0))
+    queues.put(typed("a", "/imu", IMU, 1))
+    queues.put(typed("a", "/imu", IMU, 2))  # full: the image, oldest, goes; its lane is empty
+    by_thread = ByThread()
+    queues.serve(by_thread.take)
+    items = by_thread.wait_for(lambda items: len(items) == 3)
+    queues.close(timeout=5)
+    threads: dict[str, list[tuple[str, str]]] = {}
+    for name, item in items:
+        assert isinstance(item, RawMessage | InputProblem)
+        threads.setdefault(name, []).append((item.topic, type(item).__name__))
+    assert threads == {
+        "robot-a": [("/imu", "RawMessage"), ("/imu", "RawMessage")],
+        "robot-a-heavy": [("/camera", "InputProblem")],  # the warning alone: nothing else waits
+    }
+    assert queues.dropped == {("a", "/camera"): 1}
+
+
 def test_messages_dropped_here_are_host_drops_in_stats_not_link_drops() -> None:
-    queues = RobotQueues(heavy_backlog=2)
+    queues = RobotQueues()
     tracker = StatsTracker(host_dropped=queues.dropped_when_taken)
+    tracked = threading.Lock()  # as the /_stats tap's: the robot's two threads share it
     first_taken, release = threading.Event(), threading.Event()
     warned: list[str] = []
 
     def handle(batch: Sequence[InputItem]) -> None:  # as the dispatcher and its /_stats tap do
-        warned.extend(i.topic for i in batch if isinstance(i, InputProblem))
-        assert tracker.observe_batch(
-            [i for i in batch if isinstance(i, RawMessage)], host_ns=T0 + 500 * MS) == []
-        first_taken.set()
-        release.wait(20)  # the first batch converts slowly: a backlog builds up behind it
+        with tracked:
+            warned.extend(i.topic for i in batch if isinstance(i, InputProblem))
+            assert tracker.observe_batch(
+                [i for i in batch if isinstance(i, RawMessage)], host_ns=T0 + 500 * MS) == []
+        if any(isinstance(i, RawMessage) and i.msgtype == IMAGE for i in batch):
+            first_taken.set()
+            release.wait(20)  # the first image converts slowly: newer ones replace each other
 
     queues.put(typed("a", "/camera", IMAGE, 0))
     queues.serve(handle)
@@ -283,15 +376,41 @@ def test_a_topics_first_drop_is_warned_about_once_ahead_of_the_backlog(tmp_path:
     assert [row["TextLog:text"] for row in entity_rows(out)[WARNINGS_PATH]] == [[expected]]
 
 
-def test_in_a_batch_small_topics_go_before_heavy_ones_each_in_its_order() -> None:
+def test_runs_count_as_their_messages_in_the_bound_and_the_drops() -> None:
+    queues = RobotQueues(max_per_robot=10)
+    queues.put(run_of("a", "/imu", IMU, [0, 1, 2, 3]))
+    queues.put(typed("a", "/tf_static", TF, 50), latched=True)
+    queues.put(run_of("a", "/imu", IMU, [4, 5, 6, 7]))  # 9 messages wait
+    queues.put(run_of("a", "/imu", IMU, [8, 9]))  # 11 would not fit: the oldest run, 4, goes
+    queues.put(typed("a", "/imu", IMU, 10))
+    assert delivered(queues, 8) == {"robot-a": [
+        ("/tf_static", 50), ("/imu", 4), ("/imu", 5), ("/imu", 6), ("/imu", 7), ("/imu", 8),
+        ("/imu", 9), ("/imu", 10)]}
+    assert queues.dropped == {("a", "/imu"): 4}
+    assert queues.drop_summary() == "[a] /imu: 4 dropped (4 queue full)"
+
+
+def test_a_run_that_does_not_fit_beside_latched_messages_is_dropped_whole() -> None:
+    queues = RobotQueues(max_per_robot=3)
+    for n in range(3):
+        queues.put(typed("a", "/tf_static", TF, n), latched=True)
+    queues.put(run_of("a", "/scan", "sensor_msgs/msg/LaserScan", [10, 11]))
+    assert delivered(queues, 3) == {
+        "robot-a": [("/tf_static", 0), ("/tf_static", 1), ("/tf_static", 2)]
+    }
+    assert queues.dropped == {("a", "/scan"): 2}
+
+
+def test_a_heavy_run_is_replaced_as_a_whole_counting_its_messages() -> None:
     queues = RobotQueues()
-    queues.put(typed("a", "/points", CLOUD, 0))
-    queues.put(typed("a", "/imu", IMU, 1))
-    queues.put(typed("a", "/camera", IMAGE, 2))
-    queues.put(typed("a", "/map", GRID, 3), latched=True)  # latched: never held back
-    queues.put(typed("a", "/imu", IMU, 4))
-    queues.put(typed("a", "/points", CLOUD, 5))
-    assert delivered(queues, 6) == {"a": [
-        ("/imu", 1), ("/map", 3), ("/imu", 4), ("/points", 0), ("/camera", 2), ("/points", 5)
-    ]}
-    assert queues.dropped == {}
+    queues.put(run_of("a", "/camera", IMAGE, [0, 1, 2]))
+    queues.put(typed("a", "/camera", IMAGE, 3))  # replaces the run: 3 dropped
+    queues.put(run_of("a", "/camera", IMAGE, [4, 5]))  # replaces 3: 1 more
+    queues.put(run_of("a", "/points", CLOUD, [6]))
+    assert delivered(queues, 3) == {
+        "robot-a-heavy": [("/camera", 4), ("/camera", 5), ("/points", 6)]
+    }
+    assert queues.dropped == queues.superseded == {("a", "/camera"): 4}
+    assert queues.drop_summary() == (
+        "[a] /camera: 4 dropped (4 replaced by a newer one while the host was behind)"
+    )
