@@ -395,13 +395,15 @@ def _hough_pieces(pixels: IntArray, shape: tuple[int, ...], settings: DetectorSe
     q0r, q0c = tile_rows * 4, tile_cols * 4  # the window's first quarter, padded by one
     q1r, q1c = np.minimum(q0r + 6, quarters.shape[0]), np.minimum(q0c + 6, quarters.shape[1])
     in_window = summed[q1r, q1c] - summed[q0r, q1c] - summed[q1r, q0c] + summed[q0r, q0c]
-    found = [np.zeros((0, 4), dtype=np.float64)]
+    found: list[Float64Array] = []
+    seen: list[Float64Array] = []
     busy = in_window >= settings.votes
     for tile_row, tile_col in zip(tile_rows[busy].tolist(), tile_cols[busy].tolist(), strict=True):
         y0, x0 = tile_row * HOUGH_TILE, tile_col * HOUGH_TILE
         y, x = max(y0 - margin, y_lo), max(x0 - margin, x_lo)
+        window = image[y - y_lo : y0 + HOUGH_TILE + margin - y_lo, x - x_lo : x0 + HOUGH_TILE + margin - x_lo]
         lines = cv2.HoughLinesP(
-            image[y - y_lo : y0 + HOUGH_TILE + margin - y_lo, x - x_lo : x0 + HOUGH_TILE + margin - x_lo],
+            window,
             1.0,
             math.pi / 180.0,
             settings.votes,
@@ -409,47 +411,59 @@ def _hough_pieces(pixels: IntArray, shape: tuple[int, ...], settings: DetectorSe
             maxLineGap=settings.max_line_gap,
         )
         if lines is not None:
-            window_rows, window_cols = np.nonzero(
-                image[y - y_lo : y0 + HOUGH_TILE + margin - y_lo, x - x_lo : x0 + HOUGH_TILE + margin - x_lo]
-            )
-            pixels_here = np.stack([window_cols, window_rows], axis=1).astype(np.float64)
-            refined = [
-                _refined(line, pixels_here, settings.max_line_gap)
-                for line in np.asarray(lines, dtype=np.float64).reshape(-1, 4)
-            ]
-            found.append(np.array(refined) + np.array([x, y, x, y]))
-    return np.concatenate(found)
+            window_rows, window_cols = np.nonzero(window)
+            found.append(np.asarray(lines, dtype=np.float64).reshape(-1, 4) + np.array([x, y, x, y]))
+            seen.append(np.stack([window_cols + x, window_rows + y], axis=1).astype(np.float64))
+    if not found:
+        return np.zeros((0, 4), dtype=np.float64)
+    # Each line is refitted to the pixels of its window: padded to one array, one call.
+    window_of = np.repeat(np.arange(len(found)), [len(f) for f in found])
+    most = max(len(p) for p in seen)
+    pixels_of = np.zeros((len(seen), most, 2))
+    valid = np.zeros((len(seen), most), dtype=bool)
+    for index, window_pixels in enumerate(seen):
+        pixels_of[index, : len(window_pixels)] = window_pixels
+        valid[index, : len(window_pixels)] = True
+    return _refitted(np.concatenate(found), pixels_of[window_of], valid[window_of], settings.max_line_gap)
 
 
-def _refined(line: Float64Array, pixels: Float64Array, max_gap: float) -> Float64Array:
-    """A Hough line refitted to the pixels (x, y) it stands for: those within 1.5 px of it, in
-    the chain (gaps up to ``max_gap``) along it that overlaps it; their least-squares line,
-    from the first to the last of them. HoughLinesP walks along its 1-degree angle and leaves
-    a long one-cell diagonal early, when that drifts a pixel off it."""
-    segment = line
-    for _ in range(2):
-        start, direction = segment[:2], segment[2:] - segment[:2]
-        length = float(np.hypot(*direction))
-        if length == 0.0:
-            return segment
-        u = direction / length
-        relative = pixels - start
-        near = np.abs(relative @ np.array([-u[1], u[0]])) <= 1.5
-        along = np.sort(relative[near] @ u)
-        if along.size < 2:
-            return segment
-        breaks = np.flatnonzero(np.diff(along) > max_gap + 1.0)
-        firsts = along[np.concatenate([[0], breaks + 1])]
-        lasts = along[np.concatenate([breaks, [along.size - 1]])]
-        overlap = np.minimum(lasts, length) - np.maximum(firsts, 0.0)
-        best = int(np.argmax(overlap))
-        t = relative[near] @ u
-        chain = pixels[near][(t >= firsts[best]) & (t <= lasts[best])]
-        centre = chain.mean(axis=0)
-        spread = np.cov((chain - centre).T)
-        axis = np.linalg.eigh(spread)[1][:, 1]
-        ends = (chain - centre) @ axis
-        segment = np.concatenate([centre + ends.min() * axis, centre + ends.max() * axis])
+def _refitted(
+    lines: Float64Array, pixels: Float64Array, valid: npt.NDArray[np.bool_], max_gap: float
+) -> Float64Array:
+    """Hough lines (k, 4) refitted to the pixels (x, y) they stand for, each from its own
+    pixels (k, m, 2) where ``valid``: those within 1.5 px of a line and at most ``max_gap`` + 2
+    px past its ends; their least-squares line, from the first to the last of them; three
+    times, each along the fit before. HoughLinesP walks along its 1-degree angle and leaves a
+    long one-cell diagonal early, where that drifts a pixel off it; each round reaches a few
+    pixels further along the wall."""
+    segment = lines
+    reach = max_gap + 2.0
+    px, py = pixels[:, :, 0], pixels[:, :, 1]
+    for _ in range(3):
+        start = segment[:, :2]
+        length = np.hypot(segment[:, 2] - segment[:, 0], segment[:, 3] - segment[:, 1])
+        u = (segment[:, 2:] - start) / np.maximum(length, 1e-9)[:, None]
+        dx, dy = px - start[:, 0, None], py - start[:, 1, None]
+        along = dx * u[:, 0, None] + dy * u[:, 1, None]
+        member = (
+            valid
+            & (np.abs(dy * u[:, 0, None] - dx * u[:, 1, None]) <= 1.5)
+            & (along >= -reach)
+            & (along <= length[:, None] + reach)
+        )
+        count = member.sum(axis=1)
+        weight = member / np.maximum(count, 1)[:, None]
+        mx, my = (weight * px).sum(1), (weight * py).sum(1)
+        cx, cy = px - mx[:, None], py - my[:, None]
+        cxx, cyy, cxy = (weight * cx * cx).sum(1), (weight * cy * cy).sum(1), (weight * cx * cy).sum(1)
+        angle = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)
+        ax, ay = np.cos(angle), np.sin(angle)
+        t = cx * ax[:, None] + cy * ay[:, None]
+        t_min = np.where(member, t, np.inf).min(axis=1)
+        t_max = np.where(member, t, -np.inf).max(axis=1)
+        with np.errstate(invalid="ignore"):  # lines without pixels, kept as they are below
+            refit = np.stack([mx + t_min * ax, my + t_min * ay, mx + t_max * ax, my + t_max * ay], axis=1)
+        segment = np.where((count >= 2)[:, None], refit, segment)
     return segment
 
 
