@@ -42,7 +42,7 @@ SIZE = 4000
 RESOLUTION = 0.05
 ROOM = 100  # cells: 5 m rooms
 DOOR = 18  # cells: 0.9 m doors
-REPEATS = 3
+REPEATS = 5
 
 
 def floor_plan(rng: np.random.Generator) -> npt.NDArray[np.int8]:

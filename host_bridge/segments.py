@@ -345,23 +345,105 @@ def _fit_runs(runs: IntArray, settings: DetectorSettings) -> Float64Array:
     return np.concatenate([fitted, as_is])
 
 
-def _with_neighbours(pixels: IntArray) -> IntArray:
-    """The (row, col) pixels with another of them among their 8 neighbours: isolated specks
-    (sensor noise) can never make a wall, and dropping them keeps Hough to the windows that
-    hold something."""
+def _pixel_groups(pixels: IntArray) -> npt.NDArray[np.intp]:
+    """The 8-connected group of each of the distinct (row, col) ``pixels``, -1 for a pixel
+    without a neighbour among them (a speck, which can never make a wall)."""
     if pixels.shape[0] == 0:
-        return pixels
+        return np.zeros(0, dtype=np.intp)
     stride = int(pixels[:, 1].max()) + 3
     key = (pixels[:, 0] + 1) * stride + pixels[:, 1] + 1
-    ordered = np.sort(key)
-    found = np.zeros(key.size, dtype=bool)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            if dy or dx:
-                probe = key + dy * stride + dx
-                at = np.minimum(np.searchsorted(ordered, probe), key.size - 1)
-                found |= ordered[at] == probe
-    return pixels[found]
+    order = np.argsort(key)
+    ordered = key[order]
+    firsts, seconds = [], []
+    for dy, dx in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        probe = key + dy * stride + dx
+        at = np.minimum(np.searchsorted(ordered, probe), key.size - 1)
+        hit = ordered[at] == probe
+        firsts.append(np.flatnonzero(hit))
+        seconds.append(order[at[hit]])
+    a, b = np.concatenate(firsts), np.concatenate(seconds)
+    kept = np.zeros(key.size, dtype=bool)
+    kept[a] = kept[b] = True
+    index = np.cumsum(kept) - 1
+    groups = np.full(key.size, -1, dtype=np.intp)
+    groups[kept] = _components(int(kept.sum()), index[a], index[b])
+    return groups
+
+
+def _blob_segments(pixels: IntArray, labels: npt.NDArray[np.intp], small: int) -> Float64Array:
+    """Segments (x0, y0, x1, y1) for the groups of pixels no longer than ``small`` either way
+    (pillars, furniture legs, the bumps of a wall, short diagonal stubs), which hold too few
+    pixels on one line for Hough: an elongated group (4:1) its least-squares line from end to
+    end, any other the four sides of its bounding box."""
+    count = int(labels.max(initial=-1)) + 1
+    if count == 0:
+        return np.zeros((0, 4), dtype=np.float64)
+    y, x = pixels[:, 0].astype(np.float64), pixels[:, 1].astype(np.float64)
+    low_x, low_y = np.full(count, np.inf), np.full(count, np.inf)
+    high_x, high_y = np.full(count, -np.inf), np.full(count, -np.inf)
+    for low, high, values in ((low_x, high_x, x), (low_y, high_y, y)):
+        np.minimum.at(low, labels, values)
+        np.maximum.at(high, labels, values)
+    n = np.bincount(labels, minlength=count).astype(np.float64)
+    mx, my = np.bincount(labels, x, count) / n, np.bincount(labels, y, count) / n
+    cx, cy = x - mx[labels], y - my[labels]
+    cxx, cyy, cxy = (np.bincount(labels, w, count) / n for w in (cx * cx, cy * cy, cx * cy))
+    spread = np.sqrt((cxx - cyy) ** 2 + 4.0 * cxy * cxy)
+    major, minor = (cxx + cyy + spread) / 2.0, (cxx + cyy - spread) / 2.0
+    angle = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)
+    ux, uy = np.cos(angle), np.sin(angle)
+    t = cx * ux[labels] + cy * uy[labels]
+    t_min, t_max = np.full(count, np.inf), np.full(count, -np.inf)
+    np.minimum.at(t_min, labels, t)
+    np.maximum.at(t_max, labels, t)
+    is_small = np.maximum(high_x - low_x, high_y - low_y) < small
+    line = is_small & (major >= 16.0 * minor)
+    box = is_small & ~line
+    sides = [
+        np.stack([low_x, low_y, high_x, low_y], axis=1), np.stack([high_x, low_y, high_x, high_y], axis=1),
+        np.stack([high_x, high_y, low_x, high_y], axis=1), np.stack([low_x, high_y, low_x, low_y], axis=1),
+    ]
+    lines = np.stack([mx + t_min * ux, my + t_min * uy, mx + t_max * ux, my + t_max * uy], axis=1)
+    return np.concatenate([lines[line]] + [side[box] for side in sides])
+
+
+def _small_groups(
+    rest: IntArray, fitted: Float64Array, small: int
+) -> tuple[IntArray, npt.NDArray[np.bool_], Float64Array]:
+    """The pixels of ``rest`` Hough should search, which ``fitted`` segments stay, and the
+    segments of the small groups of wall pixels drawn whole.
+
+    A pillar, a furniture leg or the bump of a wall holds runs too short to be walls and too
+    few pixels on one line for Hough. Groups of 8-connected rest pixels and pixels along the
+    fitted runs shorter than ``small`` that fit in ``small`` x ``small`` cells become boxes or
+    lines (:func:`_blob_segments`) instead; specks alone are dropped.
+    """
+    short = np.flatnonzero(np.hypot(fitted[:, 2] - fitted[:, 0], fitted[:, 3] - fitted[:, 1]) < small)
+    steps = np.linspace(0.0, 1.0, small + 1)
+    ends = fitted[short]
+    along = ends[:, None, :2] + steps[None, :, None] * (ends[:, None, 2:] - ends[:, None, :2])
+    run_pixels = np.round(along.reshape(-1, 2)[:, ::-1]).astype(np.int64)
+    pixels, inverse = np.unique(np.concatenate([rest, run_pixels]), axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    groups = _pixel_groups(pixels)
+    count = int(groups.max(initial=-1)) + 1
+    grouped = groups >= 0
+    low, high = np.full((count, 2), np.iinfo(np.int64).max), np.full((count, 2), -1)
+    np.minimum.at(low, groups[grouped], pixels[grouped])
+    np.maximum.at(high, groups[grouped], pixels[grouped])
+    whole = np.zeros(count + 1, dtype=bool)  # index -1: specks, in no group
+    whole[:count] = (high - low).max(axis=1, initial=0) < small
+    in_blob = whole[groups]
+    from_rest = np.zeros(pixels.shape[0], dtype=bool)
+    from_rest[inverse[: rest.shape[0]]] = True
+    stays = np.ones(fitted.shape[0], dtype=bool)
+    stays[short[whole[groups[inverse[rest.shape[0] :]]].reshape(-1, small + 1).any(axis=1)]] = False
+    blob_labels = np.unique(groups[in_blob], return_inverse=True)[1].reshape(-1)
+    return (
+        pixels[grouped & ~in_blob & from_rest],
+        stays,
+        _blob_segments(pixels[in_blob], blob_labels, small),
+    )
 
 
 def _hough_pieces(pixels: IntArray, shape: tuple[int, ...], settings: DetectorSettings) -> Float64Array:
@@ -489,13 +571,14 @@ def _frame_segments(
     fitted = np.concatenate(
         [_fit_runs(found.along_rows, settings), _fit_runs(found.along_cols, settings)[:, [1, 0, 3, 2]]]
     )
-    rest = _with_neighbours(found.rest)
+    rest, stays, blobs = _small_groups(found.rest, fitted, 4 * settings.min_run)
+    fitted = fitted[stays]
     delta = fitted[:, 2:] - fitted[:, :2]
     length = np.hypot(delta[:, 0], delta[:, 1])
     direction = np.degrees(np.arctan2(delta[:, 1], delta[:, 0]))
     off_axis = np.abs(direction % 90.0 - 45.0) < 45.0 - AXIS_TOLERANCE_DEG
     return _FrameResult(
-        np.concatenate([fitted, _hough_pieces(rest, mask.shape, settings)]),
+        np.concatenate([fitted, blobs, _hough_pieces(rest, mask.shape, settings)]),
         float(length[~off_axis].sum()),
         float(length[off_axis].sum()) + rest.shape[0],
     )
