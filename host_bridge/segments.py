@@ -370,11 +370,11 @@ def _pixel_groups(pixels: IntArray) -> npt.NDArray[np.intp]:
     return groups
 
 
-def _blob_segments(pixels: IntArray, labels: npt.NDArray[np.intp], small: int) -> Float64Array:
-    """Segments (x0, y0, x1, y1) for the groups of pixels no longer than ``small`` either way
-    (pillars, furniture legs, the bumps of a wall, short diagonal stubs), which hold too few
-    pixels on one line for Hough: an elongated group (4:1) its least-squares line from end to
-    end, any other the four sides of its bounding box."""
+def _blob_segments(pixels: IntArray, labels: npt.NDArray[np.intp]) -> Float64Array:
+    """Segments (x0, y0, x1, y1) for small groups of pixels (pillars, furniture legs, the bumps
+    of a wall, short diagonal stubs), which hold too few pixels on one line for Hough: an
+    elongated group (4:1) its least-squares line from end to end, any other the four sides of
+    its bounding box."""
     count = int(labels.max(initial=-1)) + 1
     if count == 0:
         return np.zeros((0, 4), dtype=np.float64)
@@ -396,12 +396,16 @@ def _blob_segments(pixels: IntArray, labels: npt.NDArray[np.intp], small: int) -
     t_min, t_max = np.full(count, np.inf), np.full(count, -np.inf)
     np.minimum.at(t_min, labels, t)
     np.maximum.at(t_max, labels, t)
-    is_small = np.maximum(high_x - low_x, high_y - low_y) < small
-    line = is_small & (major >= 16.0 * minor)
-    box = is_small & ~line
+    line = major >= 16.0 * minor
+    box = ~line
+    # Box sides reach the outer edges of the end pixels (half a pixel past their centres), so a
+    # pillar as long as the shortest wall keeps its sides.
+    low_x, low_y, high_x, high_y = low_x - 0.5, low_y - 0.5, high_x + 0.5, high_y + 0.5
     sides = [
-        np.stack([low_x, low_y, high_x, low_y], axis=1), np.stack([high_x, low_y, high_x, high_y], axis=1),
-        np.stack([high_x, high_y, low_x, high_y], axis=1), np.stack([low_x, high_y, low_x, low_y], axis=1),
+        np.stack([low_x, low_y + 0.5, high_x, low_y + 0.5], axis=1),
+        np.stack([high_x - 0.5, low_y, high_x - 0.5, high_y], axis=1),
+        np.stack([high_x, high_y - 0.5, low_x, high_y - 0.5], axis=1),
+        np.stack([low_x + 0.5, high_y, low_x + 0.5, low_y], axis=1),
     ]
     lines = np.stack([mx + t_min * ux, my + t_min * uy, mx + t_max * ux, my + t_max * uy], axis=1)
     return np.concatenate([lines[line]] + [side[box] for side in sides])
@@ -416,7 +420,8 @@ def _small_groups(
     A pillar, a furniture leg or the bump of a wall holds runs too short to be walls and too
     few pixels on one line for Hough. Groups of 8-connected rest pixels and pixels along the
     fitted runs shorter than ``small`` that fit in ``small`` x ``small`` cells become boxes or
-    lines (:func:`_blob_segments`) instead; specks alone are dropped.
+    lines (:func:`_blob_segments`) instead; larger groups go to Hough whole, their short runs
+    too; specks alone are dropped.
     """
     short = np.flatnonzero(np.hypot(fitted[:, 2] - fitted[:, 0], fitted[:, 3] - fitted[:, 1]) < small)
     steps = np.linspace(0.0, 1.0, small + 1)
@@ -434,16 +439,12 @@ def _small_groups(
     whole = np.zeros(count + 1, dtype=bool)  # index -1: specks, in no group
     whole[:count] = (high - low).max(axis=1, initial=0) < small
     in_blob = whole[groups]
-    from_rest = np.zeros(pixels.shape[0], dtype=bool)
-    from_rest[inverse[: rest.shape[0]]] = True
+    # A short run in a group is drawn by the group: a blob's box, or Hough with the group's
+    # other pixels (the stair steps of a steep wall make short runs across it).
     stays = np.ones(fitted.shape[0], dtype=bool)
-    stays[short[whole[groups[inverse[rest.shape[0] :]]].reshape(-1, small + 1).any(axis=1)]] = False
+    stays[short[(groups[inverse[rest.shape[0] :]] >= 0).reshape(-1, small + 1).any(axis=1)]] = False
     blob_labels = np.unique(groups[in_blob], return_inverse=True)[1].reshape(-1)
-    return (
-        pixels[grouped & ~in_blob & from_rest],
-        stays,
-        _blob_segments(pixels[in_blob], blob_labels, small),
-    )
+    return pixels[grouped & ~in_blob], stays, _blob_segments(pixels[in_blob], blob_labels)
 
 
 def _hough_pieces(pixels: IntArray, shape: tuple[int, ...], settings: DetectorSettings) -> Float64Array:
