@@ -368,7 +368,7 @@ CANNY_HOUGH = {
 
 def map_server_cells(pgm: Path) -> tuple[npt.NDArray[np.int8], float]:
     info = yaml.safe_load(pgm.with_suffix(".yaml").read_text())
-    image = cv2.imread(str(pgm), cv2.IMREAD_UNCHANGED)
+    image = np.asarray(cv2.imread(str(pgm), cv2.IMREAD_UNCHANGED), dtype=np.uint8)
     occupied = (255 - image.astype(np.float64)) / 255.0
     cells = np.full(image.shape, -1, dtype=np.int8)
     cells[occupied > info.get("occupied_thresh", 0.65)] = 100
