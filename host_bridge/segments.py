@@ -329,10 +329,10 @@ def _fit_runs(runs: IntArray, settings: DetectorSettings) -> Float64Array:
         return t_min, t_max, worst
 
     t_min, t_max, worst = extent(angle)
-    # A line rising less than a cell over its length is the axis: the slope of such a fit
+    # A line rising less than half a cell over its length is the axis: the slope of such a fit
     # comes from the two sides of a wall ending at different places (an L corner), not from
     # the wall.
-    level = np.abs(np.sin(angle)) * (t_max - t_min) < 1.0
+    level = np.abs(np.sin(angle)) * (t_max - t_min) < 0.5
     if level.any():
         angle = np.where(level, 0.0, angle)
         t_min, t_max, worst = extent(angle)
@@ -428,8 +428,10 @@ def _small_groups(
     ends = fitted[short]
     along = ends[:, None, :2] + steps[None, :, None] * (ends[:, None, 2:] - ends[:, None, :2])
     run_pixels = np.round(along.reshape(-1, 2)[:, ::-1]).astype(np.int64)
-    pixels, inverse = np.unique(np.concatenate([rest, run_pixels]), axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
+    both = np.concatenate([rest, run_pixels])
+    stride = int(both[:, 1].max(initial=0)) + 1
+    keys, inverse = np.unique(both[:, 0] * stride + both[:, 1], return_inverse=True)
+    pixels = np.stack([keys // stride, keys % stride], axis=1)
     groups = _pixel_groups(pixels)
     count = int(groups.max(initial=-1)) + 1
     grouped = groups >= 0
@@ -497,17 +499,32 @@ def _hough_pieces(pixels: IntArray, shape: tuple[int, ...], settings: DetectorSe
             window_rows, window_cols = np.nonzero(window)
             found.append(np.asarray(lines, dtype=np.float64).reshape(-1, 4) + np.array([x, y, x, y]))
             seen.append(np.stack([window_cols + x, window_rows + y], axis=1).astype(np.float64))
-    if not found:
-        return np.zeros((0, 4), dtype=np.float64)
-    # Each line is refitted to the pixels of its window: padded to one array, one call.
-    window_of = np.repeat(np.arange(len(found)), [len(f) for f in found])
-    most = max(len(p) for p in seen)
-    pixels_of = np.zeros((len(seen), most, 2))
-    valid = np.zeros((len(seen), most), dtype=bool)
-    for index, window_pixels in enumerate(seen):
+    # Each line is refitted to the pixels of its window, windows of similar pixel counts padded
+    # to one array per call, a few million (line, pixel) pairs at most.
+    refitted = [np.zeros((0, 4), dtype=np.float64)]
+    block: list[int] = []
+    for index in sorted(range(len(found)), key=lambda i: len(seen[i])):
+        block.append(index)
+        if sum(len(found[i]) for i in block) * len(seen[index]) > 2_000_000:
+            refitted.append(_refitted_windows([found[i] for i in block], [seen[i] for i in block], settings))
+            block = []
+    if block:
+        refitted.append(_refitted_windows([found[i] for i in block], [seen[i] for i in block], settings))
+    return np.concatenate(refitted)
+
+
+def _refitted_windows(
+    lines: list[Float64Array], pixels: list[Float64Array], settings: DetectorSettings
+) -> Float64Array:
+    """:func:`_refitted` for the lines of several windows, each window's pixels padded."""
+    window_of = np.repeat(np.arange(len(lines)), [len(f) for f in lines])
+    most = max(len(p) for p in pixels)
+    pixels_of = np.zeros((len(pixels), most, 2))
+    valid = np.zeros((len(pixels), most), dtype=bool)
+    for index, window_pixels in enumerate(pixels):
         pixels_of[index, : len(window_pixels)] = window_pixels
         valid[index, : len(window_pixels)] = True
-    return _refitted(np.concatenate(found), pixels_of[window_of], valid[window_of], settings.max_line_gap)
+    return _refitted(np.concatenate(lines), pixels_of[window_of], valid[window_of], settings.max_line_gap)
 
 
 def _refitted(
@@ -551,10 +568,14 @@ def _refitted(
 
 
 @dataclass(frozen=True, slots=True)
-class _FrameResult:
+class _FrameFindings:
+    """What the runs of a frame (the mask, or the mask turned) explain: segments fitted to them,
+    and the boundary pixels they leave."""
+
     segments: Float64Array
+    rest: IntArray  # (row, col)
     aligned: float  # length of the walls fitted to runs within AXIS_TOLERANCE_DEG of an axis
-    other: float  # length of the other fitted walls, and the pixels no run holds (specks out)
+    other: float  # length of the other fitted walls, and the pixels no run holds
 
 
 def _frame_segments(
@@ -565,24 +586,25 @@ def _frame_segments(
     frame: bytes,
     cache: TileCache,
     used: dict[bytes, TileFindings],
-) -> _FrameResult:
+) -> _FrameFindings:
     found = _frame_findings(
         mask, anchor=anchor, min_run=settings.min_run, frame=frame, cache=cache, used=used
     )
     fitted = np.concatenate(
         [_fit_runs(found.along_rows, settings), _fit_runs(found.along_cols, settings)[:, [1, 0, 3, 2]]]
     )
-    rest, stays, blobs = _small_groups(found.rest, fitted, 4 * settings.min_run)
-    fitted = fitted[stays]
     delta = fitted[:, 2:] - fitted[:, :2]
     length = np.hypot(delta[:, 0], delta[:, 1])
     direction = np.degrees(np.arctan2(delta[:, 1], delta[:, 0]))
     off_axis = np.abs(direction % 90.0 - 45.0) < 45.0 - AXIS_TOLERANCE_DEG
-    return _FrameResult(
-        np.concatenate([fitted, blobs, _hough_pieces(rest, mask.shape, settings)]),
-        float(length[~off_axis].sum()),
-        float(length[off_axis].sum()) + rest.shape[0],
-    )
+    aligned, other = float(length[~off_axis].sum()), float(length[off_axis].sum()) + found.rest.shape[0]
+    return _FrameFindings(fitted, found.rest, aligned, other)
+
+
+def _frame_pieces(found: _FrameFindings, shape: tuple[int, ...], settings: DetectorSettings) -> Float64Array:
+    """All pieces of the frame searched: the fitted runs, the small groups, Hough's lines."""
+    rest, stays, blobs = _small_groups(found.rest, found.segments, 4 * settings.min_run)
+    return np.concatenate([found.segments[stays], blobs, _hough_pieces(rest, shape, settings)])
 
 
 def dominant_angle_deg(mask: npt.NDArray[np.uint8]) -> float:
@@ -596,7 +618,13 @@ def dominant_angle_deg(mask: npt.NDArray[np.uint8]) -> float:
     """
     import cv2
 
-    blurred = cv2.GaussianBlur(mask.astype(np.float32), (9, 9), 0)
+    # Directions do not need every cell: a mask larger than about a megapixel is averaged down.
+    shrink = max(1, math.ceil(math.sqrt(mask.size / 1e6)))
+    image = mask.astype(np.float32)
+    if shrink > 1:
+        size = (mask.shape[1] // shrink, mask.shape[0] // shrink)
+        image = np.asarray(cv2.resize(image, size, interpolation=cv2.INTER_AREA), dtype=np.float32)
+    blurred = cv2.GaussianBlur(image, (9, 9), 0)
     dx = cv2.Sobel(blurred, cv2.CV_32F, 1, 0, ksize=3)
     dy = cv2.Sobel(blurred, cv2.CV_32F, 0, 1, ksize=3)
     jxx, jyy, jxy = (cv2.boxFilter(p, -1, (9, 9)) for p in (dx * dx, dy * dy, dx * dy))
@@ -661,20 +689,21 @@ def detect_segments(
     """
     cache = TileCache() if cache is None else cache
     used: dict[bytes, TileFindings] = {}
-    result = _frame_segments(mask, settings, anchor=anchor, frame=b"axes", cache=cache, used=used)
-    segments = result.segments
-    if result.other > result.aligned:
+    found = _frame_segments(mask, settings, anchor=anchor, frame=b"axes", cache=cache, used=used)
+    angle = 0.0
+    if found.other > found.aligned:
         angle = round(dominant_angle_deg(mask) / ANGLE_STEP_DEG) * ANGLE_STEP_DEG
-        if abs(angle) > AXIS_TOLERANCE_DEG:
-            turned, back = _turned(mask, angle)
-            pieces = _frame_segments(
-                turned, settings, anchor=(0, 0), frame=f"turned {angle}".encode(), cache=cache,
-                used=used,
-            ).segments
-            ends = pieces.reshape(-1, 2) @ back[:, :2].T + back[:, 2]
-            segments = ends.reshape(-1, 4)
+    if abs(angle) <= AXIS_TOLERANCE_DEG:
+        cache.tiles = used
+        return _frame_pieces(found, mask.shape, settings)
+    turned, back = _turned(mask, angle)
+    found = _frame_segments(
+        turned, settings, anchor=(0, 0), frame=f"turned {angle}".encode(), cache=cache, used=used
+    )
     cache.tiles = used
-    return segments
+    ends = _frame_pieces(found, turned.shape, settings).reshape(-1, 2) @ back[:, :2].T + back[:, 2]
+    pieces: Float64Array = ends.reshape(-1, 4)
+    return pieces
 
 
 def _canonical(segments: Float64Array) -> Float64Array:
