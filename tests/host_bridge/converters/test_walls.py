@@ -340,6 +340,39 @@ def test_tile_cache_searches_again_only_changed_tiles_and_matches_a_full_search(
     np.testing.assert_array_equal(cached, walls.wall_segments(as_grid(changed), options))
 
 
+def test_a_grown_map_keeps_the_tiles_inside_the_old_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    # SLAM grows a map by whole cells and moves its origin: tiles stay on the same map cells,
+    # so the tile that lay wholly inside the old map is not searched again.
+    from host_bridge import segments
+
+    searched: list[tuple[tuple[int, int], tuple[int, int]]] = []
+    search = segments._tile_findings
+
+    def counted(mask: Any, rows: tuple[int, int], cols: tuple[int, int], min_run: int) -> Any:
+        searched.append((rows, cols))
+        return search(mask, rows, cols, min_run)
+
+    monkeypatch.setattr(segments, "_tile_findings", counted)
+    options, cache = default_options(), segments.TileCache()
+    cells = rooms(1100)
+    before = walls.wall_segments(as_grid(cells), options, cache)
+    grown = np.full((1300, 1200), -1, dtype=np.int8)
+    grown[200:, 100:] = cells  # 200 rows below the old map, 100 columns left of it
+    message = grid_msg(grown, resolution=RES, origin=(-100 * RES, -200 * RES, 0.0))
+    grid = occupancy.grid_from_msg(message, make_ctx("/map"))
+    assert walls.tile_anchor(grid) == (-200, -100)
+    searched.clear()
+    after = walls.wall_segments(grid, options, cache)
+    # Searched again: the tiles along the old map's bottom and left edges, whose windows
+    # reached past them (now into unknown cells); not the middle one, nor those along the top
+    # and right edges, which did not move.
+    assert sorted(searched) == [
+        ((200, 712), (100, 612)), ((200, 712), (612, 1124)), ((200, 712), (1124, 1200)),
+        ((712, 1224), (100, 612)), ((1224, 1300), (100, 612)),
+    ]
+    np.testing.assert_allclose(after - np.array([100, 200, 100, 200]) * RES, before, atol=1e-9)
+
+
 def test_walls_cover_the_wall_cells_as_the_canny_hough_detector_did() -> None:
     # The benchmark's plan (noise, doors, 37-degree walls), its first 1000 x 1000 cells. The
     # Canny + tiled Hough detector this one replaced found 192 walls there, covering 97.18 % of
