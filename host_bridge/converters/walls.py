@@ -1,4 +1,4 @@
-"""Wall meshes from occupancy grids: grid -> image -> Canny + HoughLinesP -> merge -> boxes.
+"""Wall meshes from occupancy grids: wall cells -> axis runs + Hough on the rest -> merge -> boxes.
 
 The geometry is ``host_bridge/segments.py``; this module applies it to OccupancyGrid messages.
 
@@ -6,12 +6,23 @@ Each wall segment is extruded into a box (``wall_thickness`` x ``wall_height``) 
 out as ONE ``rr.Mesh3D`` at ``<grid entity>/walls``, in the grid's header frame with the grid's
 full origin pose applied, so the boxes stand on the occupied cells of the GridMap.
 
-Cost (measured on a busy 2-core machine): 1.3-2 s for a 4000x4000 floor plan (16 M cells, 3100
-walls), 2-3x one bare Canny + HoughLinesP call on the same image (``benchmarks/walls_4000.py``
-prints each step): Hough, run per window and edge orientation, about two thirds, the merge one
-third. Only the part of the grid around occupied cells is searched, so the unknown margin of a
-SLAM map costs nothing. A 400x400 part of that plan takes about 25 ms. That is too slow for the
-receive path, so this module offers
+Detection (:func:`~host_bridge.segments.detect_segments`): the walls of a building map are
+mostly axis-aligned, so wall cells bordering a non-wall cell are taken as runs along rows and
+columns (a few numpy passes per 512x512 tile), the runs of one wall clustered and fitted with
+one line; only the cells no run of ``hough_min_length`` holds go to HoughLinesP (diagonal
+walls), and small groups of them (pillars, bumps) become boxes. A map whose walls are mostly
+off the grid axes (a SLAM map whose first pose was turned) is searched turned into its
+dominant direction. Each tile's findings are cached per topic under a digest of the cells its
+search reads, with tiles fixed to the map's cells (:func:`tile_anchor`), so a map that grew or
+changed in a few places is searched again only there.
+
+Cost (``benchmarks/walls_4000.py``, a busy 2-core machine): 120-210 ms for a 4000x4000 floor
+plan (16 M cells, 3057 walls), 0.35-0.6x one bare Canny + HoughLinesP call on the same map
+(the detector before, Canny + HoughLinesP per window and edge direction, took 1.2-1.4 s);
+detection about half of it, the merge 20-30 ms, the mesh 10 ms, the digest 10 ms. One changed
+cell, with the topic's tile cache: 1 of 64 tiles searched again, 110-160 ms, the rest being
+the merge, mesh and digests of the whole map. A 400x400 part of the plan takes 7 ms; the plan
+turned 20 degrees about 0.9 s. Still too slow for the receive path, so this module offers
 :data:`GRID_WALLS` and :data:`UPDATE_WALLS` (the ``slow`` converters of the registry's
 OccupancyGrid and OccupancyGridUpdate rows) for the dispatcher to run in a latest-only worker
 thread after ``occupancy`` has converted the same message (an update's walls are built from the grid
@@ -25,15 +36,14 @@ defaults; lengths in metres): ``walls`` (default: on for topics whose last name 
 ``map``), ``wall_height``, ``wall_thickness`` (default one cell but at least 0.05),
 ``wall_color`` (RGB), ``occupied_threshold`` (cell value, map_server's 65),
 ``merge_distance`` (default 4.5 cells but at least 0.1), ``merge_angle_deg``, ``merge_gap``
-(bridges crossing walls and Hough dropouts, not doors), ``min_length``, ``join_reach`` (default
-4 cells but at least 0.15), ``hough_votes``, ``hough_min_length`` (default 4 cells),
-``hough_max_gap`` (default 2 cells), ``canny_low`` / ``canny_high`` (L2 gradient after a 3x3
-Gaussian blur).
-Canny finds both sides of a wall, so ``merge_distance`` must exceed the distance between the
-two edges of one wall (its thickness plus one cell; the default covers walls up to three cells
-thick) and stay below the centre-to-centre distance of neighbouring parallel walls. Parallel
-walls whose free gap is no wider than the walls themselves are ambiguous to an edge detector
-and may merge.
+(bridges crossing walls and missing cells, not doors; runs on one line are joined across
+such gaps before fitting), ``min_length``, ``join_reach`` (default 4 cells but at least 0.15),
+``hough_votes``, ``hough_min_length`` (the shortest axis run and Hough line, default 4 cells),
+``hough_max_gap`` (default 2 cells).
+The two sides of a wall make two runs, so ``merge_distance`` must exceed the distance between
+them (its thickness less one cell; the runs of a wall up to two cells thick are one cluster
+already) and stay below the centre-to-centre distance of neighbouring parallel walls; half
+of it is how far a run may lie from the line fitted through its cluster.
 """
 
 from __future__ import annotations
