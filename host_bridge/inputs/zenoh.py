@@ -205,7 +205,6 @@ class ZenohInput:
     def _route(self, raw: RawMessage | MessageRun) -> None:
         with self._lock:
             state = self._robots.setdefault(raw.robot, _Robot())
-            deliver = state.topics is not None
             latched = False
             if state.topics is None:
                 if len(state.pending) < MAX_PENDING_PER_ROBOT:
@@ -219,10 +218,10 @@ class ZenohInput:
                 if info is not None and info.msgtype == raw.msgtype:
                     raw = _defined(raw, info)
                     latched = info.latched
+                # Under the lock, as the catalog's waiting samples are queued: in their order.
+                self._put(raw, latched)
         if fetch:
             self._fetch_catalog(raw.robot)
-        if deliver:
-            self._put(raw, latched)
 
     def _put(self, item: InputItem, latched: bool = False) -> None:
         self.queues.put(item, latched)
@@ -255,6 +254,8 @@ class ZenohInput:
                 f"robot {robot} did not answer its catalog ({key}) within {CATALOG_TIMEOUT_S} s; "
                 "decoding its topics with the bundled ROS 2 Humble types"
             )
+        if error is not None:
+            self._put(InputProblem(robot, key, error))
         with self._lock:
             state = self._robots[robot]
             state.fetching = False
@@ -262,14 +263,14 @@ class ZenohInput:
             if catalog is not None:
                 known.update({t.topic: t for t in catalog.topics})
             state.topics = known
-            pending, state.pending = state.pending, []
-        if error is not None:
-            self._put(InputProblem(robot, key, error))
-        for waiting in pending:
-            info = known.get(waiting.topic)
-            if info is not None and info.msgtype == waiting.msgtype:
-                waiting = _defined(waiting, info)  # noqa: PLW2901
-            self._put(waiting, info is not None and info.latched)
+            # Queued under the lock: a sample arriving meanwhile sees the catalog only after
+            # them, and goes after them (else its sequence number came before older ones').
+            for waiting in state.pending:
+                info = known.get(waiting.topic)
+                if info is not None and info.msgtype == waiting.msgtype:
+                    waiting = _defined(waiting, info)  # noqa: PLW2901
+                self._put(waiting, info is not None and info.latched)
+            state.pending = []
 
     def close(self) -> None:
         self._closed.set()

@@ -146,7 +146,7 @@ def test_latched_and_reliable_survive_a_lossy_slow_link(tmp_path: Path, reliabil
     check_latched_once(rows)
     odom = [row for row in rows[f"/{ROBOT}/odom"] if not row["static"]]
     check_odometry(out, odom, traffic.odom())
-    assert summary_row(host_lines.text, "/odom")["gaps"] == 0
+    assert summary_row(host_lines.text, "/odom")["gaps"] == 0, host_lines.text + relay_lines.text
     assert set(scalars(rows, f"/_stats/{ROBOT}/odom/drops")) == {0.0}
 
     scans = rows[f"/{ROBOT}/scan"]
