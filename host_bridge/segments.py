@@ -620,11 +620,11 @@ def dominant_angle_deg(mask: npt.NDArray[np.uint8]) -> float:
 
     # Directions do not need every cell: a mask larger than about a megapixel is averaged down.
     shrink = max(1, math.ceil(math.sqrt(mask.size / 1e6)))
-    image = mask.astype(np.float32)
+    image = mask * np.uint8(255)
     if shrink > 1:
-        size = (mask.shape[1] // shrink, mask.shape[0] // shrink)
-        image = np.asarray(cv2.resize(image, size, interpolation=cv2.INTER_AREA), dtype=np.float32)
-    blurred = cv2.GaussianBlur(image, (9, 9), 0)
+        size = (max(mask.shape[1] // shrink, 1), max(mask.shape[0] // shrink, 1))
+        image = np.asarray(cv2.resize(image, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
+    blurred = cv2.GaussianBlur(image.astype(np.float32) / 255.0, (9, 9), 0)
     dx = cv2.Sobel(blurred, cv2.CV_32F, 1, 0, ksize=3)
     dy = cv2.Sobel(blurred, cv2.CV_32F, 0, 1, ksize=3)
     jxx, jyy, jxy = (cv2.boxFilter(p, -1, (9, 9)) for p in (dx * dx, dy * dy, dx * dy))
@@ -687,22 +687,27 @@ def detect_segments(
     ``cache`` keeps each tile's findings between calls (see :class:`TileCache`): a map that
     changed in a few places is searched again only where its tiles' windows changed.
     """
+    import cv2
+
     cache = TileCache() if cache is None else cache
     used: dict[bytes, TileFindings] = {}
     found = _frame_segments(mask, settings, anchor=anchor, frame=b"axes", cache=cache, used=used)
     angle = 0.0
+    # Turned, only the part holding walls (a SLAM map is mostly unknown margin).
+    x, y, width, height = cv2.boundingRect(mask)
+    walled = mask[y : y + height, x : x + width]
     if found.other > found.aligned:
-        angle = round(dominant_angle_deg(mask) / ANGLE_STEP_DEG) * ANGLE_STEP_DEG
+        angle = round(dominant_angle_deg(walled) / ANGLE_STEP_DEG) * ANGLE_STEP_DEG
     if abs(angle) <= AXIS_TOLERANCE_DEG:
         cache.tiles = used
         return _frame_pieces(found, mask.shape, settings)
-    turned, back = _turned(mask, angle)
+    turned, back = _turned(walled, angle)
     found = _frame_segments(
         turned, settings, anchor=(0, 0), frame=f"turned {angle}".encode(), cache=cache, used=used
     )
     cache.tiles = used
     ends = _rotated(_frame_pieces(found, turned.shape, settings).reshape(-1, 2), back[:, :2]) + back[:, 2]
-    pieces: Float64Array = ends.reshape(-1, 4)
+    pieces: Float64Array = ends.reshape(-1, 4) + np.array([x, y, x, y])
     return pieces
 
 

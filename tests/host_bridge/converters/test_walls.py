@@ -276,9 +276,14 @@ def turned_plan(angle_deg: float) -> tuple[npt.NDArray[np.int8], list[Float64Arr
     return grid, truth
 
 
-@pytest.mark.parametrize("turn_deg", [20.0, 37.0])
-def test_walls_of_a_turned_map_are_found_at_their_angle_and_length(turn_deg: float) -> None:
-    cells, truth = turned_plan(turn_deg)
+@pytest.mark.parametrize(("turn_deg", "margin"), [(20.0, 0), (37.0, 0), (20.0, 300)])
+def test_walls_of_a_turned_map_are_found_at_their_angle_and_length(turn_deg: float, margin: int) -> None:
+    plan, truth = turned_plan(turn_deg)
+    # With a margin: the plan at (margin, 2 * margin) of a larger unknown map (only the part
+    # holding walls is turned).
+    cells = np.full((plan.shape[0] + 2 * margin, plan.shape[1] + 3 * margin), -1, dtype=np.int8)
+    cells[margin : margin + plan.shape[0], 2 * margin : 2 * margin + plan.shape[1]] = plan
+    truth = [t + np.array([2, 1, 2, 1]) * margin for t in truth]
     found = cell_segments(cells)
     assert found.shape == (5, 4)
     for expected in truth:
