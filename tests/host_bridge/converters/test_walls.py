@@ -394,11 +394,11 @@ def test_walls_cover_the_wall_cells_as_the_canny_hough_detector_did() -> None:
     assert 0.9 * 192 <= found.shape[0] <= 1.1 * 192
 
 
-# Real maps: nav2's (ros-navigation/navigation2, Apache-2.0; nav2_bringup/maps/{depot,
-# tb3_sandbox,warehouse}.pgm/.yaml and nav2_system_tests/maps/map.pgm, the TurtleBot3 world,
-# with a map.yaml of resolution 0.05), read as map_server does (trinary). The Canny + tiled
+# Real maps: nav2's (tests/data/nav2_maps, its README says where from), read as map_server
+# does (trinary). The Canny + tiled
 # Hough detector this one replaced found these walls and covered these fractions of the wall
 # cells within a cell (measured on the same maps, same default options).
+NAV2_MAPS = Path(__file__).resolve().parents[2] / "data" / "nav2_maps"
 CANNY_HOUGH = {
     "depot": (164, 0.9568), "tb3_sandbox": (58, 0.9747), "warehouse": (178, 0.9534), "map": (464, 0.7024),
 }
@@ -415,10 +415,8 @@ def map_server_cells(pgm: Path) -> tuple[npt.NDArray[np.int8], float]:
 
 
 @pytest.mark.parametrize("name", sorted(CANNY_HOUGH))
-def test_walls_of_real_maps_cover_their_wall_cells_as_before(shared_data: Path, name: str) -> None:
-    pgm = shared_data / "nav2_maps" / f"{name}.pgm"
-    if not pgm.is_file():
-        pytest.skip(f"{pgm} not found: nav2's maps are not in the shared data (see the comment above)")
+def test_walls_of_real_maps_cover_their_wall_cells_as_before(name: str) -> None:
+    pgm = NAV2_MAPS / f"{name}.png"
     cells, resolution = map_server_cells(pgm)
     grid = occupancy.grid_from_msg(grid_msg(cells, resolution=resolution), make_ctx("/map"))
     options = walls.WallOptions.from_options(GridOptions(), resolution, "/map")
