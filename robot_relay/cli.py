@@ -16,6 +16,7 @@ import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NoReturn
 
 from robot_relay import app
 from robot_relay.config import RelayConfig, load_relay_config
@@ -125,5 +126,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
 
+def console_main() -> NoReturn:
+    """The ``swanky-relay`` command: :func:`main`, then out of the process without finalizing
+    Python. Zenoh's and ROS's own threads may still call into Python while it finalizes (a last
+    matching, liveliness or graph callback); CPython then ends such a thread by unwinding it,
+    which their Rust or C++ frames turn into an abort ("FATAL: exception not rethrown", exit -6:
+    seen under load when SIGTERM stopped a live relay). By then everything is closed."""
+    code = main()
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console_main()
