@@ -15,11 +15,14 @@ of, in turn:
 - with ``--bag-replay``, also ``swanky-relay --bag``: the command replaying a rosbag2 of the
   same payloads with ``--rate 0 --loop`` (rosbags' MCAP reader included), for reference.
 
-Every publisher uses the same key, priority ``data`` and congestion ``block`` (the relay's
-built-in policy for a reliable topic of this type). After a warm-up, messages received by the
-subscriber and the publisher's CPU time (user + system, from /proc) are taken over the same
-window. Printed per size: messages/s received and CPU microseconds per message of each, the
-ratio relay / bare messages/s, median of the rounds. Targets: ratio >= 0.9 at 1 MB; relay CPU
+Every publisher uses the same payload objects, key, encoding (``application/cdr`` with the type
+as schema), priority ``data`` and congestion ``block`` (the relay's built-in policy for a
+reliable topic of this type). Each round runs every publisher once, the order reversed every
+other round: on this shared machine the load drifts within a round, so a fixed order would
+favour one contender. After a warm-up, messages received by the subscriber and the publisher's
+CPU time (user + system, from /proc) are taken over the same window. Printed per size:
+messages/s received and CPU microseconds per message of each, the ratio relay / bare
+messages/s, median of the rounds. Targets: ratio >= 0.9 at 1 MB; relay CPU
 <= 20 us per message at 3 KB.
 
     .venv/bin/python benchmarks/relay_throughput.py [--rounds 3] [--seconds 3] [--warmup 1] [--bag-replay]
@@ -50,7 +53,7 @@ from relay_cpu import cpu_seconds  # noqa: E402  (beside this script)
 from robot_relay.app import RelayOptions, relay_source  # noqa: E402
 from robot_relay.session import ZenohOptions, open_session  # noqa: E402
 from robot_relay.sources.base import Outlet  # noqa: E402
-from robot_relay.wire import Catalog, RawMessage, TopicInfo, data_key  # noqa: E402
+from robot_relay.wire import Catalog, RawMessage, TopicInfo, cdr_encoding, data_key  # noqa: E402
 from tests.integration.procs import free_port, listening, open_loopback  # noqa: E402
 
 # python -m benchmarks gives each script this many seconds at most.
@@ -97,7 +100,8 @@ def bare_publisher(endpoint: str, size: int) -> None:
     messages = payloads(size)
     session = open_session(loopback_options(endpoint))
     publisher = session.declare_publisher(
-        KEY, congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA
+        KEY, encoding=zenoh.Encoding(cdr_encoding(MSGTYPE)),
+        congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA,
     )
     for payload in itertools.cycle(messages):
         publisher.put(payload)
@@ -274,8 +278,9 @@ def main() -> int:
             size = SIZES[label]
             bag = write_bag(Path(tmp) / f"payloads-{size}", size) if args.bag_replay else None
             runs: dict[str, list[Window]] = {}
-            for _ in range(args.rounds):
-                for name, make_command in contenders(size, bag).items():
+            for round_index in range(args.rounds):
+                order = list(contenders(size, bag).items())
+                for name, make_command in order[::-1] if round_index % 2 else order:
                     port = free_port()
                     window = measure(make_command(endpoint(port)), port, args.warmup, args.seconds)
                     runs.setdefault(name, []).append(window)
