@@ -30,6 +30,7 @@ from zenoh import ext
 
 from robot_relay.errors import ConfigError, RelayError
 from robot_relay.policy import Policy, PolicyTable, RateLimiter
+from robot_relay.session import shared_memory_pool
 from robot_relay.stats import RelayStatsPublisher
 from robot_relay.wire import (
     BUNDLE_ENTRY_SIZE,
@@ -113,6 +114,8 @@ class _TopicPublisher:
             RateLimiter(policy.max_rate) if policy.max_rate else None
         )
         self._listener: Any = None
+        # Not for latched topics: their cached samples would hold the pool's buffers.
+        self._shared_memory = None if info.latched else shared_memory_pool(session)
         options: dict[str, Any] = {
             "encoding": zenoh.Encoding(cdr_encoding(info.msgtype)),
             "priority": getattr(zenoh.Priority, policy.priority.upper()),
@@ -189,7 +192,9 @@ class _TopicPublisher:
             self.publisher.put(payload, attachment=attachment.pack())
         else:
             source_info = zenoh.SourceInfo(self.publisher.id, self.sequence)
-            self.publisher.put(payload, attachment=attachment.pack(), source_info=source_info)
+            shared = None if self._shared_memory is None else self._shared_memory.copy(payload)
+            self.publisher.put(payload if shared is None else shared,
+                               attachment=attachment.pack(), source_info=source_info)
         self.sequence = (self.sequence + 1) & 0xFFFFFFFF
         self._on_sent(1, len(payload))
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from robot_relay.session import close_session
 from tests import reliability as reliability_table
 from tests.integration.procs import free_port, open_loopback
 
@@ -28,8 +29,8 @@ def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
     host = open_loopback("-l", endpoint)
     robot = open_loopback("-e", endpoint)
     yield host, robot
-    robot.close()
-    host.close()
+    close_session(robot)  # also frees its shared-memory pool
+    close_session(host)
 
 
 @pytest.fixture
