@@ -186,8 +186,15 @@ class SharedMemoryPool:
     its own and zenoh then copies that into its pool: two copies of every image, the relay's
     main cost at 1 MB (70 % of its CPU in ``memmove``, perf). Written into a pool buffer here,
     it is one, and Zenoh sends the buffer as it is: a reference to a peer on this machine, its
-    bytes to any other (what ``bytes`` would cost). Measured with
-    ``benchmarks/relay_throughput.py`` (1 MB, loopback): relay 231 -> 151 us CPU per message.
+    bytes to any other (what ``bytes`` would cost). Buffers the readers released are reclaimed
+    before each allocation, so recently written ones, still in the CPU cache, are written again:
+    reclaiming only once the pool is full (zenoh's own ``GarbageCollect`` policy) cycles through
+    all of it and cost a remote host's payloads 19-38 % more user CPU. Measured with 1 MB
+    payloads on loopback, 6 interleaved rounds (the processes of
+    ``benchmarks/relay_throughput.py``): with a shared-memory subscriber the relay takes 104 us
+    of CPU per message, a bare publisher of ``bytes`` 169 (the relay without the pool as much
+    as the bare one, within this machine's noise); with a subscriber without shared memory, as
+    a remote host is, 741 with the pool and 740 without.
 
     The pool is made on the first large payload, as large as Zenoh's own
     (``transport/shared_memory/transport_optimization/pool_size``, 16 MiB by default); while it
@@ -199,7 +206,6 @@ class SharedMemoryPool:
         self._size = size
         self._lock = threading.Lock()
         self._provider: Any = None
-        self._policy: Any = None
         self._unavailable = False
 
     def copy(self, payload: bytes) -> Any | None:
@@ -207,8 +213,9 @@ class SharedMemoryPool:
         None: below :data:`LARGE_PAYLOAD_BYTES`, the pool full or shared memory unavailable."""
         if len(payload) < LARGE_PAYLOAD_BYTES or (self._provider is None and not self._open()):
             return None
+        self._provider.garbage_collect()
         try:
-            buffer = self._provider.alloc(len(payload), self._policy)
+            buffer = self._provider.alloc(len(payload))
         except zenoh.ZError:  # full: the readers still hold every buffer large enough
             return None
         buffer[:] = payload
@@ -219,8 +226,6 @@ class SharedMemoryPool:
             if self._provider is None and not self._unavailable:
                 try:
                     self._provider = zenoh.shm.ShmProvider.default_backend(self._size)
-                    # Buffers the readers released are reclaimed; never waits for one.
-                    self._policy = zenoh.shm.GarbageCollect(zenoh.shm.JustAlloc())
                 except (zenoh.ZError, AttributeError) as err:  # no /dev/shm, a zenoh without SHM
                     self._unavailable = True
                     log.info("large payloads go without shared memory: %s", err)
