@@ -21,7 +21,10 @@ cloud of ``converters.py``, Imu, TF and the image of ``bag_conversion.py``) is r
 converted: the relay's receive clock (stamped when it publishes the message) to the host's wall
 clock when the dispatcher has converted the message's run and handed it to the sink (the runs
 of a delivered batch are dispatched one topic at a time, as the dispatcher itself does, so each
-message's time is its own run's). Same machine, same clock. Printed per topic: p50 and p99,
+message's time is its own run's; a bundle's messages, a MessageRun, each by its own receive
+time). The robot's heavy topics (image, cloud) are converted on a thread of their own
+(inputs/queues.py), so the small topics' figures do not include waiting for them. Same machine,
+same clock. Printed per topic: p50 and p99,
 small topics pooled (targets p50 <= 2 ms, p99 <= 10 ms), and for comparison publish -> host
 pipeline entry (what ``/_stats/.../latency_ms`` shows: before decoding, queue wait included),
 with the heavy messages the host replaced by newer ones while behind (queues.py).

@@ -4,6 +4,7 @@ per robot."""
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -14,7 +15,12 @@ import numpy as np
 from host_bridge.destinations import SinkOptions
 from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun, RobotEvent
-from host_bridge.inputs.queues import HeavyTypes, HostBehindError, RobotQueues
+from host_bridge.inputs.queues import (
+    GIL_SWITCH_INTERVAL_S,
+    HeavyTypes,
+    HostBehindError,
+    RobotQueues,
+)
 from host_bridge.sink import RerunSink
 from host_bridge.stats import StatsTracker, topic_stats_items
 from robot_relay.wire import RawMessage
@@ -414,3 +420,12 @@ def test_a_heavy_run_is_replaced_as_a_whole_counting_its_messages() -> None:
     assert queues.drop_summary() == (
         "[a] /camera: 4 dropped (4 replaced by a newer one while the host was behind)"
     )
+
+
+def test_serving_live_robots_shortens_the_gil_switch_interval() -> None:
+    queues = RobotQueues()
+    queues.serve(Received().take)
+    queues.close(timeout=5)
+    # A small message's thread waits at most this long for a heavy conversion's thread (and the
+    # Zenoh callbacks) to hand over the GIL: Python's default is 5 ms.
+    assert sys.getswitchinterval() <= GIL_SWITCH_INTERVAL_S == 0.0005
