@@ -31,7 +31,7 @@ from robot_relay.wire import (
     TopicInfo,
     data_key,
 )
-from tests.host_bridge.inputs.received import collect
+from tests.host_bridge.inputs.received import Received
 from tests.integration.procs import command, free_port, running
 from tests.robot_relay.test_ros2_source import FakeNode, latched, make_source, sensor
 from tests.rrd import entity_rows
@@ -175,7 +175,12 @@ def test_compressed_payloads_reach_the_host_byte_for_byte(
         sent.append(RawMessage("tb3", "/noise", "std_msgs/msg/String", noise))
         for raw in sent:
             relay.publish(raw)
-        items = collect(source, len(sent))
+        received = Received()
+        source.start(received.take)
+        # Every message, whatever else comes (the relay joining) and in whichever order the
+        # robot's two threads (small and heavy topics) hand them over.
+        items = received.wait_for(
+            lambda items: sum(isinstance(i, RawMessage) for i in items) >= len(sent))
     finally:
         source.close()
         raw_view.undeclare()
