@@ -18,9 +18,11 @@ Order: each topic's messages are handed over in order, on one thread (a topic's 
 its thread). Between a heavy topic and a small one there is no order, as there is none between
 two robots; the dispatcher keeps what a robot's threads share consistent (frames, the model).
 
-Items are counted in messages: a :class:`~host_bridge.inputs.base.MessageRun` (a bundle of one
-topic's messages from the wire) counts ``len(run)`` against the bound, and in the drops when it
-is dropped or replaced; a heavy topic's run is replaced as a whole, like one heavy message.
+A robot's queue is full at :data:`MAX_PER_ROBOT` messages, a
+:class:`~host_bridge.inputs.base.MessageRun` (a bundle of one topic's messages from the wire)
+counting ``len(run)``, or at :data:`MAX_ITEMS_PER_ROBOT` items (records or runs); a dropped or
+replaced run counts ``len(run)`` drops, and a heavy topic's run is replaced as a whole, like
+one heavy message.
 
 Every message dropped here is counted per topic (:attr:`RobotQueues.dropped`, the drop summary
 the host prints when it stops) and shows in ``/_stats/<robot><topic>/host_drops`` (stats.py reads
@@ -53,8 +55,15 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("swanky.host")
 
-MAX_PER_ROBOT = 5000
-"""Messages waiting per robot, small and heavy topics together, beyond which the oldest go."""
+MAX_PER_ROBOT = 100_000
+"""Messages waiting per robot, small and heavy topics together, beyond which the oldest go (a
+MessageRun counts its messages): what a full-speed replay's bundles pile up in a second here
+(benchmarks/live_capacity.py dropped 30-48k of its 94k messages at 5,000); tens of MB of small
+messages."""
+MAX_ITEMS_PER_ROBOT = 5000
+"""Items (records or runs) waiting per robot: each costs at least one conversion call, about a
+millisecond for a small message, so a robot sending one message per sample lags at most a few
+seconds before its oldest go."""
 # A worker takes everything waiting, up to this many messages, at once: what arrived while it
 # converted one batch is the next, so a loaded host converts runs (send_columns) that grow with
 # the load, and an idle one converts a message as soon as it comes. A fixed 5 ms wait for more
@@ -171,6 +180,10 @@ class _Robot:
     def messages(self) -> int:
         return self.small.messages + self.heavy.messages
 
+    @property
+    def items(self) -> int:
+        return len(self.small.items) + len(self.heavy.items)
+
 
 def _summed(counts: Iterable[Mapping[str, int]]) -> dict[str, int]:
     total: dict[str, int] = {}
@@ -195,8 +208,15 @@ class RobotQueues:
     """Bounded per-robot queues, two threads per robot: heavy topics latest-only on their own,
     full queues drop their oldest non-latched message; each drop counted."""
 
-    def __init__(self, max_per_robot: int = MAX_PER_ROBOT, *, heavy: Heavy | None = None) -> None:
+    def __init__(
+        self,
+        max_per_robot: int = MAX_PER_ROBOT,
+        *,
+        max_items_per_robot: int = MAX_ITEMS_PER_ROBOT,
+        heavy: Heavy | None = None,
+    ) -> None:
         self.max_per_robot = max_per_robot
+        self.max_items_per_robot = max_items_per_robot
         self.heavy = heavy if heavy is not None else HeavyTypes()
         self.superseded: dict[tuple[str, str], int] = {}
         """Of those, the heavy ones a newer message of their topic replaced."""
@@ -223,8 +243,7 @@ class RobotQueues:
             lane = robot.heavy if heavy else robot.small
             if heavy and not latched and lane.replaceable.get(topic):
                 self._supersede(name, lane, topic)
-            if (robot.messages + size > self.max_per_robot and not self._make_room(name, robot, size)
-                    and not latched):
+            if not self._fits(robot, size) and not self._make_room(name, robot, size) and not latched:
                 self._count_drop(name, lane, topic, size)
             else:
                 robot.arrivals += 1
@@ -244,10 +263,16 @@ class RobotQueues:
                 kept.append(entry)
         lane.items = kept
 
+    def _fits(self, robot: _Robot, size: int) -> bool:
+        """Whether one more item of ``size`` messages fits in ``robot``'s queue."""
+        return (robot.messages + size <= self.max_per_robot
+                and robot.items < self.max_items_per_robot)
+
     def _make_room(self, name: str, robot: _Robot, size: int) -> bool:
-        """Drop the oldest non-latched messages of a full queue until ``size`` more fit; False
-        if they do not (all that waits is latched), unless the queue is empty."""
-        while robot.messages and robot.messages + size > self.max_per_robot:
+        """Drop the oldest non-latched messages of a full queue until one more item of ``size``
+        messages fits; False if it does not (all that waits is latched), unless the queue is
+        empty."""
+        while robot.items and not self._fits(robot, size):
             found = [(lane, index) for lane in robot.lanes
                      if (index := lane.oldest_droppable()) is not None]
             if not found:

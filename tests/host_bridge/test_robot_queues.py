@@ -429,3 +429,15 @@ def test_serving_live_robots_shortens_the_gil_switch_interval() -> None:
     # A small message's thread waits at most this long for a heavy conversion's thread (and the
     # Zenoh callbacks) to hand over the GIL: Python's default is 5 ms.
     assert sys.getswitchinterval() <= GIL_SWITCH_INTERVAL_S == 0.0005
+
+
+def test_the_item_bound_drops_the_oldest_item_whole_however_few_messages_wait() -> None:
+    # Each item costs a conversion call: a robot sending one message per sample lags at most
+    # max_items_per_robot calls; bundles are bounded by their messages (max_per_robot).
+    queues = RobotQueues(max_per_robot=1000, max_items_per_robot=3)
+    queues.put(run_of("a", "/imu", IMU, [0, 1]))
+    queues.put(typed("a", "/imu", IMU, 2))
+    queues.put(run_of("a", "/imu", IMU, [3, 4, 5]))
+    queues.put(typed("a", "/imu", IMU, 6))  # a fourth item: the oldest, a run of 2, goes
+    assert delivered(queues, 5) == {"robot-a": [("/imu", n) for n in range(2, 7)]}
+    assert queues.dropped == {("a", "/imu"): 2}
