@@ -53,14 +53,17 @@ class Row:
     the topics it accepts, tried before the type's other row (std_msgs/String on
     /robot_description is a robot model, elsewhere text). ``heavy``: big messages of which only
     the newest matters (a frame, a cloud, a whole map): the host may convert them latest-only
-    when it falls behind. ``slow``: a second converter too slow for the receive path (wall
-    meshes of a map), run after ``spec`` in a worker that keeps only the newest message.
+    when it falls behind. ``patch``: messages that change a heavy one in place (a grid's
+    updates): converted in order with the heavy topics, never replaced. ``slow``: a second
+    converter too slow for the receive path (wall meshes of a map), run after ``spec`` in a
+    worker that keeps only the newest message.
     """
 
     msgtype: str
     spec: ConverterSpec
     view: View
     heavy: bool = False
+    patch: bool = False
     slow: ConverterSpec | None = None
     topics: Callable[[str], bool] | None = None
 
@@ -173,10 +176,10 @@ def default_registry() -> Registry:
         # Maps: a grid is drawn at once, its walls come from the slow worker.
         Row("nav_msgs/msg/OccupancyGrid", occupancy.GRID, View.SPATIAL, heavy=True,
             slow=walls.GRID_WALLS),
-        Row("map_msgs/msg/OccupancyGridUpdate", occupancy.GRID_UPDATE, View.SPATIAL,
+        Row("map_msgs/msg/OccupancyGridUpdate", occupancy.GRID_UPDATE, View.SPATIAL, patch=True,
             slow=walls.UPDATE_WALLS),
         Row("nav2_msgs/msg/Costmap", occupancy.COSTMAP, View.SPATIAL, heavy=True),
-        Row("nav2_msgs/msg/CostmapUpdate", occupancy.COSTMAP_UPDATE, View.SPATIAL),
+        Row("nav2_msgs/msg/CostmapUpdate", occupancy.COSTMAP_UPDATE, View.SPATIAL, patch=True),
         Row("nav_msgs/msg/GridCells", nav.GRID_CELLS, View.SPATIAL),
         Row("nav_msgs/msg/Path", nav.PATH, View.SPATIAL),
         Row("geometry_msgs/msg/PoseStamped", geometry.POSE_STAMPED, View.SPATIAL),

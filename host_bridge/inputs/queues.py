@@ -7,12 +7,16 @@ messages (``/tf_static``, ``/robot_description``, maps) are never the ones dropp
 of them is all a viewer will ever get.
 
 Heavy topics (the type table's ``heavy`` rows: images, point clouds, maps) are converted on a
-thread of their own per robot, latest-only: while that thread converts, a heavy topic keeps only
-its newest waiting message (or run), and a newer one replaces it. The small topics (IMU, TF,
-scans) never wait behind a heavy conversion: in the issue's mixed load a 300k-point cloud took
-its robot's one worker for 5-10 ms (more on a loaded host), and every scan, IMU and TF message
-that came meanwhile waited for it (``benchmarks/live_capacity.py``). A robot's small topics are
-dropped only when its whole queue is full.
+thread of their own per robot, with the patches of such messages (``patch`` rows: grid updates,
+which must follow their grid), and go latest-only once that thread is behind: with more than
+:data:`HEAVY_BACKLOG` items waiting there, a heavy topic keeps only its newest message (or run),
+and a newer one replaces it. (Latest-only as soon as one waits lost frames to every short stall
+of a loaded host, which a user asking for every frame, ``congestion: block``, does not expect.)
+The small topics (IMU, TF, scans) never wait behind a heavy conversion: in the issue's mixed
+load a 300k-point cloud took its robot's one worker for 5-10 ms (more on a loaded host), and
+every scan, IMU and TF message that came meanwhile waited for it
+(``benchmarks/live_capacity.py``). A robot's small topics are dropped only when its whole queue
+is full.
 
 Order: each topic's messages are handed over in order, on one thread (a topic's type decides
 its thread). Between a heavy topic and a small one there is no order, as there is none between
@@ -75,6 +79,9 @@ MAX_BATCH = 1024
 # each other all the time: at 5 ms, a small message waited that long behind a heavy conversion
 # running in Python on the robot's other thread.
 GIL_SWITCH_INTERVAL_S = 0.0005
+HEAVY_BACKLOG = 32
+"""Items waiting on a robot's heavy thread beyond which it is behind and heavy topics go
+latest-only: more than arrive during a short stall (a second of 15 Hz images and 5 Hz clouds)."""
 
 ItemDeliver = Callable[[Sequence[InputItem]], None]
 """Where the workers put each robot's batches: live records and the MessageRuns of bundles (any
@@ -89,23 +96,25 @@ class HostBehindError(HostError):
 
 
 class HeavyTypes:
-    """Whether a message (or run) is of a heavy type (its type table row says ``heavy``),
-    remembered per type and topic; the table is built on first use unless given."""
+    """Whether a message (or run) is of a heavy type (its type table row says ``heavy``; with
+    ``flag="patch"``, whether it patches a heavy one), remembered per type and topic; the table
+    is built on first use unless given."""
 
-    def __init__(self, registry: Registry | None = None) -> None:
+    def __init__(self, registry: Registry | None = None, flag: str = "heavy") -> None:
         self._registry = registry
+        self._flag = flag
         self._known: dict[tuple[str, str], bool] = {}
 
     def __call__(self, raw: RawMessage | MessageRun) -> bool:
         key = (raw.msgtype, raw.topic)
-        heavy = self._known.get(key)
-        if heavy is None:
+        found = self._known.get(key)
+        if found is None:
             if self._registry is None:
                 from host_bridge.registry import default_registry
 
                 self._registry = default_registry()
-            heavy = self._known[key] = self._registry.row(raw.msgtype, raw.topic).heavy
-        return heavy
+            found = self._known[key] = bool(getattr(self._registry.row(raw.msgtype, raw.topic), self._flag))
+        return found
 
 
 def _topic(item: InputItem) -> str:
@@ -121,6 +130,8 @@ class _Entry:
     """Messages it holds: a MessageRun's length, else 1."""
     order: int
     """When it came among its robot's items: the oldest is dropped first."""
+    replaceable: bool = False
+    """A non-latched heavy message (or run), which a newer one of its topic may replace."""
 
 
 class _Lane:
@@ -146,13 +157,13 @@ class _Lane:
     def append(self, entry: _Entry) -> None:
         self.items.append(entry)
         self.messages += entry.size
-        if self.heavy and not entry.latched:
+        if entry.replaceable:
             self.replaceable[entry.topic] = self.replaceable.get(entry.topic, 0) + 1
 
     def forget(self, entry: _Entry) -> None:
         """``entry`` has left the queue (taken by the worker or dropped)."""
         self.messages -= entry.size
-        if self.heavy and not entry.latched:
+        if entry.replaceable:
             self.replaceable[entry.topic] -= 1
 
     def oldest_droppable(self) -> int | None:
@@ -214,10 +225,14 @@ class RobotQueues:
         *,
         max_items_per_robot: int = MAX_ITEMS_PER_ROBOT,
         heavy: Heavy | None = None,
+        patch: Heavy | None = None,
+        heavy_backlog: int = HEAVY_BACKLOG,
     ) -> None:
         self.max_per_robot = max_per_robot
         self.max_items_per_robot = max_items_per_robot
         self.heavy = heavy if heavy is not None else HeavyTypes()
+        self.patch = patch if patch is not None else HeavyTypes(flag="patch")
+        self.heavy_backlog = heavy_backlog
         self.superseded: dict[tuple[str, str], int] = {}
         """Of those, the heavy ones a newer message of their topic replaced."""
         # Data, problems and robots joining or leaving: what --until-idle waits on, so a robot
@@ -232,7 +247,10 @@ class RobotQueues:
     def put(self, item: InputItem, latched: bool = False) -> None:
         name, topic = item.robot, _topic(item)
         size = len(item) if isinstance(item, MessageRun) else 1
-        heavy = isinstance(item, RawMessage | MessageRun) and self.heavy(item)
+        message = item if isinstance(item, RawMessage | MessageRun) else None
+        heavy = message is not None and self.heavy(message)
+        # Patches of a heavy message (grid updates) go in order with it, and are never replaced.
+        heavy_lane = heavy or (message is not None and self.patch(message))
         with self._lock:
             robot = self._robots.get(name)
             if robot is None:
@@ -240,14 +258,16 @@ class RobotQueues:
                     _Lane(self._lock, f"robot-{name}", heavy=False),
                     _Lane(self._lock, f"robot-{name}-heavy", heavy=True),
                 )
-            lane = robot.heavy if heavy else robot.small
-            if heavy and not latched and lane.replaceable.get(topic):
+            lane = robot.heavy if heavy_lane else robot.small
+            if (heavy and not latched and len(lane.items) > self.heavy_backlog
+                    and lane.replaceable.get(topic)):
                 self._supersede(name, lane, topic)
             if not self._fits(robot, size) and not self._make_room(name, robot, size) and not latched:
                 self._count_drop(name, lane, topic, size)
             else:
                 robot.arrivals += 1
-                lane.append(_Entry(item, topic, latched, size, robot.arrivals))
+                lane.append(_Entry(item, topic, latched, size, robot.arrivals,
+                                   replaceable=heavy and not latched))
             self.last_activity = time.monotonic()
             self._start_worker(robot, lane)
             lane.ready.notify()
@@ -256,7 +276,7 @@ class RobotQueues:
         """Drop the waiting non-latched messages of heavy ``topic``: a newer one has come."""
         kept: deque[_Entry] = deque()
         for entry in lane.items:
-            if not entry.latched and entry.topic == topic:
+            if entry.replaceable and entry.topic == topic:
                 lane.forget(entry)
                 self._count_drop(robot, lane, topic, entry.size, superseded=True)
             else:

@@ -128,6 +128,7 @@ def test_robot_events_count_as_activity() -> None:
 
 IMAGE, CLOUD, IMU = "sensor_msgs/msg/Image", "sensor_msgs/msg/PointCloud2", "sensor_msgs/msg/Imu"
 GRID, TF = "nav_msgs/msg/OccupancyGrid", "tf2_msgs/msg/TFMessage"
+GRID_UPDATE = "map_msgs/msg/OccupancyGridUpdate"
 
 
 def typed(robot: str, topic: str, msgtype: str, n: int) -> RawMessage:
@@ -207,7 +208,8 @@ def test_heavy_types_come_from_the_type_table() -> None:
 
 
 def test_heavy_topics_go_to_a_thread_of_their_own_keeping_only_their_newest() -> None:
-    queues = RobotQueues()  # heavy: the type table's rows (Image, PointCloud2)
+    # Heavy: the type table's rows (Image, PointCloud2); behind as soon as one waits.
+    queues = RobotQueues(heavy_backlog=0)
     queues.put(typed("a", "/camera", IMAGE, 100))
     for n in range(3):
         queues.put(typed("a", "/imu", IMU, n))
@@ -231,8 +233,24 @@ def test_heavy_topics_go_to_a_thread_of_their_own_keeping_only_their_newest() ->
     )
 
 
+def test_heavy_topics_go_latest_only_once_behind_and_grid_patches_follow_their_grid() -> None:
+    queues = RobotQueues(heavy_backlog=3)
+    for n in range(3):  # a short stall: every frame is kept
+        queues.put(typed("a", "/camera", IMAGE, n))
+    queues.put(typed("a", "/map", GRID, 10))
+    queues.put(typed("a", "/map_updates", GRID_UPDATE, 11))
+    queues.put(typed("a", "/camera", IMAGE, 3))  # 5 wait: behind, replaces 0-2
+    queues.put(typed("a", "/map_updates", GRID_UPDATE, 12))  # a patch: never replaced
+    queues.put(typed("a", "/map", GRID, 13))  # 4 wait: behind, replaces 10, not the patches
+    queues.put(typed("a", "/map_updates", GRID_UPDATE, 14))
+    assert delivered(queues, 5) == {"robot-a-heavy": [
+        ("/map_updates", 11), ("/camera", 3), ("/map_updates", 12), ("/map", 13),
+        ("/map_updates", 14)]}
+    assert queues.dropped == {("a", "/camera"): 3, ("a", "/map"): 1}
+
+
 def test_small_topics_never_wait_for_a_heavy_conversion() -> None:
-    queues = RobotQueues()
+    queues = RobotQueues(heavy_backlog=0)
     converting, release = threading.Event(), threading.Event()
     small: list[int] = []
     heavy: list[int] = []
@@ -267,7 +285,7 @@ def test_small_topics_never_wait_for_a_heavy_conversion() -> None:
 
 
 def test_latched_heavy_messages_are_never_replaced() -> None:
-    queues = RobotQueues()
+    queues = RobotQueues(heavy_backlog=0)
     for n in range(3):
         queues.put(typed("a", "/map", GRID, n), latched=True)
     queues.put(typed("a", "/camera", IMAGE, 10))
@@ -279,7 +297,7 @@ def test_latched_heavy_messages_are_never_replaced() -> None:
 
 
 def test_a_full_queue_and_replacement_count_each_drop_once() -> None:
-    queues = RobotQueues(max_per_robot=4)
+    queues = RobotQueues(max_per_robot=4, heavy_backlog=0)
     queues.put(typed("a", "/camera", IMAGE, 0))
     for n in range(1, 5):  # the fourth small one finds the queue full: the image, oldest, goes
         queues.put(typed("a", "/imu", IMU, n))
@@ -317,7 +335,7 @@ def test_a_heavy_message_dropped_for_a_small_one_is_warned_about_on_its_own_thre
 
 
 def test_messages_dropped_here_are_host_drops_in_stats_not_link_drops() -> None:
-    queues = RobotQueues()
+    queues = RobotQueues(heavy_backlog=0)
     tracker = StatsTracker(host_dropped=queues.dropped_when_taken)
     tracked = threading.Lock()  # as the /_stats tap's: the robot's two threads share it
     first_taken, release = threading.Event(), threading.Event()
@@ -408,7 +426,7 @@ def test_a_run_that_does_not_fit_beside_latched_messages_is_dropped_whole() -> N
 
 
 def test_a_heavy_run_is_replaced_as_a_whole_counting_its_messages() -> None:
-    queues = RobotQueues()
+    queues = RobotQueues(heavy_backlog=0)
     queues.put(run_of("a", "/camera", IMAGE, [0, 1, 2]))
     queues.put(typed("a", "/camera", IMAGE, 3))  # replaces the run: 3 dropped
     queues.put(run_of("a", "/camera", IMAGE, [4, 5]))  # replaces 3: 1 more
