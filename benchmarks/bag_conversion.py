@@ -46,6 +46,7 @@ import numpy as np
 import numpy.typing as npt
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
+from startup import ENV  # beside this script
 
 # python -m benchmarks gives each script this many seconds at most.
 BUDGET_SECONDS = 300
@@ -358,7 +359,9 @@ def compare_outputs(theirs_path: Path, ours_path: Path) -> None:
 
 def timed(command: list[str]) -> float:
     started = time.perf_counter()
-    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    # Both commands are Python entry points of the venv: run them as on a user's install,
+    # without the [ros-test] wheels' bootstrap re-executing the interpreter (startup.py).
+    done = subprocess.run(command, capture_output=True, text=True, check=False, env=ENV)
     elapsed = time.perf_counter() - started
     if done.returncode != 0:
         msg = f"{' '.join(command)} exited {done.returncode}:\n{done.stderr[-2000:]}"
