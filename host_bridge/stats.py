@@ -38,9 +38,10 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
+import numpy.typing as npt
 import rerun as rr
 
 from host_bridge.columns import PackedPayloads
@@ -125,6 +126,19 @@ class HostDrops:
     count: int
 
 
+Time = TypeVar("Time", int, "npt.NDArray[np.int64]")
+
+
+def _arrival(receive_ns: Time | None, log_ns: Time | None) -> tuple[Time, str] | None:
+    """When a message (or each of a run's) counts, and on which timeline: the relay's receive
+    time live, the log time of a bag; None without either."""
+    if receive_ns is not None:
+        return receive_ns, TIMELINE_RECEIVE
+    if log_ns is not None:
+        return log_ns, TIMELINE_LOG
+    return None
+
+
 class StatsTracker:
     """Per-robot one-second windows over RawMessages; pure (times come in, numbers go out)."""
 
@@ -155,13 +169,10 @@ class StatsTracker:
 
     def observe(self, raw: RawMessage, host_ns: int) -> list[TopicStats]:
         """Count ``raw``, handed to the host pipeline at ``host_ns``; return the periods it closed."""
-        if raw.receive_ns is not None:
-            at, timeline = raw.receive_ns, TIMELINE_RECEIVE
-        elif raw.log_ns is not None:
-            at, timeline = raw.log_ns, TIMELINE_LOG
-        else:
+        arrival = _arrival(raw.receive_ns, raw.log_ns)
+        if arrival is None:
             return []
-        closed, window = self._window(raw.robot, raw.topic, at, timeline)
+        closed, window = self._window(raw.robot, raw.topic, *arrival)
         window.count += 1
         window.bytes += len(raw.data)
         if raw.sequence is not None:
@@ -175,12 +186,10 @@ class StatsTracker:
 
     def _observe_run(self, run: MessageRun, host_ns: int) -> list[TopicStats]:
         """:meth:`observe` of every message of ``run``, each period's part of it at once."""
-        if run.receive_ns is not None:
-            times, timeline = run.receive_ns, TIMELINE_RECEIVE
-        elif run.log_ns is not None:
-            times, timeline = run.log_ns, TIMELINE_LOG
-        else:
+        arrival = _arrival(run.receive_ns, run.log_ns)
+        if arrival is None:
             return []
+        times, timeline = arrival
         payloads = run.payloads
         sizes = (payloads.ends - payloads.starts if isinstance(payloads, PackedPayloads)
                  else np.fromiter(map(len, payloads), np.int64, len(payloads)))

@@ -311,19 +311,30 @@ def rooms(size: int) -> npt.NDArray[np.int8]:
     return cells
 
 
-def test_tile_cache_searches_again_only_changed_tiles_and_matches_a_full_search(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+Tile = tuple[tuple[int, int], tuple[int, int]]
+
+
+@pytest.fixture
+def searched(monkeypatch: pytest.MonkeyPatch) -> list[Tile]:
+    """The (rows, cols) of every tile the wall search looks at, in order."""
     from host_bridge import segments
 
-    searched: list[tuple[tuple[int, int], tuple[int, int]]] = []
+    found: list[Tile] = []
     search = segments._tile_findings
 
     def counted(mask: Any, rows: tuple[int, int], cols: tuple[int, int], min_run: int) -> Any:
-        searched.append((rows, cols))
+        found.append((rows, cols))
         return search(mask, rows, cols, min_run)
 
     monkeypatch.setattr(segments, "_tile_findings", counted)
+    return found
+
+
+def test_tile_cache_searches_again_only_changed_tiles_and_matches_a_full_search(
+    searched: list[Tile],
+) -> None:
+    from host_bridge import segments
+
     options, cache = default_options(), segments.TileCache()
     cells = rooms(1100)  # 3 x 3 tiles of 512 cells
     walls.wall_segments(as_grid(cells), options, cache)
@@ -345,19 +356,11 @@ def test_tile_cache_searches_again_only_changed_tiles_and_matches_a_full_search(
     np.testing.assert_array_equal(cached, walls.wall_segments(as_grid(changed), options))
 
 
-def test_a_grown_map_keeps_the_tiles_inside_the_old_one(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_grown_map_keeps_the_tiles_inside_the_old_one(searched: list[Tile]) -> None:
     # SLAM grows a map by whole cells and moves its origin: tiles stay on the same map cells,
     # so the tile that lay wholly inside the old map is not searched again.
     from host_bridge import segments
 
-    searched: list[tuple[tuple[int, int], tuple[int, int]]] = []
-    search = segments._tile_findings
-
-    def counted(mask: Any, rows: tuple[int, int], cols: tuple[int, int], min_run: int) -> Any:
-        searched.append((rows, cols))
-        return search(mask, rows, cols, min_run)
-
-    monkeypatch.setattr(segments, "_tile_findings", counted)
     options, cache = default_options(), segments.TileCache()
     cells = rooms(1100)
     before = walls.wall_segments(as_grid(cells), options, cache)
