@@ -444,6 +444,14 @@ class RerunSink:
         rows = {len(values) for values in times.values()}
         if len(rows) != 1 or not 0 < (count := rows.pop()) <= FEW_ROWS:
             return False
+        if count == 1 and all(isinstance(column, rr.ComponentColumn) for column in columns):
+            # One row: each column's batch is that row's cells, as they are.
+            self._set_times({name: int(values[0]) for name, values in times.items()})
+            self.recording.log(path, [
+                rr.DescribedComponentBatch(column.component_batch, column.descriptor)
+                for column in columns
+            ])
+            return True
         cells = [column.as_arrow_array() for column in columns]
         if any(len(c) != count or not pa.types.is_list(c.type) for c in cells):
             return False

@@ -30,6 +30,7 @@ from host_bridge.contract import (
     LogItem,
     RunContext,
     columnar,
+    component_columns,
     repeated_texts,
 )
 from host_bridge.converters._common import stamps_ns, vectors
@@ -84,24 +85,24 @@ def convert_imu_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
     axes = ctx.state(_ImuTopic)
     if not axes.logged:
         axes.logged = True
-        items.append(
-            LogItem(orientation_path, (rr.TransformAxes3D(options.axis_length),), static=True)
-        )
+        # The arrows' colours and labels never change: static, not repeated in every row.
+        items.append(LogItem(orientation_path, (
+            rr.TransformAxes3D(options.axis_length),
+            rr.Arrows3D.from_fields(colors=_ARROW_COLORS, labels=_ARROW_LABELS),
+        ), static=True))
     for frame_id, frame_rows in columns.groups("header.frame_id"):
         # Without a frame id the orientation hangs under the topic entity, as Rerun would default.
         parent = ctx.frame(str(frame_id)) or f"tf#{ctx.entity_path}"
         for entries, times in ctx.stamped(stamps[frame_rows], frame_rows):
             rows = frame_rows[entries]
             n = len(rows)
-            transform = rr.Transform3D.columns(
-                quaternion=unit[rows], parent_frame=repeated_texts([parent], n)
+            transform = component_columns(
+                rr.Transform3D, quaternion=unit[rows], parent_frame=repeated_texts([parent], n)
             )
-            arrow_columns = rr.Arrows3D.columns(
-                vectors=arrows[rows].reshape(-1, 3),
-                colors=np.tile(_ARROW_COLORS, (n, 1)),
-                labels=repeated_texts(_ARROW_LABELS, n),
-            ).partition(np.full(n, len(_VECTORS)))
-            items.append(ColumnsItem(orientation_path, [*transform, *arrow_columns], times))
+            arrow_vectors = component_columns(
+                rr.Arrows3D, np.full(n, len(_VECTORS)), vectors=arrows[rows].reshape(-1, 3)
+            )
+            items.append(ColumnsItem(orientation_path, [*transform, *arrow_vectors], times))
     for rows, times in ctx.stamped(stamps):
         items.extend(
             scalar_columns(ctx.child_path(name), values[name][rows], times) for name in _VECTORS

@@ -26,6 +26,7 @@ from host_bridge.contract import (
     RunContext,
     TopicContext,
     columnar,
+    component_columns,
 )
 from host_bridge.converters._common import stamps_ns, time_columns
 from host_bridge.errors import ConvertError
@@ -62,8 +63,9 @@ def scalar_columns(
     path: str, values: npt.ArrayLike, times: Mapping[str, npt.NDArray[np.int64]]
 ) -> ColumnsItem:
     """One row per entry of ``values`` (shape (n,) or (n, series))."""
-    columns = rr.Scalars.columns(scalars=np.asarray(values, np.float64))
-    return ColumnsItem(path, list(columns), times)
+    values = np.asarray(values, np.float64)
+    lengths = np.full(len(values), int(np.prod(values.shape[1:])))
+    return ColumnsItem(path, component_columns(rr.Scalars, lengths, scalars=values), times)
 
 
 def _rows_column(parts: list[Values]) -> list[Any]:

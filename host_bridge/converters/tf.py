@@ -23,6 +23,7 @@ from host_bridge.contract import (
     RunContext,
     TopicContext,
     columnar,
+    component_columns,
     repeated_texts,
 )
 from host_bridge.converters._common import stamps_ns, vectors
@@ -114,7 +115,8 @@ def convert_tf_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
         child_frames = [cast(str, ctx.frame(children[j])) for j in kept]
         for entries, times in ctx.stamped(stamps[local, which], rows):
             picked = which[entries]
-            columns_of_rows = rr.Transform3D.columns(
+            columns_of_rows = component_columns(
+                rr.Transform3D,
                 translation=translations[local[entries], picked],
                 quaternion=quaternions[local[entries], picked],
                 parent_frame=repeated_texts(parent_frames, np.searchsorted(kept, picked)),

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, repeated_texts
+from host_bridge.contract import ColumnsItem, component_columns, repeated_texts
 from host_bridge.destinations import SinkOptions
 from host_bridge.sink import FEW_ROWS, RerunSink
 from tests.rrd import entity_rows
@@ -74,3 +74,25 @@ def test_few_rows_are_logged_as_send_columns_would(tmp_path: Path) -> None:
         ["a", "b"], [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]])
     assert [row["Transform3D:parent_frame"] for row in rows_of(out, "/logged4")["/pose"]] == [
         ["r/odom"], ["r/map"], ["r/odom"], ["r/map"]]
+
+
+def test_component_columns_are_rerun_columns() -> None:
+    """The lean columns converters build hold what Rerun's own ``columns`` would, descriptors
+    and Arrow arrays alike."""
+    count = 3
+    vectors = np.arange(6 * count, dtype=np.float32).reshape(2 * count, 3)
+    scalars = np.arange(2 * count, dtype=np.float64).reshape(count, 2)
+    frames = repeated_texts(["r/odom", "r/map"], np.arange(count) % 2)
+    pairs = [
+        (component_columns(rr.Transform3D, translation=vectors[:count], parent_frame=frames),
+         list(rr.Transform3D.columns(translation=vectors[:count], parent_frame=frames))),
+        (component_columns(rr.Arrows3D, np.full(count, 2), vectors=vectors),
+         list(rr.Arrows3D.columns(vectors=vectors).partition(np.full(count, 2)))),
+        (component_columns(rr.Scalars, np.full(count, 2), scalars=scalars),
+         list(rr.Scalars.columns(scalars=scalars))),
+    ]
+    for lean, rerun_own in pairs:
+        assert [c.component_descriptor() for c in lean] == [c.component_descriptor() for c in rerun_own]
+        for mine, theirs in zip(lean, rerun_own, strict=True):
+            assert mine.as_arrow_array().equals(theirs.as_arrow_array())
+            assert len(mine.as_arrow_array()) == count

@@ -17,10 +17,12 @@ from tests.host_bridge.sensor_test_support import (
     archetype,
     column_rows,
     columns_item,
+    flat,
     header,
     make_ctx,
     msg,
     read_topic,
+    rgba,
     stamp_ns,
 )
 
@@ -126,11 +128,17 @@ def test_valid_orientation_is_normalised_and_arrows_scaled() -> None:
     np.testing.assert_allclose(q, [[0.0, 0.0, half, half]], rtol=1e-6)
     (arrows,) = column_rows(orientation, "Arrows3D:vectors", 3)
     np.testing.assert_allclose(arrows, [[0.0, 0.0, 4.905], [0.2, 0.4, 0.6]], rtol=1e-6)
-    (labels,) = column_rows(orientation, "Arrows3D:labels")
-    assert list(labels) == ["linear_acceleration", "angular_velocity"]
+    assert {c.component_descriptor().component for c in orientation.columns} == {
+        "Transform3D:quaternion", "Transform3D:parent_frame", "Arrows3D:vectors"
+    }
     statics = [e for e in entries if isinstance(e, LogItem) and e.static]
     axes = [e for e in statics if e.path == "/r/imu/orientation"]
     assert len(axes) == 1
+    # The arrows' labels and colours are the same in every row: static, with the axes.
+    arrow_style = archetype(axes[0], rr.Arrows3D)
+    assert arrow_style.labels.as_arrow_array().to_pylist() == ["linear_acceleration", "angular_velocity"]
+    assert rgba(flat(arrow_style.colors)).tolist() == [[255, 170, 0, 255], [170, 80, 255, 255]]
+    assert arrow_style.vectors is None
     # Legends and axes are sent once per topic, not with every message.
     again = IMU.convert(imu((0.0, 0.0, 0.0, 1.0)), ctx)
     assert not [e for e in again if isinstance(e, LogItem)]
