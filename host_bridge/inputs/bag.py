@@ -2,8 +2,8 @@
 
 It reuses the relay's raw bag source, so a bag converted here and one replayed through a relay
 give the host the same RawMessages (same CDR, same definitions, same log times). A rosbag2 in
-MCAP storage is read in bulk by :mod:`host_bridge.inputs.mcap` instead (the same messages in
-the same order, payloads sliced out of whole chunks) and handed on as one
+MCAP storage is read in bulk by the relay's bulk reader, :mod:`robot_relay.sources.mcap`, instead
+(the same messages in the same order, payloads sliced out of whole chunks) and handed on as one
 :class:`~host_bridge.inputs.base.MessageRun` per topic, with no record per message; a file it
 does not take is read by the source.
 """
@@ -11,21 +11,18 @@ does not take is read by the source.
 from __future__ import annotations
 
 import itertools
-import logging
 import threading
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
+from host_bridge.columns import PackedPayloads
 from host_bridge.errors import InputError
 from host_bridge.inputs.base import Deliver, MessageRun
-from host_bridge.inputs.mcap import McapFile, NotIndexedError
 from robot_relay.errors import SourceError
 from robot_relay.sources.bag import BagSource
+from robot_relay.sources.mcap import TopicRun
 from robot_relay.wire import RawMessage
-
-log = logging.getLogger("swanky.host")
-
 
 RUN_MESSAGES = 32768
 """Messages read before they go on as runs: big runs amortise what each run costs (a
@@ -40,11 +37,11 @@ def bag_runs(
     """The bag's messages, every topic's in log-time order, in windows of at most ``run_size``
     messages and ``run_bytes`` bytes of payload (at least one message). An indexed MCAP bag
     gives each window as one :class:`MessageRun` per topic (the run holding the window's last
-    message last; see :meth:`McapFile.runs`); another bag gives each window as one list of
-    RawMessages in log-time order."""
+    message last; see :meth:`~robot_relay.sources.mcap.McapFile.windows`); another bag gives
+    each window as one list of RawMessages in log-time order."""
     try:
         with BagSource(path, robot) as source:
-            files = _mcap_files(source)
+            files = source.bulk_files()
             if files is None:
                 messages = source.messages()
                 while window := _window(messages, run_size, run_bytes):
@@ -53,8 +50,8 @@ def bag_runs(
             source.log_undefined()
             for opened in files:
                 try:
-                    for runs in opened.runs(robot, run_size, run_bytes):
-                        yield from runs
+                    for runs in opened.windows(run_size, run_bytes):
+                        yield from (message_run(robot, run) for run in runs)
                 finally:
                     opened.close()
     except SourceError as err:
@@ -72,26 +69,16 @@ def _window(messages: Iterator[RawMessage], size: int, payload_bytes: int) -> li
     return window
 
 
-def _mcap_files(source: BagSource) -> list[McapFile] | None:
-    """Every file of the bag opened for the bulk reader (:mod:`host_bridge.inputs.mcap`); None
-    unless each is an indexed MCAP file of a rosbag2."""
-    storages = source.mcap_storages() if source.connections else None
-    files: list[McapFile] = []
-    try:
-        for path, channels in storages or ():
-            files.append(McapFile(path, channels))
-    except NotIndexedError as why:
-        log.debug("%s: %s; reading the bag with rosbags", path, why)
-        for opened in files:
-            opened.close()
-        return None
-    return None if storages is None else files
+def message_run(robot: str, run: TopicRun) -> MessageRun:
+    """The bulk reader's run of one topic as the host's run, its payloads left in its buffers."""
+    return MessageRun(robot, run.info.topic, run.info.msgtype, run.info.definition,
+                      PackedPayloads(run.buffers, run.sources, run.starts, run.ends), run.log_ns)
 
 
 def bag_batches(source: BagSource, size: int) -> Iterator[list[RawMessage]]:
     """What ``source.messages()`` yields, at most ``size`` a list; read in bulk
-    (:mod:`host_bridge.inputs.mcap`) where every file of the bag is an indexed MCAP."""
-    files = _mcap_files(source)
+    (:mod:`robot_relay.sources.mcap`) where every file of the bag is an indexed MCAP."""
+    files = source.bulk_files()
     if files is None:
         messages = source.messages()
         while batch := list(itertools.islice(messages, size)):

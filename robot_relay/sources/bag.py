@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from robot_relay.errors import SourceError
 from robot_relay.sources.base import Outlet, SourceThread, TopicFilter
@@ -39,14 +39,23 @@ from robot_relay.wire import (
     absolute_topic,
 )
 
+if TYPE_CHECKING:  # numpy comes with rosbags ([bag]); only a replay imports the bulk reader
+    import numpy as np
+    import numpy.typing as npt
+
+    from robot_relay.sources.mcap import McapFile
+
 log = logging.getLogger("swanky.relay")
 
 # Bags recorded without QoS metadata (ROS 1, old rosbag2) still have these latched in ROS.
 CONVENTIONALLY_LATCHED = frozenset({"/tf_static", "/robot_description", "/map"})
 ROSBAGS_MISSING = 'reading bags needs rosbags: pip install ".[relay,bag]"'
 # An unpaced (or late) replay hands the relay what it read of this many messages at once,
-# a run per topic: a few milliseconds of reading, so the first ones wait little.
+# a run per topic: a few milliseconds of reading, so the first ones wait little ...
 RUN_WINDOW = 4096
+# ... and, read in bulk (an indexed MCAP), no more payload than this: a window of images or
+# clouds must not hold much of the bag.
+RUN_BYTES = 16 * 1024 * 1024
 
 
 def _all_topics(topic: str) -> bool:
@@ -310,6 +319,31 @@ def _storage_connections(reader: Any, wanted: Sequence[Any]) -> list[Any]:
     return asked
 
 
+class _Pace:
+    """The pacing of one pass of a replay read in bulk (:class:`~robot_relay.sources.mcap.Pacing`),
+    as :meth:`BagSource._timed` paces one read record by record: a message is due
+    ``(its log time - the pass's first) / rate`` seconds after the pass began."""
+
+    def __init__(self, rate: float, sleep: Callable[[float], object]) -> None:
+        self.rate = rate
+        self._sleep = sleep
+        self._started = time.monotonic()
+        self._first_ns: int | None = None
+
+    def __call__(self, log_ns: npt.NDArray[np.int64], wait: bool) -> int:
+        first = int(log_ns[0])
+        if self._first_ns is None:
+            self._first_ns = first
+        if wait:
+            delay = self._started + (first - self._first_ns) / 1e9 / self.rate - time.monotonic()
+            if delay > 0:
+                self._sleep(delay)
+        # The log time due now; one file's log times only grow (rosbags' order).
+        now_ns = self._first_ns + int((time.monotonic() - self._started) * 1e9 * self.rate)
+        due = int(log_ns.searchsorted(now_ns, side="right"))
+        return max(due, 1) if wait else due
+
+
 class BagSource:
     """Yields a bag's messages as RawMessages in log-time order, optionally paced.
 
@@ -444,8 +478,8 @@ class BagSource:
         the order :meth:`messages` reads them, each with the info of every channel id read from
         it, as rosbags matches them to the bag's connections. None for any other bag.
 
-        For readers of their own (the host's bulk MCAP reader) that must yield what
-        :meth:`messages` would."""
+        For the bulk reader (:meth:`bulk_files`), which must yield what :meth:`messages`
+        would."""
         from rosbags.rosbag2.storage_mcap import McapReader
 
         if self.is_ros1 or self._reader.compression_mode or self._reader.storage is None:
@@ -495,12 +529,59 @@ class BagSource:
                 log_ns=log_ns,
             )
 
-    def runs(self) -> Iterator[tuple[TopicInfo, list[bytes | memoryview], list[int]]]:
+    def runs(self) -> Iterator[tuple[TopicInfo, Sequence[bytes | memoryview], list[int]]]:
         """What :meth:`messages` yields, paced alike, as runs of one topic's messages that are
         due at once: (topic, payloads, log times). A replay keeping up yields each message as
         its time comes, one a run; one behind (or unpaced) gathers every message due, up to
-        RUN_WINDOW messages, into a run per topic, in the order each topic first appears
-        there, each topic's messages in their order: the relay bundles them (schemas/wire.md)."""
+        RUN_WINDOW messages, into a run per topic, each topic's messages in their order: the
+        relay bundles them (schemas/wire.md).
+
+        A rosbag2 whose every file is an indexed MCAP is read in bulk
+        (:mod:`robot_relay.sources.mcap`: whole chunks, no Python per record; a window's runs
+        come in the order of their last messages, at most RUN_BYTES of payload a window);
+        any other bag record by record through rosbags (runs in the order each topic first
+        appears in the window)."""
+        files = self.bulk_files()
+        if files is None:
+            yield from self._record_runs()
+            return
+        try:
+            self.log_undefined()
+            while True:
+                pace = _Pace(self.rate, self._sleep) if self.rate > 0 else None
+                for opened in files:
+                    for window in opened.windows(RUN_WINDOW, RUN_BYTES, pace):
+                        for run in window:
+                            yield run.info, run.payloads(), run.log_ns.tolist()
+                if not self.loop:
+                    return
+        finally:
+            for opened in files:
+                opened.close()
+
+    def bulk_files(self) -> list[McapFile] | None:
+        """Every storage file of the bag opened for the bulk reader, in the order
+        :meth:`messages` reads them, each with the channels it yields as :meth:`messages`
+        would; None unless each is an indexed MCAP of a rosbag2 and some topic is wanted (the
+        caller then reads with rosbags)."""
+        storages = self.mcap_storages() if self.connections else None
+        if storages is None:
+            return None
+        from robot_relay.sources.mcap import McapFile, NotIndexedError
+
+        files: list[McapFile] = []
+        for path, channels in storages:
+            try:
+                files.append(McapFile(path, channels))
+            except NotIndexedError as why:
+                log.debug("%s: %s; reading the bag with rosbags", path, why)
+                for opened in files:
+                    opened.close()
+                return None
+        return files
+
+    def _record_runs(self) -> Iterator[tuple[TopicInfo, list[bytes | memoryview], list[int]]]:
+        """:meth:`runs` of a bag read record by record (rosbags)."""
         gathered: dict[str, tuple[TopicInfo, list[bytes | memoryview], list[int]]] = {}
         count = 0
         for info, log_ns, data, due in self._timed():

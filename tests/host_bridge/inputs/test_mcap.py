@@ -1,8 +1,9 @@
-"""The bulk MCAP reader of ``--bag`` (host_bridge/inputs/mcap.py) yields exactly the RawMessages
-rosbags yields through BagSource (topic, type, definition, bytes, log time, order), on MCAP files
-written here (zstd, lz4 and uncompressed chunks, channels interleaved, log times out of order
-across chunks and tied between them, payloads above and below the memoryview size, split bags),
-on the shared recordings, and falls back to rosbags for what it does not take."""
+"""The bulk MCAP reader of ``--bag`` and of the relay's replays (robot_relay/sources/mcap.py)
+yields exactly the RawMessages rosbags yields through BagSource (topic, type, definition, bytes,
+log time, order), on MCAP files written here (zstd, lz4 and uncompressed chunks, channels
+interleaved, log times out of order across chunks and tied between them, payloads above and below
+the memoryview size, split bags), on the shared recordings, and falls back to rosbags for what it
+does not take."""
 
 from __future__ import annotations
 
@@ -21,10 +22,10 @@ from rosbags.rosbag2 import Writer as BagWriter
 from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.columns import PackedPayloads, read_columns
-from host_bridge.inputs.bag import bag_batches, bag_runs
+from host_bridge.inputs.bag import bag_batches, bag_runs, message_run
 from host_bridge.inputs.base import MessageRun
-from host_bridge.inputs.mcap import LARGE_PAYLOAD, Chunk, McapFile, NotIndexedError
 from robot_relay.sources.bag import BagSource
+from robot_relay.sources.mcap import LARGE_PAYLOAD, Chunk, McapFile, NotIndexedError
 from robot_relay.wire import MessageDefinition, RawMessage
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
@@ -122,7 +123,8 @@ def mcap_windows(bag: Path, messages: int, payload_bytes: int) -> list[list[Mess
         assert storages is not None
         ((path, channels),) = storages
         with McapFile(path, channels) as opened:
-            return list(opened.runs("tb3", messages, payload_bytes))
+            return [[message_run("tb3", run) for run in window]
+                    for window in opened.windows(messages, payload_bytes)]
 
 
 def test_runs_are_windows_split_by_topic(tmp_path: Path) -> None:
@@ -275,10 +277,10 @@ def test_empty_bag(tmp_path: Path) -> None:
 
 def skipped(bag: Path, caplog: pytest.LogCaptureFixture) -> tuple[list[RawMessage], list[str]]:
     """The bulk reader's messages of a damaged ``bag`` and the warnings naming it."""
-    with caplog.at_level(logging.WARNING, "swanky.host"):
+    with caplog.at_level(logging.WARNING, "swanky.relay"):
         got = bulk_messages(bag)
     return got, [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING
-                 and r.name == "swanky.host" and str(bag) in r.getMessage()]
+                 and r.name == "swanky.relay" and str(bag) in r.getMessage()]
 
 
 def lost_chunk(

@@ -1,4 +1,10 @@
-"""The payloads of an indexed rosbag2 MCAP file in bulk, for ``--bag``: no Python call per record.
+"""The payloads of an indexed rosbag2 MCAP file in bulk: no Python call per record.
+
+The one bulk reader of both sides: ``swanky-relay --bag`` replays with it when unpaced or behind
+(:meth:`~robot_relay.sources.bag.BagSource.runs`), ``swanky-host --bag`` converts with it
+(host_bridge/inputs/bag.py). It needs numpy, which the ``[bag]`` extra brings with rosbags, and
+decompresses chunks as rosbags does (``backports.zstd`` / ``compression.zstd``, ``lz4``), so a
+robot with ``[relay,bag]`` has all it needs; only bag replays import it.
 
 rosbags' MCAP reader walks every record of every chunk with Python reads and copies each payload
 out; on a 600 MB image bag that was over a third of the conversion. Here the file is
@@ -6,16 +12,16 @@ memory-mapped; the summary's chunk indexes and each chunk's MessageIndex records
 ``(log_time, offset)`` entries, read with numpy) give every message's place up front; a chunk is
 decompressed once when its first message is due, its record headers are read for all its
 messages at once with numpy, and the payloads are slices: memoryviews for large ones (images,
-clouds: no copy from the file or the decompressed chunk to Rerun), bytes for small ones (so a
-message kept for long does not pin its whole chunk).
+clouds: no copy from the file or the decompressed chunk), bytes for small ones (so a message
+kept for long does not pin its whole chunk).
 
 The order is exactly rosbags' (``McapReader.messages``, which ``BagSource`` yields): by log time,
 ties by the chunk's file offset, then by the record's place in its chunk; files of a split bag
 one after the other. Messages outside their chunk's indexed time range are skipped as rosbags
 skips them (said once). A file this reader does not take (no summary or chunk indexes, a chunk
 without message indexes, an unknown compression, a chunk index that matches no chunk) raises
-:class:`NotIndexedError` before anything is read, and the caller reads the bag with ``BagSource``
-instead (which salvages a damaged summary from the data section).
+:class:`NotIndexedError` before anything is read, and the caller reads the bag with rosbags
+through ``BagSource`` instead (which salvages a damaged summary from the data section).
 
 A damaged chunk (a bad CRC, a decompression failure, a message index that is not one or whose
 offsets disagree with the records, a message its index leaves out) is skipped and the other
@@ -31,20 +37,20 @@ import itertools
 import logging
 import mmap
 import struct
+import sys
 import zlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
 from numpy.lib.stride_tricks import as_strided
 
-from host_bridge.columns import PackedPayloads
-from host_bridge.inputs.base import MessageRun
 from robot_relay.wire import RawMessage, TopicInfo
 
-log = logging.getLogger("swanky.host")
+log = logging.getLogger("swanky.relay")
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_FOOTER = 0x02
@@ -176,9 +182,15 @@ def read_chunks(buffer: mmap.mmap) -> list[Chunk]:
 
 
 def _zstd(data: memoryview, size: int) -> bytes:
-    import zstandard
+    # rosbags' own zstd (its dependency), so a robot with only [relay,bag] reads these chunks.
+    if sys.version_info >= (3, 14):
+        from compression import zstd
+    else:
+        from backports import zstd
 
-    return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+    # Bounded: a damaged frame header must not make it allocate more than the chunk says.
+    decompressed: bytes = zstd.ZstdDecompressor().decompress(data, max_length=size)
+    return decompressed
 
 
 def _lz4(data: memoryview, size: int) -> bytes:
@@ -215,6 +227,36 @@ def _groups(chunks: Sequence[Chunk]) -> Iterator[list[Chunk]]:
         end_ns = max(end_ns, chunk.end_ns)
     if group:
         yield group
+
+
+class Pacing(Protocol):
+    """How many of the next messages (their log times, in order) are due now; with ``wait``,
+    first waits until the first one is (then at least 1)."""
+
+    def __call__(self, log_ns: npt.NDArray[np.int64], wait: bool) -> int: ...
+
+
+@dataclass(frozen=True, slots=True)
+class TopicRun:
+    """One topic's messages of a window, in rosbags' order, with no object per message: message
+    ``i`` is ``buffers[sources[i]][starts[i]:ends[i]]``, logged at ``log_ns[i]``."""
+
+    info: TopicInfo
+    buffers: tuple[bytes | memoryview, ...]
+    sources: npt.NDArray[np.int64]
+    starts: npt.NDArray[np.int64]
+    ends: npt.NDArray[np.int64]
+    log_ns: npt.NDArray[np.int64]
+
+    def payloads(self) -> list[memoryview]:
+        """Each message's payload, a memoryview of its buffer (valid as long as the run)."""
+        views = [memoryview(buffer) for buffer in self.buffers]
+        if len(views) == 1:
+            view = views[0]
+            return [view[start:end] for start, end in
+                    zip(self.starts.tolist(), self.ends.tolist(), strict=True)]
+        return [views[source][start:end] for source, start, end in
+                zip(self.sources.tolist(), self.starts.tolist(), self.ends.tolist(), strict=True)]
 
 
 class McapFile:
@@ -400,7 +442,9 @@ class McapFile:
     def _ranges(self) -> Iterator[tuple[Mapping[int, _Loaded], list[npt.NDArray[np.int64]]]]:
         """The wanted channels' messages in rosbags' order, in ranges whose chunks are all
         loaded: (the loaded chunks by number, the range's columns: chunk number, payload start
-        and end, channel, log time). The chunks change once the next range is asked for."""
+        and end, channel, log time). The chunks change once the next range is asked for.
+        Each pass (a looped replay reads the file again) ends with its own warnings."""
+        self._outside, self._skipped = 0, []
         for group in _groups(self.chunks):
             numbers, offsets, channels, log_ns = self._index(group)
             starts, ends = np.empty_like(offsets), np.empty_like(offsets)
@@ -463,12 +507,17 @@ class McapFile:
                                                     strict=True)
                 ]
 
-    def runs(self, robot: str, messages: int, payload_bytes: int) -> Iterator[list[MessageRun]]:
+    def windows(
+        self, messages: int, payload_bytes: int, due: Pacing | None = None
+    ) -> Iterator[list[TopicRun]]:
         """The wanted channels' messages in windows of at most ``messages`` messages and
         ``payload_bytes`` bytes of payload (but at least one message), each window as one
-        :class:`MessageRun` per topic: in each, a topic's messages keep rosbags' order, and the
-        run holding the window's last message comes last. No record per message is made."""
-        window = _Window(self.channels, robot)
+        :class:`TopicRun` per topic: in each, a topic's messages keep rosbags' order, and the
+        run holding the window's last message comes last. No record per message is made.
+
+        ``due`` paces a replay: a window holds only messages due at once, and is handed on as
+        soon as the next message is not due yet (the next window waits for it)."""
+        window = _Window(self.channels)
         for loaded, columns in self._ranges():
             sizes = columns[2] - columns[1]
             # Window bytes at the end of each message of the range if it all joined the window.
@@ -479,8 +528,11 @@ class McapFile:
                 fits = int(np.searchsorted(reach, before + payload_bytes - window.payload_bytes,
                                            side="right")) - at
                 take = min(messages - window.count, fits, len(sizes) - at)
-                if take > 0 or not window.count:
+                if not window.count:
                     take = max(take, 1)
+                if due is not None and take > 0:
+                    take = min(take, due(columns[4][at : at + take], not window.count))
+                if take > 0:
                     window.add(loaded, [c[at : at + take] for c in columns],
                                int(reach[at + take - 1]) - before)
                     at += take
@@ -530,15 +582,14 @@ def _payloads(
 
 
 class _Window:
-    """Messages gathered for :meth:`McapFile.runs`, in rosbags' order: their channels, log times
+    """Messages gathered for :meth:`McapFile.windows`, in rosbags' order: their channels, log times
     and payloads as places in the window's buffers (no object per payload). A buffer is a
     decompressed chunk most of which the window reads, else a copy of the bytes the window reads
     of it (so a run kept for long does not pin a large chunk for a few messages), and large
     payloads are memoryviews of their chunk; chunks may go once their range is added."""
 
-    def __init__(self, channels: Mapping[int, TopicInfo], robot: str) -> None:
+    def __init__(self, channels: Mapping[int, TopicInfo]) -> None:
         self._infos = channels
-        self._robot = robot
         topics = sorted({info.topic for info in channels.values()})
         # Channel id -> the index of its topic: one topic's channels make one run.
         self._topic_of = {channel: topics.index(info.topic) for channel, info in channels.items()}
@@ -588,7 +639,7 @@ class _Window:
                            zip(starts.tolist(), ends.tolist(), strict=True)])
         return self._keep(copied), np.cumsum(sizes) - sizes
 
-    def take(self) -> list[MessageRun]:
+    def take(self) -> list[TopicRun]:
         """The window as runs, one per stretch of a topic's messages with one channel (a topic
         recorded on two channels alternates runs when its messages do), and empties it."""
         sources, starts, ends, channels, log_ns = (
@@ -605,9 +656,8 @@ class _Window:
         for begin, end in itertools.pairwise(bounds):
             rows = order[begin:end]
             info = self._infos[int(ordered_channels[begin])]
-            payloads = PackedPayloads(buffers, sources[rows], starts[rows], ends[rows])
-            runs.append((int(rows[-1]), MessageRun(
-                self._robot, info.topic, info.msgtype, info.definition, payloads, log_ns[rows])))
+            runs.append((int(rows[-1]), TopicRun(
+                info, buffers, sources[rows], starts[rows], ends[rows], log_ns[rows])))
         self._buffers, self._kept, self._columns = [], {}, []
         self.count = self.payload_bytes = 0
         return [run for _, run in sorted(runs, key=lambda pair: pair[0])]
