@@ -126,7 +126,7 @@ def run_shapes(bag: BagSource) -> list[tuple[str, int, list[int]]]:
             for info, payloads, log_ns in bag.runs()]
 
 
-def test_unpaced_runs_gather_each_topic_in_order_of_first_appearance_up_to_the_window(
+def test_unpaced_runs_gather_each_topic_in_order_up_to_the_window(
     tmp_path: Path,
 ) -> None:
     with BagSource(chatter_bag(tmp_path / "bag", count=RUN_WINDOW + 5, spacing_ns=1), "tb3") as bag:
