@@ -174,13 +174,24 @@ def open_input(
     return source
 
 
+def bag_finished(source: Input) -> threading.Event | None:
+    """What a bag input sets once it has delivered its last run."""
+    from host_bridge.inputs.bag import BagInput
+
+    return source.finished if isinstance(source, BagInput) else None
+
+
 def wait_for_end(
-    source: Input, stop: threading.Event, duration: float | None, until_idle: float | None
+    source: Input, stop: threading.Event, duration: float | None, until_idle: float | None,
+    ended: threading.Event | None = None,
 ) -> None:
     """Until the input ends (a bag) or the host stops: a signal, ``duration`` seconds, or no
-    data for ``until_idle`` seconds."""
+    data for ``until_idle`` seconds. ``ended``: set by an input that ends, whose end is then
+    seen at once rather than at the next poll (up to POLL_S later, on every bag)."""
     started = time.monotonic()
-    while not stop.wait(POLL_S):
+    woken_by = stop if ended is None else ended
+    while not stop.is_set():
+        woken_by.wait(POLL_S)
         if source.ended():
             return
         now = time.monotonic()
@@ -257,7 +268,7 @@ def run(
         # A bag converts to its end; --duration is then how long --serve-web keeps serving it.
         live = options.bag is None
         wait_for_end(source, stop, options.duration if live else None,
-                     options.until_idle if live else None)
+                     options.until_idle if live else None, None if live else bag_finished(source))
     source.ended()  # what went wrong while the last items were delivered
     if progress is not None:
         progress.finish()

@@ -99,6 +99,8 @@ class BagInput:
     def __init__(self, path: Path, robot: str) -> None:
         self.path = path
         self.robot = robot
+        self.finished = threading.Event()
+        """Set by the reading thread once it is done (:meth:`ended`): the app waits on it."""
         self.last_activity = time.monotonic()
         self._closing = threading.Event()
         self._thread: threading.Thread | None = None
@@ -119,11 +121,13 @@ class BagInput:
                     return
         except BaseException as err:  # raised on the app's thread by ended()
             self._error = err
+        finally:
+            self.finished.set()
 
     def ended(self) -> bool:
         if self._error is not None:
             raise self._error
-        return self._thread is not None and not self._thread.is_alive()
+        return self.finished.is_set()
 
     def close(self) -> None:
         self._closing.set()
