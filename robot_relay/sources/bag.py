@@ -375,6 +375,7 @@ class BagSource:
         self._malformed = 0
         self._ros1_store: Any = None
         self._warned: set[str] = set()
+        self._bulk: list[McapFile] | None = None
 
     def __enter__(self) -> BagSource:
         return self.open()
@@ -401,6 +402,7 @@ class BagSource:
             )
             for c in self.connections
         }
+        self._bulk = self._open_bulk()
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -545,25 +547,26 @@ class BagSource:
         if files is None:
             yield from self._record_runs()
             return
-        try:
-            self.log_undefined()
-            while True:
-                pace = _Pace(self.rate, self._sleep) if self.rate > 0 else None
-                for opened in files:
-                    for window in opened.windows(RUN_WINDOW, RUN_BYTES, pace):
-                        for run in window:
-                            yield run.info, run.payloads(), run.log_ns.tolist()
-                if not self.loop:
-                    return
-        finally:
+        self.log_undefined()
+        while True:
+            pace = _Pace(self.rate, self._sleep) if self.rate > 0 else None
             for opened in files:
-                opened.close()
+                for window in opened.windows(RUN_WINDOW, RUN_BYTES, pace):
+                    for run in window:
+                        yield run.info, run.payloads(), run.log_ns.tolist()
+            if not self.loop:
+                return
 
     def bulk_files(self) -> list[McapFile] | None:
         """Every storage file of the bag opened for the bulk reader, in the order
         :meth:`messages` reads them, each with the channels it yields as :meth:`messages`
         would; None unless each is an indexed MCAP of a rosbag2 and some topic is wanted (the
-        caller then reads with rosbags)."""
+        caller then reads with rosbags). Opened with the bag, closed with it."""
+        return self._bulk
+
+    def _open_bulk(self) -> list[McapFile] | None:
+        # At open: a relay imports numpy and reads the summaries (0.1 s here) before a host is
+        # there, not between the host's arrival and the first message.
         storages = self.mcap_storages() if self.connections else None
         if storages is None:
             return None
@@ -578,6 +581,7 @@ class BagSource:
                 for opened in files:
                     opened.close()
                 return None
+            self._stack.callback(files[-1].close)
         return files
 
     def _record_runs(self) -> Iterator[tuple[TopicInfo, list[bytes | memoryview], list[int]]]:
