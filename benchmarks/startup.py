@@ -38,8 +38,14 @@ BUDGET_SECONDS = 120
 OURS = ("host_bridge", "robot_relay", "swanky_schemas")
 COMMANDS = {"swanky-host": 0.4, "swanky-relay": 0.3}  # command -> target seconds for --help
 _IMPORTTIME_LINE = re.compile(r"import time:\s+(\d+) \|\s+(\d+) \|( *)(\S+)")
-# As a user's install: no re-execution by the ros-jazzy wheels' bootstrap .pth (see above).
-ENV = {**os.environ, "_ROS_WHEELS_BOOTSTRAP_COMPLETE": "1"}
+# As a user's install: no re-execution by the ros-jazzy wheels' bootstrap .pth (see above), and
+# Python's compiled .pyc files are used and kept up to date. With PYTHONDONTWRITEBYTECODE=1 (set
+# in the development shells here) every project module edited since its .pyc was written is
+# compiled again by every run: 24 modules, 61 ms of each swanky-host --bag run in November 2026.
+ENV = {
+    **{name: value for name, value in os.environ.items() if name != "PYTHONDONTWRITEBYTECODE"},
+    "_ROS_WHEELS_BOOTSTRAP_COMPLETE": "1",
+}
 
 
 @dataclass(frozen=True, slots=True)
