@@ -76,10 +76,16 @@ def component_columns(
     batch, in rows of ``lengths`` instances (default: one a row). Rerun's own ``columns`` costs
     50-200 us a call whatever the rows (it builds and checks the whole archetype), more than the
     rest of converting and logging a live message of one row."""
+    offsets = None
+    if lengths is not None:
+        offsets = np.zeros(np.size(lengths) + 1, np.int32)
+        np.cumsum(lengths, out=offsets[1:])
     made = []
     for name, values in fields.items():
         descriptor, batch = _component(archetype, name)
-        made.append(rr.ComponentColumn(descriptor, batch(values), lengths=lengths))
+        cells = batch(values)
+        rows = offsets if offsets is not None else np.arange(len(cells) + 1, dtype=np.int32)
+        made.append(rr.ComponentColumn(descriptor, cells, offsets=rows))
     return made
 
 

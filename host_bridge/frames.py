@@ -74,7 +74,9 @@ def _column_values(columns: Iterable[Any]) -> dict[str, pa.Array]:
     for column in columns:
         name = column.component_descriptor().component
         if name in (_PARENT, _CHILD, _FRAME):
-            found[name] = _flat(column.as_arrow_array())
+            # A ComponentColumn's rows span its whole batch: the batch is the values.
+            batch = column.component_batch if isinstance(column, rr.ComponentColumn) else None
+            found[name] = _flat(column.as_arrow_array()) if batch is None else batch.as_arrow_array()
     return found
 
 
