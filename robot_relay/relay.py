@@ -75,19 +75,28 @@ def _compressor(policy: Policy, topic: str) -> Callable[[bytes], bytes] | None:
         raise ConfigError(msg) from err
 
 
-# A bundle stays under Zenoh's default 64 KiB batch, so it is never fragmented; larger
-# messages go alone (bundling saves a sample's overhead, which a large payload dwarfs).
+# A bundle of a topic that drops under congestion stays under Zenoh's default 64 KiB batch, so
+# it is never fragmented: Zenoh may drop a fragmented message whole when its fragments wait
+# (max_wait_before_drop_fragments, 50 ms: a 1 MB one over a slow link, eclipse-zenoh/zenoh#2258).
+# A blocking topic's may be larger: the host converts each bundle (with what waits behind it) as
+# one run, and a run's conversion costs Rerun calls, not its length (benchmarks/live_capacity.py's
+# unpaced replay: the host's converting thread 0.23 s of CPU instead of 0.28; 1.7x the messages
+# per second when the Imu there, which drops, was allowed 1 MB bundles too).
+# Larger messages go alone (bundling saves a sample's overhead, which a large payload dwarfs).
 MAX_BUNDLE_BYTES = 60_000
-MAX_BUNDLE_MESSAGES = 1000
+MAX_BLOCKING_BUNDLE_BYTES = 1_000_000
+MAX_BUNDLE_MESSAGES = 4096
 
 
-def bundle_bounds(payloads: Sequence[bytes | memoryview]) -> Iterator[int]:
+def bundle_bounds(
+    payloads: Sequence[bytes | memoryview], max_bytes: int = MAX_BUNDLE_BYTES
+) -> Iterator[int]:
     """Where the bundles of a run end: each at most MAX_BUNDLE_MESSAGES messages and
-    MAX_BUNDLE_BYTES of payload, a larger payload on its own; in the run's order."""
+    ``max_bytes`` of payload, a larger payload on its own; in the run's order."""
     size = count = 0
     for index, payload in enumerate(payloads):
         length = len(payload) + BUNDLE_ENTRY_SIZE
-        if count and (size + length > MAX_BUNDLE_BYTES or count == MAX_BUNDLE_MESSAGES):
+        if count and (size + length > max_bytes or count == MAX_BUNDLE_MESSAGES):
             yield index
             size = count = 0
         size += length
@@ -110,6 +119,7 @@ class _TopicPublisher:
         self._lock = threading.Lock()
         self._compress = _compressor(policy, info.topic)
         self._flag = COMPRESSION_FLAGS.get(policy.compression, 0)
+        self._bundle_bytes = MAX_BUNDLE_BYTES if policy.congestion == "drop" else MAX_BLOCKING_BUNDLE_BYTES
         self.limiter: RateLimiter[tuple[RawMessage, int]] | None = (
             RateLimiter(policy.max_rate) if policy.max_rate else None
         )
@@ -218,7 +228,7 @@ class _TopicPublisher:
             return due
         with self._lock:
             begin = 0
-            for end in bundle_bounds(payloads):
+            for end in bundle_bounds(payloads, self._bundle_bytes):
                 if end - begin == 1:
                     raw = RawMessage(self.robot, self.info.topic, self.info.msgtype,
                                      payloads[begin], log_ns=log_ns[begin])
@@ -314,6 +324,8 @@ class Relay:
         self._failed: dict[str, TopicInfo] = {}
         # Reentrant: zenoh may report a matching status on the declaring thread.
         self._lock = threading.RLock()
+        # Notified when a host starts listening to a topic (wait_for_host).
+        self._demand_changed = threading.Condition(self._lock)
         self.published = 0
         self.published_bytes = 0
         self._flusher = _Flusher()
@@ -338,7 +350,7 @@ class Relay:
         log.debug("%s: %s", info.topic, policy)
         if info.latched:
             self._set_wanted(publisher, True)
-        elif self._demand is not None:
+        else:
             publisher.watch_demand(lambda listening: self._set_wanted(publisher, listening))
 
     def _set_wanted(self, publisher: _TopicPublisher, wanted: bool) -> None:
@@ -347,6 +359,7 @@ class Relay:
             if self._publishers.get(topic) is not publisher or self._wanted.get(topic, False) == wanted:
                 return
             self._wanted[topic] = wanted
+            self._demand_changed.notify_all()
         if self._demand is not None:
             self._demand.on_demand(topic, wanted)
 
@@ -399,16 +412,14 @@ class Relay:
                 log.error("%s is not forwarded: %s", info.topic, err)
 
     def wait_for_host(self, timeout: float | None) -> bool:
-        """Block until a host subscribes to any non-latched topic (or ``timeout`` passes)."""
-        plain = [p for p in self._publishers.values() if not p.info.latched]
-        if not plain:
-            return True
-        deadline = None if timeout is None else time.monotonic() + timeout
-        while deadline is None or time.monotonic() < deadline:
-            if any(p.matching for p in plain):
-                return True
-            time.sleep(0.05)
-        return False
+        """Block until a host subscribes to any non-latched topic (or ``timeout`` passes), woken
+        by the publishers' matching listeners: a replay starts as soon as a host listens."""
+        with self._demand_changed:
+            return self._demand_changed.wait_for(self._host_listening, timeout)
+
+    def _host_listening(self) -> bool:
+        plain = [p.info.topic for p in self._publishers.values() if not p.info.latched]
+        return not plain or any(self._wanted.get(topic, False) for topic in plain)
 
     def publish(self, raw: RawMessage) -> None:
         publisher = self._publishers.get(raw.topic)

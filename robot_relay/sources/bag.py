@@ -51,8 +51,10 @@ log = logging.getLogger("swanky.relay")
 CONVENTIONALLY_LATCHED = frozenset({"/tf_static", "/robot_description", "/map"})
 ROSBAGS_MISSING = 'reading bags needs rosbags: pip install ".[relay,bag]"'
 # An unpaced (or late) replay hands the relay what it read of this many messages at once,
-# a run per topic: a few milliseconds of reading, so the first ones wait little ...
-RUN_WINDOW = 4096
+# a run per topic: enough for a topic's bundles to fill (MAX_BUNDLE_MESSAGES, robot_relay/relay.py)
+# where it shares the bag with others, yet little reading before the first is sent (10 ms in
+# bulk, 60 ms record by record) ...
+RUN_WINDOW = 16384
 # ... and, read in bulk (an indexed MCAP), no more payload than this: a window of images or
 # clouds must not hold much of the bag.
 RUN_BYTES = 16 * 1024 * 1024

@@ -9,7 +9,13 @@ import zenoh
 
 from host_bridge.inputs.zenoh import bundle_run
 from robot_relay.policy import PolicyTable
-from robot_relay.relay import MAX_BUNDLE_BYTES, MAX_BUNDLE_MESSAGES, Relay, bundle_bounds
+from robot_relay.relay import (
+    MAX_BLOCKING_BUNDLE_BYTES,
+    MAX_BUNDLE_BYTES,
+    MAX_BUNDLE_MESSAGES,
+    Relay,
+    bundle_bounds,
+)
 from robot_relay.wire import (
     BUNDLE_ENTRY_SIZE,
     Attachment,
@@ -68,6 +74,7 @@ def cdr(text: str) -> bytes:
 def test_bundle_bounds_cut_at_the_byte_and_message_limits_and_leave_large_payloads_alone() -> None:
     small = b"x" * (1000 - BUNDLE_ENTRY_SIZE)  # 1000 bytes a message in the bundle
     assert list(bundle_bounds([small] * 150)) == [60, 120, 150]
+    assert list(bundle_bounds([small] * 150, max_bytes=100_000)) == [100, 150]
     tiny = [b"y"] * (MAX_BUNDLE_MESSAGES + 5)
     assert list(bundle_bounds(tiny)) == [MAX_BUNDLE_MESSAGES, MAX_BUNDLE_MESSAGES + 5]
     large = b"z" * MAX_BUNDLE_BYTES
@@ -81,24 +88,29 @@ def test_a_run_goes_as_bundles_with_every_message_numbered_except_on_latched_and
     host, robot = sessions
     latched = TopicInfo("/map_text", STRING, None, QosProfile(durability="transient_local", depth=5))
     capped = TopicInfo("/capped", STRING, None)
+    dropping = TopicInfo("/dropping", STRING, None)
     received: list[zenoh.Sample] = []
     subscriber = host.declare_subscriber("swanky/tb3/data/**", received.append)
-    relay = Relay(robot, Catalog("tb3", "bag", (CHATTER, latched, capped)),
-                  PolicyTable(topics={"/capped": {"max_rate": 0.001}}))
-    large = cdr("L" * MAX_BUNDLE_BYTES)
+    relay = Relay(robot, Catalog("tb3", "bag", (CHATTER, latched, capped, dropping)),
+                  PolicyTable(topics={"/capped": {"max_rate": 0.001},
+                                      "/dropping": {"congestion": "drop"}}))
+    medium = cdr("M" * 40_000)  # two fit a blocking topic's bundle, not a dropping one's
+    large = cdr("L" * MAX_BLOCKING_BUNDLE_BYTES)
     try:
         assert relay.wait_for_host(20.0)
-        relay.publish_run("/chatter", [cdr(f"c{i}") for i in range(3)] + [large, cdr("c4")],
-                          [100, 101, 102, 103, 104])
+        relay.publish_run("/chatter", [cdr(f"c{i}") for i in range(3)] + [medium, medium, large,
+                                                                           cdr("c6")],
+                          [100, 101, 102, 103, 104, 105, 106])
+        relay.publish_run("/dropping", [cdr("d0"), cdr("d1"), medium, medium], [1, 2, 3, 4])
         relay.publish_run("/map_text", [cdr("m0"), cdr("m1")], [1, 2])
         relay.publish_run("/capped", [cdr("k0"), cdr("k1")], [1, 2])
         deadline = time.monotonic() + 20
-        while len(received) < 6 and time.monotonic() < deadline:
+        while len(received) < 8 and time.monotonic() < deadline:
             time.sleep(0.01)
     finally:
         relay.close()  # sends the capped topic's waiting message
     try:
-        while len(received) < 7 and time.monotonic() < deadline:
+        while len(received) < 9 and time.monotonic() < deadline:
             time.sleep(0.01)
         time.sleep(0.2)  # nothing more comes
     finally:
@@ -117,12 +129,16 @@ def test_a_run_goes_as_bundles_with_every_message_numbered_except_on_latched_and
             entry = (attachment.sequence, False, [data], [attachment.source_ns])
         by_topic.setdefault(key.rsplit("/", 1)[-1], []).append(entry)
     assert by_topic["chatter"] == [
-        (0, True, [cdr("c0"), cdr("c1"), cdr("c2")], [100, 101, 102]),
-        (3, False, [large], [103]),  # too large to bundle
-        (4, False, [cdr("c4")], [104]),  # a bundle of one goes as a single message
+        (0, True, [cdr("c0"), cdr("c1"), cdr("c2"), medium, medium], [100, 101, 102, 103, 104]),
+        (5, False, [large], [105]),  # too large to bundle
+        (6, False, [cdr("c6")], [106]),  # a bundle of one goes as a single message
     ]
+    # A topic that drops under congestion keeps its bundles under MAX_BUNDLE_BYTES (unfragmented).
+    assert MAX_BUNDLE_BYTES < 2 * len(medium) < MAX_BLOCKING_BUNDLE_BYTES
+    assert by_topic["dropping"] == [
+        (0, True, [cdr("d0"), cdr("d1"), medium], [1, 2, 3]), (3, False, [medium], [4])]
     # A latched topic's cache keeps messages, never bundles; a capped one keeps the first
     # (sent at once) and the newest (flushed when the relay closes).
     assert by_topic["map_text"] == [(0, False, [cdr("m0")], [1]), (1, False, [cdr("m1")], [2])]
     assert by_topic["capped"] == [(0, False, [cdr("k0")], [1]), (1, False, [cdr("k1")], [2])]
-    assert relay.published == 9
+    assert relay.published == 15
