@@ -64,6 +64,7 @@ import numpy as np
 import numpy.typing as npt
 from numpy.lib.stride_tricks import as_strided
 from rosbags.interfaces import Nodetype
+from rosbags.typesys.base import normalize_fieldname
 from rosbags.typesys.store import Typestore
 
 from host_bridge.errors import ConvertError
@@ -137,7 +138,9 @@ class _Field:
 
 def _compile(store: Typestore, msgtype: str, prefix: str, chain: tuple[str, ...]) -> tuple[_Field, ...]:
     fields = []
-    for name, desc in store.get_msgdef(msgtype).fields:
+    # The field list only: get_msgdef would have rosbags generate the type's 7 codecs too.
+    for raw_name, desc in store.fielddefs[msgtype][1]:
+        name = normalize_fieldname(raw_name)
         path = f"{prefix}{name}"
         node, arg, length, sequence = _element(desc)
         own_chain = (*chain, path) if sequence or length is not None else chain
