@@ -39,10 +39,7 @@ from robot_relay.wire import (
     absolute_topic,
 )
 
-if TYPE_CHECKING:  # numpy comes with rosbags ([bag]); only a replay imports the bulk reader
-    import numpy as np
-    import numpy.typing as npt
-
+if TYPE_CHECKING:  # it imports numpy (rosbags brings it): opening an MCAP rosbag2 imports it
     from robot_relay.sources.mcap import McapFile
 
 log = logging.getLogger("swanky.relay")
@@ -321,31 +318,6 @@ def _storage_connections(reader: Any, wanted: Sequence[Any]) -> list[Any]:
     return asked
 
 
-class _Pace:
-    """The pacing of one pass of a replay read in bulk (:class:`~robot_relay.sources.mcap.Pacing`),
-    as :meth:`BagSource._timed` paces one read record by record: a message is due
-    ``(its log time - the pass's first) / rate`` seconds after the pass began."""
-
-    def __init__(self, rate: float, sleep: Callable[[float], object]) -> None:
-        self.rate = rate
-        self._sleep = sleep
-        self._started = time.monotonic()
-        self._first_ns: int | None = None
-
-    def __call__(self, log_ns: npt.NDArray[np.int64], wait: bool) -> int:
-        first = int(log_ns[0])
-        if self._first_ns is None:
-            self._first_ns = first
-        if wait:
-            delay = self._started + (first - self._first_ns) / 1e9 / self.rate - time.monotonic()
-            if delay > 0:
-                self._sleep(delay)
-        # The log time due now; one file's log times only grow (rosbags' order).
-        now_ns = self._first_ns + int((time.monotonic() - self._started) * 1e9 * self.rate)
-        due = int(log_ns.searchsorted(now_ns, side="right"))
-        return max(due, 1) if wait else due
-
-
 class BagSource:
     """Yields a bag's messages as RawMessages in log-time order, optionally paced.
 
@@ -540,20 +512,19 @@ class BagSource:
         RUN_WINDOW messages, into a run per topic, each topic's messages in their order: the
         relay bundles them (schemas/wire.md).
 
-        A rosbag2 whose every file is an indexed MCAP is read in bulk
-        (:mod:`robot_relay.sources.mcap`: whole chunks, no Python per record; a window's runs
-        come in the order of their last messages, at most RUN_BYTES of payload a window);
-        any other bag record by record through rosbags (runs in the order each topic first
-        appears in the window)."""
+        A rosbag2 whose every file is an indexed MCAP is read by the bulk reader
+        (:mod:`robot_relay.sources.mcap`): unpaced, in windows with no Python per message (at
+        most RUN_BYTES of payload a window; its runs in the order of their last messages);
+        paced, message by message as any other bag (through rosbags), in the order each topic
+        first appears in the window."""
         files = self.bulk_files()
-        if files is None:
-            yield from self._record_runs()
+        if files is None or self.rate > 0:
+            yield from self._gathered(self._timed(bulk=files is not None))
             return
         self.log_undefined()
         while True:
-            pace = _Pace(self.rate, self._sleep) if self.rate > 0 else None
             for opened in files:
-                for window in opened.windows(RUN_WINDOW, RUN_BYTES, pace):
+                for window in opened.windows(RUN_WINDOW, RUN_BYTES):
                     for run in window:
                         yield run.info, run.payloads(), run.log_ns.tolist()
             if not self.loop:
@@ -586,11 +557,13 @@ class BagSource:
             self._stack.callback(files[-1].close)
         return files
 
-    def _record_runs(self) -> Iterator[tuple[TopicInfo, list[bytes | memoryview], list[int]]]:
-        """:meth:`runs` of a bag read record by record (rosbags)."""
+    def _gathered(
+        self, timed: Iterator[tuple[TopicInfo, int, bytes | memoryview, float]]
+    ) -> Iterator[tuple[TopicInfo, list[bytes | memoryview], list[int]]]:
+        """:meth:`runs` of messages read one by one (``timed``, :meth:`_timed`'s)."""
         gathered: dict[str, tuple[TopicInfo, list[bytes | memoryview], list[int]]] = {}
         count = 0
-        for info, log_ns, data, due in self._timed():
+        for info, log_ns, data, due in timed:
             delay = due - time.monotonic()
             if gathered and (delay > 0 or count >= RUN_WINDOW):
                 yield from gathered.values()
@@ -605,27 +578,38 @@ class BagSource:
             count += 1
         yield from gathered.values()
 
-    def _timed(self) -> Iterator[tuple[TopicInfo, int, bytes | memoryview, float]]:
+    def _timed(self, bulk: bool = False) -> Iterator[tuple[TopicInfo, int, bytes | memoryview, float]]:
         """Every message once (or forever with ``loop``): its topic, log time, CDR, and the
-        ``time.monotonic()`` at which ``rate`` makes it due (-inf unpaced); the caller waits."""
+        ``time.monotonic()`` at which ``rate`` makes it due (-inf unpaced); the caller waits.
+        Read through rosbags, or with ``bulk`` by the bulk reader (:meth:`bulk_files`)."""
         if not self.connections:
             return
         self.log_undefined()
         while True:
             started = time.monotonic()
             first_ns: int | None = None
-            for connection, log_ns, raw in self._read():
+            for info, log_ns, data in self._bulk_records() if bulk else self._records():
                 if first_ns is None:
                     first_ns = log_ns
-                info = self._infos[connection.id]
-                data = self._cdr(raw, info)
-                if data is None:
-                    continue
                 due = started + (log_ns - first_ns) / 1e9 / self.rate if self.rate > 0 else -math.inf
                 yield info, log_ns, data, due
             self._name_damage()
             if not self.loop:
                 return
+
+    def _records(self) -> Iterator[tuple[TopicInfo, int, bytes | memoryview]]:
+        """The bag's messages through rosbags: topic, log time, CDR."""
+        for connection, log_ns, raw in self._read():
+            info = self._infos[connection.id]
+            data = self._cdr(raw, info)
+            if data is not None:
+                yield info, log_ns, data
+
+    def _bulk_records(self) -> Iterator[tuple[TopicInfo, int, bytes | memoryview]]:
+        """:meth:`_records` by the bulk reader (an indexed MCAP rosbag2: CDR already)."""
+        for opened in self._bulk or ():
+            for records in opened.records(RUN_WINDOW):
+                yield from records
 
     def _name_damage(self) -> None:
         """Say once per pass what of a damaged bag was lost (the rest was read)."""

@@ -1,10 +1,11 @@
 """The payloads of an indexed rosbag2 MCAP file in bulk: no Python call per record.
 
-The one bulk reader of both sides: ``swanky-relay --bag`` replays with it when unpaced or behind
-(:meth:`~robot_relay.sources.bag.BagSource.runs`), ``swanky-host --bag`` converts with it
-(host_bridge/inputs/bag.py). It needs numpy, which the ``[bag]`` extra brings with rosbags, and
-decompresses chunks as rosbags does (``backports.zstd`` / ``compression.zstd``, ``lz4``), so a
-robot with ``[relay,bag]`` has all it needs; only bag replays import it.
+The one bulk reader of both sides: ``swanky-relay --bag`` replays with it
+(:meth:`~robot_relay.sources.bag.BagSource.runs`: :meth:`McapFile.windows` unpaced,
+:meth:`McapFile.records` paced), ``swanky-host --bag`` converts with it (host_bridge/inputs/bag.py).
+It needs numpy, which the ``[bag]`` extra brings with rosbags, and decompresses chunks as rosbags
+does (``backports.zstd`` / ``compression.zstd``, ``lz4``), so a robot with ``[relay,bag]`` has
+all it needs; only opening an MCAP rosbag2 imports it.
 
 rosbags' MCAP reader walks every record of every chunk with Python reads and copies each payload
 out; on a 600 MB image bag that was over a third of the conversion. Here the file is
@@ -42,7 +43,6 @@ import zlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -227,13 +227,6 @@ def _groups(chunks: Sequence[Chunk]) -> Iterator[list[Chunk]]:
         end_ns = max(end_ns, chunk.end_ns)
     if group:
         yield group
-
-
-class Pacing(Protocol):
-    """How many of the next messages (their log times, in order) are due now; with ``wait``,
-    first waits until the first one is (then at least 1)."""
-
-    def __call__(self, log_ns: npt.NDArray[np.int64], wait: bool) -> int: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -491,32 +484,28 @@ class McapFile:
                         "".join(f"{repair}; " for repair in self._repaired),
                         "; ".join(self._skipped) or "no message")
 
-    def batches(self, robot: str, size: int) -> Iterator[list[RawMessage]]:
-        """The wanted channels' messages as RawMessages in rosbags' order, at most ``size`` a
-        list (lists, not single messages: a generator step per message would cost more than
-        everything else here)."""
+    def records(self, size: int) -> Iterator[list[tuple[TopicInfo, int, bytes | memoryview]]]:
+        """The wanted channels' messages in rosbags' order as (topic, log time, payload), at
+        most ``size`` a list (lists, not single messages: a generator step per message would
+        cost more than everything else here)."""
         infos = self.channels
         for loaded, columns in self._ranges():
             for begin in range(0, len(columns[0]), size):
                 numbers, starts, ends, channels, log_ns = (c[begin : begin + size] for c in columns)
-                payloads = _payloads(loaded, numbers, starts, ends)
-                yield [
-                    RawMessage(robot, infos[channel].topic, infos[channel].msgtype, data,
-                               infos[channel].definition, None, stamp)
-                    for data, channel, stamp in zip(payloads, channels.tolist(), log_ns.tolist(),
-                                                    strict=True)
-                ]
+                yield list(zip(map(infos.__getitem__, channels.tolist()), log_ns.tolist(),
+                               _payloads(loaded, numbers, starts, ends), strict=True))
 
-    def windows(
-        self, messages: int, payload_bytes: int, due: Pacing | None = None
-    ) -> Iterator[list[TopicRun]]:
+    def batches(self, robot: str, size: int) -> Iterator[list[RawMessage]]:
+        """:meth:`records` as RawMessages."""
+        for records in self.records(size):
+            yield [RawMessage(robot, info.topic, info.msgtype, data, info.definition, None, stamp)
+                   for info, stamp, data in records]
+
+    def windows(self, messages: int, payload_bytes: int) -> Iterator[list[TopicRun]]:
         """The wanted channels' messages in windows of at most ``messages`` messages and
         ``payload_bytes`` bytes of payload (but at least one message), each window as one
         :class:`TopicRun` per topic: in each, a topic's messages keep rosbags' order, and the
-        run holding the window's last message comes last. No record per message is made.
-
-        ``due`` paces a replay: a window holds only messages due at once, and is handed on as
-        soon as the next message is not due yet (the next window waits for it)."""
+        run holding the window's last message comes last. No record per message is made."""
         window = _Window(self.channels)
         for loaded, columns in self._ranges():
             sizes = columns[2] - columns[1]
@@ -528,11 +517,8 @@ class McapFile:
                 fits = int(np.searchsorted(reach, before + payload_bytes - window.payload_bytes,
                                            side="right")) - at
                 take = min(messages - window.count, fits, len(sizes) - at)
-                if not window.count:
+                if take > 0 or not window.count:
                     take = max(take, 1)
-                if due is not None and take > 0:
-                    take = min(take, due(columns[4][at : at + take], not window.count))
-                if take > 0:
                     window.add(loaded, [c[at : at + take] for c in columns],
                                int(reach[at + take - 1]) - before)
                     at += take
