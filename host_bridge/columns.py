@@ -53,6 +53,7 @@ message's nested sequences differ in length (not a rectangle), also gives ``None
 from __future__ import annotations
 
 import functools
+import itertools
 import struct
 import weakref
 from collections import defaultdict
@@ -373,7 +374,12 @@ class _Layout:
 
     def matching(self, grid: npt.NDArray[np.uint8], rows: npt.NDArray[np.intp]) -> npt.NDArray[np.bool_]:
         """Which of ``grid``'s ``rows`` have this layout."""
-        same: npt.NDArray[np.bool_] = (grid[rows[:, None], self.signature] == self.key).all(axis=1)
+        # Byte by byte down the columns: a strided view of the grid each while every row is
+        # asked about, not a gather of every row's signature (7 % of a small-message bag's run).
+        candidates = grid if len(rows) == len(grid) else grid[rows]
+        same = np.ones(len(rows), dtype=np.bool_)
+        for column, value in zip(self.signature.tolist(), self.key.tolist(), strict=True):
+            same &= candidates[:, column] == value
         return same
 
     def numbers(self, grid: npt.NDArray[np.uint8]) -> dict[str, npt.NDArray[Any]]:
@@ -602,10 +608,12 @@ def _by_length(
         if (sources == sources[0]).all():
             yield rows, _rows_of(buffers[int(sources[0])], starts[rows], length)
             continue
+        # A window's payloads come chunk after chunk: copied a stretch of one buffer at a time
+        # (assigning through a boolean mask per buffer cost 8 % of a small-message bag's run).
         grid = np.empty((len(rows), length), dtype=np.uint8)
-        for source in np.unique(sources).tolist():
-            mine = sources == source
-            grid[mine] = _rows_of(buffers[source], starts[rows[mine]], length)
+        stretches = [0, *(np.flatnonzero(sources[1:] != sources[:-1]) + 1).tolist(), len(rows)]
+        for begin, end in itertools.pairwise(stretches):
+            grid[begin:end] = _rows_of(buffers[int(sources[begin])], starts[rows[begin:end]], length)
         yield rows, grid
 
 
