@@ -46,6 +46,8 @@ TARGET_FRAMES = ("map", "odom")
 
 # Up to this many rows (a live run of one message) Python strings cost less than numpy's calls.
 _FEW_ROWS = 32
+_LONGEST_PERIOD = 8
+"""Frame columns repeating this few strings (a TF message's transforms) are told apart by period."""
 
 _PARENT = "Transform3D:parent_frame"
 _CHILD = "Transform3D:child_frame"
@@ -97,8 +99,11 @@ def _distinct(*arrays: pa.Array) -> set[tuple[Any, ...]]:
     Python strings: a run's frame columns have hundreds of thousands of rows."""
     if not arrays or len(arrays[0]) <= _FEW_ROWS:
         return set(zip(*(array.to_pylist() for array in arrays), strict=True))
-    if all(_one_string(array) for array in arrays):  # an Imu run's parent frame
-        return {tuple(array[0].as_py() for array in arrays)}
+    # An Imu run's parent frame is one string on every row; a TF run's frames are the same
+    # few strings again and again, message after message.
+    for period in range(1, _LONGEST_PERIOD + 1):
+        if all(_repeats(array, period) for array in arrays):
+            return {tuple(array[row].as_py() for array in arrays) for row in range(period)}
     byte_rows = [_string_bytes(array) for array in arrays]
     if any(rows is None for rows in byte_rows):
         return set(zip(*(array.to_pylist() for array in arrays), strict=True))
@@ -132,21 +137,22 @@ def _distinct_rows(table: npt.NDArray[np.uint8]) -> list[int]:
     return distinct
 
 
-def _one_string(array: pa.Array) -> bool:
-    """Whether ``array`` is a utf8 array without nulls holding one string on every row."""
-    if not pa.types.is_string(array.type) or array.null_count or not len(array):
-        return False
+def _repeats(array: pa.Array, period: int) -> bool:
+    """Whether ``array`` is a utf8 array without nulls whose first ``period`` strings repeat
+    over all its rows (whole periods only)."""
     count = len(array)
+    if not pa.types.is_string(array.type) or array.null_count or count < period or count % period:
+        return False
     _, offsets_buffer, data_buffer = array.buffers()
     offsets = np.frombuffer(offsets_buffer, np.int32, count + 1, array.offset * 4)
-    width = int(offsets[1] - offsets[0])
-    if int(offsets[-1] - offsets[0]) != count * width or not width:
-        return width == 0 and offsets[-1] == offsets[0]  # every row empty
-    if not (np.diff(offsets) == width).all():
+    sizes = np.diff(offsets).reshape(-1, period)
+    if not (sizes == sizes[0]).all():
         return False
-    data = np.frombuffer(data_buffer, np.uint8, count * width, int(offsets[0]))
-    text = data.reshape(count, width)
-    return bool((text == text[0]).all())
+    block = int(sizes[0].sum())
+    if not block:
+        return True  # every row empty
+    data = np.frombuffer(data_buffer, np.uint8, block * len(sizes), int(offsets[0])).reshape(-1, block)
+    return bool((data == data[0]).all())
 
 
 def _string_bytes(array: pa.Array) -> npt.NDArray[np.uint8] | None:

@@ -336,6 +336,16 @@ def test_frames_of_a_column_run_are_read_from_its_bytes() -> None:
     assert frames_logged([tf, imu]) == ({
         ("r/odom", "r/map"), ("r/base_link", "r/odom"), ("r/bäse_link_2", "r/base_link"),
         ("tf#/r/imu/orientation", "r/imu")}, set())
+    # The same relations in no repeating order (each row's bytes compared), and one period
+    # cut short: found all the same.
+    for order in (np.r_[np.zeros(50), np.ones(60), np.arange(91) % 3, np.full(40, 2)], rows[:-1]):
+        shuffled = ColumnsItem("/r/tf", list(rr.Transform3D.columns(
+            translation=np.zeros((len(order), 3)),
+            parent_frame=repeated_texts(names[0::2], order.astype(np.intp)),
+            child_frame=repeated_texts(names[1::2], order.astype(np.intp)),
+        )), {"ros_time": np.arange(len(order), dtype=np.int64)})
+        assert frames_logged([shuffled])[0] == {
+            ("r/odom", "r/map"), ("r/base_link", "r/odom"), ("r/bäse_link_2", "r/base_link")}
     assert repeated_texts(["ab", "", "déf"], np.array([2, 0, 1, 0])).to_pylist() == [
         "déf", "ab", "", "ab"]
     assert repeated_texts(["ab", "c"], 2).to_pylist() == ["ab", "c", "ab", "c"]
