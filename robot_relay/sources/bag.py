@@ -11,6 +11,9 @@ every definition in the bag when it opens, so one it cannot parse (a Jazzy servi
 ``SRV:`` text) would refuse the whole bag, and a bag without definitions (Humble's sqlite3)
 would need a typestore. Forwarding raw CDR needs neither; the host decodes, topic by topic.
 ``swanky-host --bag`` (also its progress line) and ``swanky-relay --bag`` open bags only here.
+Their messages are read from a rosbag2 whose files are all indexed MCAP by the bulk reader of
+:mod:`robot_relay.sources.mcap` (the same messages in the same order, with no Python per record
+unpaced); :meth:`BagSource.messages` reads every bag through rosbags, the reference.
 
 Needs rosbags (``pip install ".[relay,bag]"``); the live ROS 2 source does not.
 """
@@ -49,7 +52,7 @@ CONVENTIONALLY_LATCHED = frozenset({"/tf_static", "/robot_description", "/map"})
 ROSBAGS_MISSING = 'reading bags needs rosbags: pip install ".[relay,bag]"'
 # An unpaced (or late) replay hands the relay what it read of this many messages at once,
 # a run per topic: enough for a topic's bundles to fill (MAX_BUNDLE_MESSAGES, robot_relay/relay.py)
-# where it shares the bag with others, yet little reading before the first is sent (10 ms in
+# where it shares the bag with others, yet little reading before the first is sent (12 ms in
 # bulk, 60 ms record by record) ...
 RUN_WINDOW = 16384
 # ... and, read in bulk (an indexed MCAP), no more payload than this: a window of images or
