@@ -72,8 +72,11 @@ seconds before its oldest go."""
 # converted one batch is the next, so a loaded host converts runs (send_columns) that grow with
 # the load, and an idle one converts a message as soon as it comes. A fixed 5 ms wait for more
 # added its whole length to the latency of the issue's mixed load (p50 15 ms against 5 ms
-# without; benchmarks/live_capacity.py) and converted no more per second when flooded.
-MAX_BATCH = 1024
+# without; benchmarks/live_capacity.py) and converted no more per second when flooded. A
+# flooded host takes as many as a bag's run (inputs/bag.py's windows are twice that): at 1024 a
+# full-speed replay's runs were cut to about a thousand messages, and a run costs its Rerun
+# calls, not its length (live_capacity.py: live / offline 0.47 at 1024, 0.78 at 16384).
+MAX_BATCH = 16384
 # How long a thread that wants the GIL waits for the one holding it before asking it to let go
 # (Python's default is 5 ms). The Zenoh callbacks and a robot's two workers hand messages to
 # each other all the time: at 5 ms, a small message waited that long behind a heavy conversion
