@@ -4,6 +4,7 @@ per robot."""
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
@@ -11,12 +12,14 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from host_bridge.destinations import SinkOptions
 from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun, RobotEvent
 from host_bridge.inputs.queues import (
     GIL_SWITCH_INTERVAL_S,
+    HEAVY_NICENESS,
     HeavyTypes,
     HostBehindError,
     RobotQueues,
@@ -231,6 +234,26 @@ def test_heavy_topics_go_to_a_thread_of_their_own_keeping_only_their_newest() ->
         "[a] /camera: 2 dropped (2 replaced by a newer one while the host was behind)\n"
         "[a] /points: 1 dropped (1 replaced by a newer one while the host was behind)"
     )
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="threads have nice values of their own on Linux")
+def test_the_heavy_thread_runs_at_a_lower_priority_than_the_small_topics() -> None:
+    queues = RobotQueues()
+    niceness: dict[str, int] = {}
+
+    def take(items: Sequence[InputItem]) -> None:
+        niceness[threading.current_thread().name] = os.getpriority(
+            os.PRIO_PROCESS, threading.get_native_id())
+
+    queues.put(typed("a", "/camera", IMAGE, 100))
+    queues.put(typed("a", "/imu", IMU, 0))
+    queues.serve(take)
+    deadline = time.monotonic() + TIMEOUT_S
+    while len(niceness) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    queues.close(timeout=5)
+    ours = os.getpriority(os.PRIO_PROCESS, 0)
+    assert niceness == {"robot-a": ours, "robot-a-heavy": min(ours + HEAVY_NICENESS, 19)}
 
 
 def test_heavy_topics_go_latest_only_once_behind_and_grid_patches_follow_their_grid() -> None:
