@@ -69,6 +69,18 @@ def _component(archetype: type[rr.AsComponents], field_name: str) -> tuple[rr.Co
     return descriptor, getattr(rr.components, f"{component}Batch")
 
 
+class RowsColumn(rr.ComponentColumn):
+    """A component column that keeps its rows' offsets at hand: the sink logs a few rows as
+    slices of the batch (``_offsets`` is Rerun's private attribute; the public way builds an
+    Arrow list array per column and a list scalar per row)."""
+
+    def __init__(
+        self, descriptor: rr.ComponentDescriptor, batch: Any, offsets: npt.NDArray[np.int32]
+    ) -> None:
+        super().__init__(descriptor, batch, offsets=offsets)
+        self.row_offsets = offsets
+
+
 def component_columns(
     archetype: type[rr.AsComponents], lengths: npt.ArrayLike | None = None, **fields: Any
 ) -> list[rr.ComponentColumn]:
@@ -80,12 +92,12 @@ def component_columns(
     if lengths is not None:
         offsets = np.zeros(np.size(lengths) + 1, np.int32)
         np.cumsum(lengths, out=offsets[1:])
-    made = []
+    made: list[rr.ComponentColumn] = []
     for name, values in fields.items():
         descriptor, batch = _component(archetype, name)
         cells = batch(values)
         rows = offsets if offsets is not None else np.arange(len(cells) + 1, dtype=np.int32)
-        made.append(rr.ComponentColumn(descriptor, cells, offsets=rows))
+        made.append(RowsColumn(descriptor, cells, rows))
     return made
 
 

@@ -31,7 +31,7 @@ import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
-from host_bridge.contract import ColumnsItem, LogEntry, LogItem
+from host_bridge.contract import ColumnsItem, LogEntry, LogItem, RowsColumn
 from host_bridge.destinations import LOOPBACK, SinkOptions
 from host_bridge.errors import SinkError
 
@@ -452,6 +452,22 @@ class RerunSink:
                 for column in columns
             ])
             return True
+        if all(isinstance(column, RowsColumn) for column in columns):
+            rows_of = [
+                (column.component_batch.as_arrow_array(), column.row_offsets.tolist(), column.descriptor)
+                for column in columns
+            ]
+            if all(len(offsets) == count + 1 for _, offsets, _ in rows_of):
+                for row in range(count):
+                    self._set_times({name: int(values[row]) for name, values in times.items()})
+                    self.recording.log(path, [
+                        rr.DescribedComponentBatch(
+                            _Cells(batch.slice(offsets[row], offsets[row + 1] - offsets[row])),
+                            descriptor,
+                        )
+                        for batch, offsets, descriptor in rows_of
+                    ])
+                return True
         cells = [column.as_arrow_array() for column in columns]
         if any(len(c) != count or not pa.types.is_list(c.type) for c in cells):
             return False

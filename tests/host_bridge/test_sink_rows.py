@@ -15,11 +15,26 @@ from host_bridge.sink import FEW_ROWS, RerunSink
 from tests.rrd import entity_rows
 
 
-def items(path: str, count: int) -> list[ColumnsItem]:
+def items(path: str, count: int, *, lean: bool = False) -> list[ColumnsItem]:
     """Transforms with a parent frame and arrows of two vectors each, and a two-series plot:
-    ``count`` rows at ros_time 10, 20, ... and receive_time one more."""
+    ``count`` rows at ros_time 10, 20, ... and receive_time one more; ``lean``: the columns
+    converters build (component_columns), the arrows one vector more a row, row after row."""
     stamps = 10 * np.arange(1, count + 1, dtype=np.int64)
     times = {"ros_time": stamps, "receive_time": stamps + 1}
+    if lean:
+        lengths = np.arange(count)  # the first row has no arrow
+        vectors = np.arange(3 * int(lengths.sum()), dtype=np.float32).reshape(-1, 3)
+        lean_transforms = component_columns(
+            rr.Transform3D,
+            translation=np.arange(3 * count, dtype=np.float64).reshape(count, 3),
+            parent_frame=repeated_texts(["r/odom", "r/map"], np.arange(count) % 2),
+        )
+        lean_arrows = component_columns(rr.Arrows3D, lengths, vectors=vectors)
+        lean_plot = component_columns(
+            rr.Scalars, np.full(count, 2), scalars=np.arange(2 * count, dtype=np.float64)
+        )
+        return [ColumnsItem(f"{path}/pose", [*lean_transforms, *lean_arrows], times),
+                ColumnsItem(f"{path}/plot", lean_plot, times)]
     transforms = rr.Transform3D.columns(
         translation=np.arange(3 * count, dtype=np.float64).reshape(count, 3),
         parent_frame=repeated_texts(["r/odom", "r/map"], np.arange(count) % 2),
@@ -96,3 +111,30 @@ def test_component_columns_are_rerun_columns() -> None:
         for mine, theirs in zip(lean, rerun_own, strict=True):
             assert mine.as_arrow_array().equals(theirs.as_arrow_array())
             assert len(mine.as_arrow_array()) == count
+
+
+def test_few_lean_rows_are_logged_as_send_columns_would(tmp_path: Path) -> None:
+    """Columns of component_columns are logged row by row as slices of their batches: rows of
+    different lengths (none, one, two... arrows) keep their own values and times."""
+    sink = RerunSink(SinkOptions(save=tmp_path / "out.rrd"))
+    counts = (1, 2, FEW_ROWS, FEW_ROWS + 1)
+    for count in counts:
+        sink.log(items(f"/logged{count}", count, lean=True), {})
+        for item in items(f"/sent{count}", count, lean=True):
+            send_columns(sink, item)
+    sink.close()
+    out = tmp_path / "out.rrd"
+    for count in counts:
+        logged, sent = rows_of(out, f"/logged{count}"), rows_of(out, f"/sent{count}")
+        assert sorted(logged) == sorted(sent) == ["/plot", "/pose"]
+        for entity, rows in logged.items():
+            assert without_log_time(rows) == without_log_time(sent[entity])
+            assert [row["receive_time"] for row in rows] == [10 * (i + 1) + 1 for i in range(count)]
+    pose = rows_of(out, f"/logged{FEW_ROWS}")["/pose"]
+    assert [row["Arrows3D:vectors"] for row in pose] == [
+        [], [[0.0, 1.0, 2.0]], [[3.0, 4.0, 5.0], [6.0, 7.0, 8.0]],
+        [[9.0, 10.0, 11.0], [12.0, 13.0, 14.0], [15.0, 16.0, 17.0]]]
+    assert [row["Transform3D:parent_frame"] for row in pose] == [
+        ["r/odom"], ["r/map"], ["r/odom"], ["r/map"]]
+    assert [row["Scalars:scalars"] for row in rows_of(out, "/logged2")["/plot"]] == [
+        [0.0, 1.0], [2.0, 3.0]]
