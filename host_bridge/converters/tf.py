@@ -108,19 +108,23 @@ def convert_tf_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
             continue
         _remember_children(ctx, (children[j] for j in kept))
         # Rows message by message, transform by transform, as the messages list them.
-        local = np.repeat(np.arange(len(block.rows)), len(kept))
-        rows = block.rows[local]
-        which = np.tile(kept, len(block.rows))
+        width = len(kept)
+        rows = np.repeat(block.rows, width)
         parent_frames = [cast(str, ctx.frame(parents[j])) for j in kept]
         child_frames = [cast(str, ctx.frame(children[j])) for j in kept]
-        for entries, times in ctx.stamped(stamps[local, which], rows):
-            picked = which[entries]
+        translations, quaternions = (
+            values[:, kept].reshape(len(rows), -1) for values in (translations, quaternions)
+        )
+        for entries, times in ctx.stamped(stamps[:, kept].reshape(-1), rows):
+            # Every row (no zero stamp, the usual case): the frames in order, once a message.
+            every = len(entries) == len(rows)
+            slots: npt.NDArray[np.intp] | int = len(block.rows) if every else entries % width
             columns_of_rows = component_columns(
                 rr.Transform3D,
-                translation=translations[local[entries], picked],
-                quaternion=quaternions[local[entries], picked],
-                parent_frame=repeated_texts(parent_frames, np.searchsorted(kept, picked)),
-                child_frame=repeated_texts(child_frames, np.searchsorted(kept, picked)),
+                translation=translations if every else translations[entries],
+                quaternion=quaternions if every else quaternions[entries],
+                parent_frame=repeated_texts(parent_frames, slots),
+                child_frame=repeated_texts(child_frames, slots),
             )
             items.append(ColumnsItem(ctx.entity_path, columns_of_rows, times))
     return items
