@@ -74,12 +74,16 @@ def convert_imu_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
     per frame id, and the two vectors' scalars."""
     quaternions = vectors(columns, "orientation", "xyzw")
     covariance0 = columns["orientation_covariance"][:, 0].astype(np.float64)
-    values = {name: vectors(columns, name) for name in _VECTORS}
+    # Both vectors of every message in one array, (n, 2, 3): the plots' values and the arrows'.
+    measured = np.stack(
+        [columns[f"{name}.{axis}"] for name in _VECTORS for axis in XYZ], axis=-1
+    ).astype(np.float64).reshape(-1, len(_VECTORS), len(XYZ))
     options = ctx.options(ImuOptions)
     scales = np.array([options.acceleration_scale, options.angular_velocity_scale])
-    arrows = np.stack([values[name] for name in _VECTORS], axis=1) * scales[None, :, None]
+    arrows = measured * scales[:, None]
     unit = orientations(quaternions, covariance0)
     stamps = stamps_ns(columns)
+    run_times = ctx.stamped(stamps)
     orientation_path = ctx.child_path("orientation")
     items: list[LogEntry] = series_names_once(ctx, _LEGENDS)
     axes = ctx.state(_ImuTopic)
@@ -90,10 +94,13 @@ def convert_imu_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
             rr.TransformAxes3D(options.axis_length),
             rr.Arrows3D.from_fields(colors=_ARROW_COLORS, labels=_ARROW_LABELS),
         ), static=True))
-    for frame_id, frame_rows in columns.groups("header.frame_id"):
+    groups = columns.groups("header.frame_id")
+    for frame_id, frame_rows in groups:
         # Without a frame id the orientation hangs under the topic entity, as Rerun would default.
         parent = ctx.frame(str(frame_id)) or f"tf#{ctx.entity_path}"
-        for entries, times in ctx.stamped(stamps[frame_rows], frame_rows):
+        # One frame id (the usual case): its rows are the run's, and so are their times.
+        frame_times = run_times if len(groups) == 1 else ctx.stamped(stamps[frame_rows], frame_rows)
+        for entries, times in frame_times:
             rows = frame_rows[entries]
             n = len(rows)
             transform = component_columns(
@@ -103,9 +110,10 @@ def convert_imu_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
                 rr.Arrows3D, np.full(n, len(_VECTORS)), vectors=arrows[rows].reshape(-1, 3)
             )
             items.append(ColumnsItem(orientation_path, [*transform, *arrow_vectors], times))
-    for rows, times in ctx.stamped(stamps):
+    for rows, times in run_times:
         items.extend(
-            scalar_columns(ctx.child_path(name), values[name][rows], times) for name in _VECTORS
+            scalar_columns(ctx.child_path(name), measured[rows, which], times)
+            for which, name in enumerate(_VECTORS)
         )
     return items
 
