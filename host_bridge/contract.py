@@ -63,10 +63,40 @@ LogEntry = LogItem | ColumnsItem
 
 
 @functools.cache
-def _component(archetype: type[rr.AsComponents], field_name: str) -> tuple[rr.ComponentDescriptor, Any]:
+def _component(
+    archetype: type[rr.AsComponents], field_name: str
+) -> tuple[rr.ComponentDescriptor, Any, _Floats | None]:
     descriptor: rr.ComponentDescriptor = getattr(archetype, f"descriptor_{field_name}")()
     component = (descriptor.component_type or "").rsplit(".", 1)[-1]
-    return descriptor, getattr(rr.components, f"{component}Batch")
+    datatype: pa.DataType = getattr(rr.components, component).arrow_type()
+    floats = None
+    if pa.types.is_floating(datatype):
+        floats = _Floats(datatype, np.dtype(datatype.to_pandas_dtype()), None)
+    elif pa.types.is_fixed_size_list(datatype) and pa.types.is_floating(datatype.value_type):
+        floats = _Floats(datatype, np.dtype(datatype.value_type.to_pandas_dtype()), datatype.list_size)
+    return descriptor, getattr(rr.components, f"{component}Batch"), floats
+
+
+@dataclass(frozen=True, slots=True)
+class _Floats:
+    """A component whose cells are floats, or ``width`` floats each (vectors, quaternions)."""
+
+    datatype: pa.DataType
+    dtype: np.dtype[Any]
+    width: int | None
+
+    def cells(self, values: Any) -> pa.Array | None:
+        """Numbers, shape (n,) or (n, width), as the Arrow array Rerun's batch makes of them:
+        cast and wrapped as it does, without its checks of every other kind of input; None
+        for anything else."""
+        if not isinstance(values, np.ndarray) or values.dtype.kind not in "fiu":
+            return None
+        flat = values.astype(self.dtype, copy=False).ravel()
+        if self.width is None:
+            return pa.array(flat, self.datatype)
+        if values.ndim != 2 or values.shape[1] != self.width:
+            return None
+        return pa.FixedSizeListArray.from_arrays(flat, type=self.datatype)
 
 
 class RowsColumn(rr.ComponentColumn):
@@ -90,12 +120,14 @@ def component_columns(
     rest of converting and logging a live message of one row."""
     offsets = None
     if lengths is not None:
-        offsets = np.zeros(np.size(lengths) + 1, np.int32)
-        np.cumsum(lengths, out=offsets[1:])
+        lengths = np.asarray(lengths)
+        offsets = np.zeros(lengths.size + 1, np.int32)
+        np.add.accumulate(lengths, out=offsets[1:])  # np.cumsum, without its Python wrapper
     made: list[rr.ComponentColumn] = []
     for name, values in fields.items():
-        descriptor, batch = _component(archetype, name)
-        cells = batch(values)
+        descriptor, batch, floats = _component(archetype, name)
+        arrow = None if floats is None else floats.cells(values)
+        cells = batch(values if arrow is None else arrow)
         rows = offsets if offsets is not None else np.arange(len(cells) + 1, dtype=np.int32)
         made.append(RowsColumn(descriptor, cells, rows))
     return made

@@ -98,6 +98,7 @@ def test_component_columns_are_rerun_columns() -> None:
     vectors = np.arange(6 * count, dtype=np.float32).reshape(2 * count, 3)
     scalars = np.arange(2 * count, dtype=np.float64).reshape(count, 2)
     frames = repeated_texts(["r/odom", "r/map"], np.arange(count) % 2)
+    quaternions = np.linspace(-1.0, 1.0, 8 * count).reshape(2 * count, 4) / 3.0
     pairs = [
         (component_columns(rr.Transform3D, translation=vectors[:count], parent_frame=frames),
          list(rr.Transform3D.columns(translation=vectors[:count], parent_frame=frames))),
@@ -105,6 +106,11 @@ def test_component_columns_are_rerun_columns() -> None:
          list(rr.Arrows3D.columns(vectors=vectors).partition(np.full(count, 2)))),
         (component_columns(rr.Scalars, np.full(count, 2), scalars=scalars),
          list(rr.Scalars.columns(scalars=scalars))),
+        # float64 quaternions, a column's every other row (not contiguous), int radii: cast
+        (component_columns(rr.Transform3D, quaternion=quaternions[::2]),
+         list(rr.Transform3D.columns(quaternion=quaternions[::2]))),
+        (component_columns(rr.Points3D, radii=np.arange(count)),
+         list(rr.Points3D.columns(radii=np.arange(count)))),
     ]
     for lean, rerun_own in pairs:
         assert [c.component_descriptor() for c in lean] == [c.component_descriptor() for c in rerun_own]
