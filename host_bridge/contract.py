@@ -241,18 +241,19 @@ class RunContext(TopicContext):
         without rows. A zero
         stamp means "no stamp", as one message gets no ros_time then (``message_times``), and
         one send_columns call cannot leave a timeline out for some rows only."""
+        every_message = rows is None
         rows = np.arange(self.size) if rows is None else rows
         if not len(rows):
             return []
         arrivals = {
-            name: values[rows]
+            name: values if every_message else values[rows]
             for name, values in ((TIMELINE_RECEIVE, self.receive_ns), (TIMELINE_LOG, self.log_ns))
             if values is not None
         }
         arrival = self.receive_ns if self.receive_ns is not None else self.log_ns
-        every = np.arange(len(rows))
+        every = rows if every_message else np.arange(len(rows))
         if self.restamp and arrival is not None:
-            return [(every, {TIMELINE_ROS: arrival[rows], **arrivals})]
+            return [(every, {TIMELINE_ROS: arrival if every_message else arrival[rows], **arrivals})]
         if stamps is None:
             return [(every, arrivals)]
         unstamped = stamps == 0

@@ -8,6 +8,7 @@ values per sub-entity) and both the per-message form (``rr.Scalars``) and the ru
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, cast
@@ -64,7 +65,7 @@ def scalar_columns(
 ) -> ColumnsItem:
     """One row per entry of ``values`` (shape (n,) or (n, series))."""
     values = np.asarray(values, np.float64)
-    lengths = np.full(len(values), int(np.prod(values.shape[1:])))
+    lengths = np.full(len(values), math.prod(values.shape[1:]))
     return ColumnsItem(path, component_columns(rr.Scalars, lengths, scalars=values), times)
 
 
