@@ -38,6 +38,9 @@ HOST_MAY_IMPORT: dict[str, tuple[str, str]] = {
     ),
     "robot_relay.files": ("host_bridge", "--package-path NAME=DIR is parsed alike on both commands"),
     "robot_relay.relay": ("host_bridge.demo", "the demo is a simulated robot: it runs a relay"),
+    "robot_relay.sources.mcap": (
+        "host_bridge", "--bag reads an indexed MCAP with the bulk reader the relay replays it with",
+    ),
 }
 # Cycles closed by imports inside functions, with why they are left.
 DEFERRED_CYCLES = [
@@ -46,6 +49,10 @@ DEFERRED_CYCLES = [
 ]
 # The [relay] extra (pyproject.toml); rclpy and rosbags are imported inside the sources' functions.
 RELAY_THIRD_PARTY = {"zenoh", "yaml", "jsonschema"}
+# Robot-side modules of the [bag] extra (rosbags, which brings numpy), with what they import at
+# module level beyond [relay]: the other robot modules import them inside functions only, so a
+# relay installed without [bag] never loads them.
+BAG_MODULES = {"robot_relay.sources.mcap": {"numpy"}}
 
 
 @dataclass(frozen=True, slots=True)
@@ -195,9 +202,13 @@ def test_robot_side_imports_only_its_extra_at_module_level() -> None:
     relay = [i for i in ALL_IMPORTS if in_package(i.importer, "robot_relay") and i.module_level]
     others = [
         where(i) for i in relay
-        if i.imported.split(".")[0] not in {*sys.stdlib_module_names, *RELAY_THIRD_PARTY, "robot_relay"}
+        if i.imported.split(".")[0] not in {
+            *sys.stdlib_module_names, *RELAY_THIRD_PARTY, "robot_relay", *BAG_MODULES.get(i.importer, ())
+        }
     ]
     assert others == []
+    # ... and the [bag] modules are loaded by none of them at module level.
+    assert [where(i) for i in relay if i.imported in BAG_MODULES] == []
 
 
 def test_host_imports_only_the_robot_modules_it_is_allowed() -> None:
