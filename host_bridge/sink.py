@@ -270,6 +270,25 @@ class _Cells:
         return self.values
 
 
+_RowSpans = tuple[pa.Array, list[int], rr.ComponentDescriptor]
+
+
+def _row_spans(column: Any, count: int) -> _RowSpans | None:
+    """A column's cells and where each of its ``count`` rows starts in them, where that is known
+    without building its list array (an Arrow list array per column and a list scalar per row
+    cost more than logging a live message's row): a lean column's offsets, or the whole batch
+    as the one row of any ComponentColumn; None otherwise."""
+    if isinstance(column, RowsColumn):
+        at: list[int] | None = column.row_offsets.tolist()
+    elif isinstance(column, rr.ComponentColumn) and count == 1:
+        at = None
+    else:
+        return None
+    cells = column.component_batch.as_arrow_array()
+    at = [0, len(cells)] if at is None else at
+    return (cells, at, column.descriptor) if len(at) == count + 1 else None
+
+
 class RerunSink:
     """Logs converter output with the message's timelines."""
 
@@ -444,30 +463,17 @@ class RerunSink:
         rows = {len(values) for values in times.values()}
         if len(rows) != 1 or not 0 < (count := rows.pop()) <= FEW_ROWS:
             return False
-        if count == 1 and all(isinstance(column, rr.ComponentColumn) for column in columns):
-            # One row: each column's batch is that row's cells, as they are.
-            self._set_times({name: int(values[0]) for name, values in times.items()})
-            self.recording.log(path, [
-                rr.DescribedComponentBatch(column.component_batch, column.descriptor)
-                for column in columns
-            ])
+        spans = [span for column in columns if (span := _row_spans(column, count)) is not None]
+        if len(spans) == len(columns):
+            for row in range(count):
+                self._set_times({name: int(values[row]) for name, values in times.items()})
+                self.recording.log(path, [
+                    rr.DescribedComponentBatch(
+                        _Cells(cells.slice(at[row], at[row + 1] - at[row])), descriptor
+                    )
+                    for cells, at, descriptor in spans
+                ])
             return True
-        if all(isinstance(column, RowsColumn) for column in columns):
-            rows_of = [
-                (column.component_batch.as_arrow_array(), column.row_offsets.tolist(), column.descriptor)
-                for column in columns
-            ]
-            if all(len(offsets) == count + 1 for _, offsets, _ in rows_of):
-                for row in range(count):
-                    self._set_times({name: int(values[row]) for name, values in times.items()})
-                    self.recording.log(path, [
-                        rr.DescribedComponentBatch(
-                            _Cells(batch.slice(offsets[row], offsets[row + 1] - offsets[row])),
-                            descriptor,
-                        )
-                        for batch, offsets, descriptor in rows_of
-                    ])
-                return True
         cells = [column.as_arrow_array() for column in columns]
         if any(len(c) != count or not pa.types.is_list(c.type) for c in cells):
             return False
