@@ -10,7 +10,6 @@ does not take is read by the source.
 
 from __future__ import annotations
 
-import itertools
 import threading
 import time
 from collections.abc import Iterator, Sequence
@@ -73,23 +72,6 @@ def message_run(robot: str, run: TopicRun) -> MessageRun:
     """The bulk reader's run of one topic as the host's run, its payloads left in its buffers."""
     return MessageRun(robot, run.info.topic, run.info.msgtype, run.info.definition,
                       PackedPayloads(run.buffers, run.sources, run.starts, run.ends), run.log_ns)
-
-
-def bag_batches(source: BagSource, size: int) -> Iterator[list[RawMessage]]:
-    """What ``source.messages()`` yields, at most ``size`` a list; read in bulk
-    (:mod:`robot_relay.sources.mcap`) where every file of the bag is an indexed MCAP."""
-    files = source.bulk_files()
-    if files is None:
-        messages = source.messages()
-        while batch := list(itertools.islice(messages, size)):
-            yield batch
-        return
-    source.log_undefined()
-    for opened in files:
-        try:
-            yield from opened.batches(source.robot, size)
-        finally:
-            opened.close()
 
 
 class BagInput:

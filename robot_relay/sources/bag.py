@@ -518,8 +518,8 @@ class BagSource:
         A rosbag2 whose every file is an indexed MCAP is read by the bulk reader
         (:mod:`robot_relay.sources.mcap`): unpaced, in windows with no Python per message (at
         most RUN_BYTES of payload a window; its runs in the order of their last messages);
-        paced, message by message as any other bag (through rosbags), in the order each topic
-        first appears in the window."""
+        paced, its records one by one as any other bag's, in the order each topic first
+        appears in the window."""
         files = self.bulk_files()
         if files is None or self.rate > 0:
             yield from self._gathered(self._timed(bulk=files is not None))

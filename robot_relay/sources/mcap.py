@@ -48,7 +48,7 @@ import numpy as np
 import numpy.typing as npt
 from numpy.lib.stride_tricks import as_strided
 
-from robot_relay.wire import RawMessage, TopicInfo
+from robot_relay.wire import TopicInfo
 
 log = logging.getLogger("swanky.relay")
 
@@ -494,12 +494,6 @@ class McapFile:
                 numbers, starts, ends, channels, log_ns = (c[begin : begin + size] for c in columns)
                 yield list(zip(map(infos.__getitem__, channels.tolist()), log_ns.tolist(),
                                _payloads(loaded, numbers, starts, ends), strict=True))
-
-    def batches(self, robot: str, size: int) -> Iterator[list[RawMessage]]:
-        """:meth:`records` as RawMessages."""
-        for records in self.records(size):
-            yield [RawMessage(robot, info.topic, info.msgtype, data, info.definition, None, stamp)
-                   for info, stamp, data in records]
 
     def windows(self, messages: int, payload_bytes: int) -> Iterator[list[TopicRun]]:
         """The wanted channels' messages in windows of at most ``messages`` messages and

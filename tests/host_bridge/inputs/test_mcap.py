@@ -22,7 +22,7 @@ from rosbags.rosbag2 import Writer as BagWriter
 from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.columns import PackedPayloads, read_columns
-from host_bridge.inputs.bag import bag_batches, bag_runs, message_run
+from host_bridge.inputs.bag import bag_runs, message_run
 from host_bridge.inputs.base import MessageRun
 from robot_relay.sources.bag import BagSource
 from robot_relay.sources.mcap import LARGE_PAYLOAD, Chunk, McapFile, NotIndexedError
@@ -92,8 +92,14 @@ def rosbags_messages(bag: Path) -> list[tuple[Any, ...]]:
 
 
 def bulk_messages(bag: Path, size: int = 7) -> list[RawMessage]:
+    """The bulk reader's records (what a paced relay replay sends), ``size`` a step; rosbags'
+    messages where the bulk reader does not take the bag."""
     with BagSource(bag, "tb3") as source:
-        return [raw for batch in bag_batches(source, size) for raw in batch]
+        files = source.bulk_files()
+        if files is None:
+            return list(source.messages())
+        return [RawMessage("tb3", info.topic, info.msgtype, data, info.definition, None, stamp)
+                for opened in files for records in opened.records(size) for info, stamp, data in records]
 
 
 @pytest.mark.parametrize("compression", [CompressionType.ZSTD, CompressionType.LZ4,
