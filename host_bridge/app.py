@@ -252,6 +252,11 @@ def run(
             robots=options.robots))
         outputs.recorder = recorder
         dispatcher.taps.append(recorder)
+    viewer = sink.shared_viewer()
+    if options.bag is None and viewer is not None:
+        from host_bridge.offload import HeavyProcess
+
+        dispatcher.offload = HeavyProcess(dispatcher, viewer, sink.recording_id)
     if options.urdf is not None:
         log_urdf_file(options.robot, options.urdf, dispatcher)
     progress = None

@@ -13,9 +13,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -60,6 +60,14 @@ Tap = Callable[[Sequence[RawMessage]], None]
 TopicListener = Callable[[str, str, str, str], None]
 
 
+class Offload(Protocol):
+    """Converts some topics' runs elsewhere, counting them in their counters (offload.py)."""
+
+    def takes(self, raw: RawMessage) -> bool: ...
+    def convert(self, run: Sequence[RawMessage], topic: TopicSettings, counters: TopicCounters) -> None: ...
+    def close(self) -> None: ...
+
+
 @dataclass(slots=True)
 class TopicCounters:
     msgtype: str
@@ -75,7 +83,10 @@ class TopicCounters:
 
 
 @dataclass(frozen=True, slots=True)
-class _Topic:
+class TopicSettings:
+    """How a topic is converted, from the host configuration: where it is logged, its options'
+    state, whether it is converted at all, and whether ros_time is its arrival time."""
+
     entity_path: str
     state: TopicState
     enabled: bool = True
@@ -171,13 +182,15 @@ class Dispatcher:
         self.config = config or HostConfig.builtin(self.registry.types())
         self.strict = strict
         self.counters: dict[tuple[str, str], TopicCounters] = {}
-        self._topics: dict[tuple[str, str], _Topic] = {}
+        self._topics: dict[tuple[str, str], TopicSettings] = {}
         # Finds mesh files for every robot (each robot's own relay for what is missing here).
         self._resolver = resolver or ResourceResolver.from_env()
         self._robots: dict[str, _Robot] = {}
         self._robots_lock = threading.Lock()
         self._warned: set[tuple[str, str, str]] = set()
         self._slow = _SlowWorker(self, self.registry.slow_converters())
+        self.offload: Offload | None = None
+        """Where heavy topics are converted when not here (offload.py's process)."""
 
     def _robot(self, robot: str) -> _Robot:
         # The slow converters' thread logs for robots too.
@@ -212,12 +225,23 @@ class Dispatcher:
                 return
         self.sink.log(entries, times)
 
-    def _topic(self, robot: str, name: str, msgtype: str) -> _Topic:
+    def log_frames(
+        self, robot: str, relations: Iterable[tuple[str, str]], frames: Iterable[str]
+    ) -> None:
+        """Note the frames that ``robot``'s entries logged elsewhere named (offload.py), and log
+        the placements and target they call for."""
+        known = self._robot(robot)
+        with known.placing:
+            updates = known.frames.note(relations, frames, known.state)
+            if updates:
+                self.sink.log(updates, {})
+
+    def _topic(self, robot: str, name: str, msgtype: str) -> TopicSettings:
         key = (robot, name)
         topic = self._topics.get(key)
         if topic is None:
             settings = self.config.resolve(robot, name, msgtype)
-            topic = _Topic(
+            topic = TopicSettings(
                 settings.entity_path, TopicState(settings.options), settings.enabled, settings.restamp
             )
             self._topics[key] = topic
@@ -316,6 +340,14 @@ class Dispatcher:
         if not topic.enabled:
             counters.skipped += len(run)
             return
+        if self.offload is not None and self.offload.takes(first):
+            self.offload.convert(run, topic, counters)
+            return
+        self.convert_run(run, topic, counters)
+
+    def convert_run(self, run: Sequence[RawMessage], topic: TopicSettings, counters: TopicCounters) -> None:
+        """Decode, convert and log a run of one enabled topic, counted in ``counters``."""
+        first = run[0]
         spec = self.registry.get(first.msgtype, first.topic)
         if spec.convert_columns is not None and self._convert_columns(run, topic, spec, counters):
             return
@@ -344,7 +376,7 @@ class Dispatcher:
             self._convert(decoded)
 
     def _convert_columns(
-        self, run: Sequence[RawMessage], topic: _Topic, spec: ConverterSpec, counters: TopicCounters
+        self, run: Sequence[RawMessage], topic: TopicSettings, spec: ConverterSpec, counters: TopicCounters
     ) -> bool:
         """Convert the run through its columns, no Python per message; False when the run needs
         the message path: columns refuse it (a payload rosbags would refuse: that path names it
@@ -455,8 +487,10 @@ class Dispatcher:
             self._slow.submit(msgtype, *accepted)
 
     def close(self, timeout: float = 30.0) -> None:
-        """Let the slow worker finish what it holds (a saved .rrd then has the walls), and name
-        the frames no transform ever placed."""
+        """Let the slow worker and the heavy topics' process finish what they hold (a saved .rrd
+        then has the walls), and name the frames no transform ever placed."""
+        if self.offload is not None:
+            self.offload.close()
         self._slow.close(timeout)
         with self._robots_lock:
             robots = sorted(self._robots.items())

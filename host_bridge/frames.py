@@ -221,7 +221,14 @@ class RobotFrames:
     def observe(self, entries: Sequence[LogEntry], robot_state: RobotState) -> list[LogItem]:
         """Take note of the frames ``entries`` log; the items to log next: placements of frames
         that have no parent, and the view's target frame when it changed."""
-        relations, frames = frames_logged(entries)
+        return self.note(*frames_logged(entries), robot_state)
+
+    def note(
+        self, relations: Iterable[tuple[str, str]], frames: Iterable[str], robot_state: RobotState
+    ) -> list[LogItem]:
+        """:meth:`observe` of what :func:`frames_logged` found in entries logged elsewhere (the
+        heavy topics' process, offload.py)."""
+        relations, frames = list(relations), list(frames)
         model = robot_state.model
         with self._lock:
             known = len(self._named), len(self._parents)

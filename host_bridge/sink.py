@@ -311,6 +311,8 @@ class RerunSink:
         self.web_url: str | None = None
         self.web_note: str | None = None
         self._viewers: list[ViewerAddress] = []
+        self._viewer_urls: list[str] = []
+        self._own_destination = options.save is not None or options.serve_web
         self._save = options.save
         self.abandoned = False
         self._open(options)
@@ -354,6 +356,7 @@ class RerunSink:
             msg = f"--rerun-addr {url}: {err}"
             raise SinkError(msg) from err
         self._viewers.append(address)
+        self._viewer_urls.append(url)
         return sink
 
     def _spawn(self) -> rr.GrpcSink:
@@ -389,7 +392,8 @@ class RerunSink:
             )
             raise SinkError(msg)
         self._viewers.append(viewer)
-        return rr.GrpcSink(f"rerun+http://{LOOPBACK}:{VIEWER_PORT}/proxy")
+        self._viewer_urls.append(f"rerun+http://{LOOPBACK}:{VIEWER_PORT}/proxy")
+        return rr.GrpcSink(self._viewer_urls[-1])
 
     def _serve_grpc(self, options: SinkOptions) -> rr.GrpcServerSink:
         port = options.grpc_port or VIEWER_PORT
@@ -425,6 +429,18 @@ class RerunSink:
                 f"0.0.0.0 opens it to the network); Rerun serves the viewer page (code, no data) "
                 f"on port {web_port} of every interface"
             )
+
+    def shared_viewer(self) -> str | None:
+        """The URL of the one destination, when it is a gRPC viewer, where another process can
+        log into this recording (offload.py); None when a destination is this process's own
+        (a --save file, the --serve-web server) or there are several."""
+        if self._own_destination or len(self._viewer_urls) != 1:
+            return None
+        return self._viewer_urls[0]
+
+    @property
+    def recording_id(self) -> str:
+        return str(self.recording.get_recording_id())
 
     def _set_times(self, times: Mapping[str, int]) -> None:
         if times == getattr(self._local, "times", None):

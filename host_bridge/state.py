@@ -60,6 +60,11 @@ class TopicState:
         self._options: dict[type[Any], Any] = {}
         self._records: dict[type[Any], Any] = {}
 
+    @property
+    def values(self) -> Mapping[str, Any]:
+        """The option values as the host configuration gave them."""
+        return self._values
+
     def options(self, kind: type[Options], topic: str) -> Options:
         found = self._options.get(kind)
         if found is None:

@@ -1,0 +1,168 @@
+"""Heavy topics converted in a process of their own (host_bridge/offload.py), logging into the
+host's recording at a real Rerun viewer (the ``rerun`` binary saving what it receives)."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import subprocess
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rerun.chunk import RrdReader
+from rosbags.typesys import Stores, get_typestore
+
+from host_bridge.destinations import SinkOptions
+from host_bridge.dispatch import Dispatcher
+from host_bridge.offload import HeavyProcess
+from host_bridge.sink import RerunSink
+from robot_relay.wire import RawMessage
+from tests.host_bridge.test_dispatch import grid_cdr
+from tests.integration.procs import free_port, rerun_binary, running, wait_listening
+from tests.rrd import entity_rows
+
+STORE = get_typestore(Stores.ROS2_HUMBLE)
+T = STORE.types
+ROBOT = "r"
+CLOUD = "sensor_msgs/msg/PointCloud2"
+GRID = "nav_msgs/msg/OccupancyGrid"
+STARTUP_S = 60.0
+
+
+def cloud_cdr(points: np.ndarray, frame: str) -> bytes:
+    """An x, y, z float32 PointCloud2 of ``points`` in ``frame``, stamped 2 s."""
+    fields = [T["sensor_msgs/msg/PointField"](name=n, offset=4 * i, datatype=7, count=1)
+              for i, n in enumerate("xyz")]
+    header = T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=2, nanosec=0), frame_id=frame)
+    data = np.ascontiguousarray(points, np.float32).view(np.uint8).ravel()
+    cloud = T[CLOUD](header=header, height=1, width=len(points), fields=fields,
+                     is_bigendian=False, point_step=12, row_step=12 * len(points), data=data,
+                     is_dense=True)
+    return bytes(STORE.serialize_cdr(cloud, CLOUD))
+
+
+def string_cdr(text: str) -> bytes:
+    return bytes(STORE.serialize_cdr(T["std_msgs/msg/String"](data=text), "std_msgs/msg/String"))
+
+
+@contextmanager
+def viewer_saving(received: Path) -> Iterator[str]:
+    """A Rerun viewer without a window that saves what it receives to ``received`` once it gets
+    SIGINT (on leaving): its URL."""
+    port = free_port()
+    with running([str(rerun_binary()), "--port", str(port), "--save", str(received)]) as viewer:
+        wait_listening(port, STARTUP_S, "the viewer")
+        yield f"rerun+http://127.0.0.1:{port}/proxy"
+        viewer.send_signal(signal.SIGINT)
+        try:
+            viewer.wait(30)
+        except subprocess.TimeoutExpired:
+            viewer.kill()
+
+
+@pytest.fixture
+def points() -> np.ndarray:
+    return np.arange(300, dtype=np.float32).reshape(100, 3) / 7
+
+
+def test_heavy_runs_are_converted_in_another_process_into_the_same_recording(
+    tmp_path: Path, points: np.ndarray
+) -> None:
+    received = tmp_path / "viewer.rrd"
+    cells = np.zeros((40, 60), np.int8)
+    cells[10, 5:50] = 100
+    with viewer_saving(received) as url:
+        sink = RerunSink(SinkOptions(connect=url))
+        assert sink.shared_viewer() == url
+        dispatcher = Dispatcher(sink, strict=True)
+        offload = dispatcher.offload = HeavyProcess(dispatcher, url, sink.recording_id)
+        dispatcher.take([
+            RawMessage(ROBOT, "/points", CLOUD, cloud_cdr(points, "camera"), receive_ns=5),
+            RawMessage(ROBOT, "/map", GRID, grid_cdr(cells, 0.05), receive_ns=6),
+            RawMessage(ROBOT, "/mode", "std_msgs/msg/String", string_cdr("auto"), receive_ns=7),
+        ])
+        assert offload.takes(RawMessage(ROBOT, "/points", CLOUD, b""))
+        dispatcher.close()
+        sink.close()
+    counters = {topic: (c.received, c.converted, c.dropped)
+                for (_, topic), c in dispatcher.counters.items()}
+    assert counters == {"/points": (1, 1, 0), "/map": (1, 1, 0), "/mode": (1, 1, 0)}
+    assert dispatcher.counters[(ROBOT, "/points")].convert_seconds > 0
+    # Converted in the other process: the grid its update topic would patch is kept there.
+    assert dispatcher.robot_state(ROBOT).grids == {}
+    # One recording: the host's and the child's rows under the host's recording id.
+    assert [r.recording_id for r in RrdReader(received).recordings()] == [sink.recording_id]
+    rows = entity_rows(received)
+    cloud = [r for r in rows["/r/points"] if r.get("Points3D:positions")]
+    assert len(cloud) == 1
+    np.testing.assert_array_equal(np.array(cloud[0]["Points3D:positions"], np.float32), points)
+    assert cloud[0]["receive_time"] == 5
+    assert rows["/r/mode"][0]["TextLog:text"] == ["auto"]
+    (grid,) = rows["/r/map"]
+    assert grid["GridMap:cell_size"] == [pytest.approx(0.05)]
+    assert grid["receive_time"] == 6
+    # The slow converters run in the child too: the wall along row 10, 45 cells long.
+    (walls,) = rows["/r/map/walls"]
+    vertices = np.array(walls["Mesh3D:vertex_positions"])
+    assert np.ptp(vertices[:, 0]) == pytest.approx(45 * 0.05, abs=0.06)
+    # The frames named in the child are placed at the robot's root by the host, and the map
+    # frame is the 3D view's target.
+    placements = {(r["Transform3D:child_frame"][0], r["Transform3D:parent_frame"][0])
+                  for entity in rows.values() for r in entity
+                  if r["static"] and r.get("Transform3D:child_frame")}
+    assert placements == {("r/camera", "tf#/r"), ("r/map", "tf#/r")}
+    assert rows["/r"][-1]["CoordinateFrame:frame"] == ["r/map"]
+
+
+def test_a_bad_heavy_payload_is_counted_and_warned_by_the_child(
+    tmp_path: Path, points: np.ndarray
+) -> None:
+    with viewer_saving(tmp_path / "viewer.rrd") as url:
+        sink = RerunSink(SinkOptions(connect=url))
+        dispatcher = Dispatcher(sink)
+        dispatcher.offload = HeavyProcess(dispatcher, url, sink.recording_id)
+        good = cloud_cdr(points, "camera")
+        dispatcher.take([
+            RawMessage(ROBOT, "/points", CLOUD, good[:40], receive_ns=1),
+            RawMessage(ROBOT, "/points", CLOUD, good, receive_ns=2),
+        ])
+        dispatcher.close()
+        sink.close()
+    counters = dispatcher.counters[(ROBOT, "/points")]
+    assert (counters.received, counters.converted, counters.dropped, counters.warnings) == (2, 1, 1, 1)
+
+
+def test_heavy_topics_are_converted_here_once_the_child_is_gone(
+    tmp_path: Path, points: np.ndarray, caplog: pytest.LogCaptureFixture
+) -> None:
+    with viewer_saving(tmp_path / "viewer.rrd") as url:
+        sink = RerunSink(SinkOptions(connect=url))
+        dispatcher = Dispatcher(sink, strict=True)
+        offload = dispatcher.offload = HeavyProcess(dispatcher, url, sink.recording_id)
+        cloud = RawMessage(ROBOT, "/points", CLOUD, cloud_cdr(points, "camera"), receive_ns=1)
+        dispatcher.take([cloud])
+        offload._process.kill()
+        with caplog.at_level(logging.WARNING):
+            dispatcher.take([cloud, cloud])
+        assert not offload.takes(cloud)
+        dispatcher.take([cloud])
+        dispatcher.close()
+        sink.close()
+    counters = dispatcher.counters[(ROBOT, "/points")]
+    assert (counters.received, counters.converted, counters.dropped) == (4, 4, 0)
+    assert dispatcher.robot_state(ROBOT).grids == {}
+    warned = [r.getMessage() for r in caplog.records if "converter process" in r.getMessage()]
+    assert len(warned) == 1
+    assert "/points" in warned[0]
+    assert "exited (code -9)" in warned[0] or "stopped answering" in warned[0]
+
+
+def test_only_a_viewer_of_its_own_is_shared_with_another_process(tmp_path: Path) -> None:
+    """A --save file (and the --serve-web server) belong to the host's process."""
+    sink = RerunSink(SinkOptions(save=tmp_path / "out.rrd"))
+    assert sink.shared_viewer() is None
+    sink.close()
