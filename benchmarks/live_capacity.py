@@ -48,8 +48,8 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Sequence
-from contextlib import ExitStack
+from collections.abc import Iterator, Sequence
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -73,11 +73,18 @@ from host_bridge.destinations import SinkOptions  # noqa: E402
 from host_bridge.dispatch import Dispatcher  # noqa: E402
 from host_bridge.inputs.base import InputItem, MessageRun  # noqa: E402
 from host_bridge.inputs.live import LiveInput  # noqa: E402
+from host_bridge.offload import HeavyProcess  # noqa: E402
 from host_bridge.registry import default_registry  # noqa: E402
 from host_bridge.sink import RerunSink  # noqa: E402
 from robot_relay.session import ZenohOptions  # noqa: E402
 from robot_relay.wire import RawMessage  # noqa: E402
-from tests.integration.procs import free_port, listening  # noqa: E402
+from tests.integration.procs import (  # noqa: E402
+    free_port,
+    listening,
+    rerun_binary,
+    running,
+    wait_listening,
+)
 
 # python -m benchmarks gives each script this many seconds at most.
 BUDGET_SECONDS = 120
@@ -142,12 +149,26 @@ def received_ns(run: Sequence[InputItem]) -> npt.NDArray[np.int64]:
     return np.concatenate(times)
 
 
-def host_pipeline(closing: ExitStack) -> tuple[Dispatcher, TimedDelivery]:
-    sink = RerunSink(SinkOptions(save=Path("/dev/null")))
+def host_pipeline(closing: ExitStack, viewer: str | None = None) -> tuple[Dispatcher, TimedDelivery]:
+    """The host's dispatcher and a Rerun sink saving to /dev/null; with ``viewer``, logging to
+    that viewer instead, heavy topics converted in a process of their own as ``swanky-host
+    --rerun-addr`` does (host_bridge/offload.py)."""
+    sink = RerunSink(SinkOptions(save=Path("/dev/null")) if viewer is None else SinkOptions(connect=viewer))
     closing.callback(sink.close)
     dispatcher = Dispatcher(sink, registry=default_registry())
     closing.callback(dispatcher.close)
+    if viewer is not None:
+        dispatcher.offload = HeavyProcess(dispatcher, viewer, sink.recording_id)
     return dispatcher, TimedDelivery(dispatcher)
+
+
+@contextmanager
+def headless_viewer() -> Iterator[str]:
+    """A Rerun viewer without a window that writes what it receives to /dev/null: its URL."""
+    port = free_port()
+    with running([str(rerun_binary()), "--port", str(port), "--save", "/dev/null"]):
+        wait_listening(port, START_TIMEOUT_S, "the Rerun viewer")
+        yield f"rerun+http://127.0.0.1:{port}/proxy"
 
 
 def converted(dispatcher: Dispatcher) -> int:
@@ -283,12 +304,13 @@ def percentile(values: list[float], fraction: float) -> float:
     return ordered[min(len(ordered) - 1, int(fraction * len(ordered)))]
 
 
-def latency(mixed_bag: Path, warmup: float, seconds: float) -> None:
+def latency(mixed_bag: Path, warmup: float, seconds: float, viewer: bool) -> None:
     port = free_port()
     relay = start_relay(mixed_bag, port, "--rate", "1", "--loop")
     try:
         with ExitStack() as closing:
-            dispatcher, delivery = host_pipeline(closing)
+            url = closing.enter_context(headless_viewer()) if viewer else None
+            dispatcher, delivery = host_pipeline(closing, url)
             live = open_live(port, dispatcher, closing)
             live.start(delivery)
             deadline = time.monotonic() + START_TIMEOUT_S
@@ -306,8 +328,11 @@ def latency(mixed_bag: Path, warmup: float, seconds: float) -> None:
     finally:
         stop_relay(relay)
     heavy = {"/camera/image_raw", "/points"}
+    host = ("logging to a Rerun viewer (rerun --port N --save /dev/null, no window), heavy topics "
+            "converted in a process of their own" if viewer else
+            "saving to /dev/null (--save), heavy topics converted on a thread of the host's process")
     print(f"mixed load for {seconds:g} s after {warmup:g} s (LaserScan 40 Hz, Imu 200 Hz, TF 100 Hz, "
-          "Image 640x480 rgb8 30 Hz, PointCloud2 300k 10 Hz), relay --rate 1 into the live host:")
+          f"Image 640x480 rgb8 30 Hz, PointCloud2 300k 10 Hz), relay --rate 1 into the live host {host}:")
     print(f"  {'topic':<20}{'msgs':>6}  publish->converted p50/p99 ms  publish->pipeline p50/p99 ms"
           "  replaced while behind")
     for topic in sorted(by_topic, key=lambda t: (t in heavy, t)):
@@ -318,9 +343,10 @@ def latency(mixed_bag: Path, warmup: float, seconds: float) -> None:
     small = [ms for topic, (done, _) in by_topic.items() if topic not in heavy for ms in done]
     p50, p99 = percentile(small, 0.5), percentile(small, 0.99)
     met = p50 <= P50_TARGET_MS and p99 <= P99_TARGET_MS
+    verdict = (f"targets p50 <= {P50_TARGET_MS:g}, p99 <= {P99_TARGET_MS:g}: "
+               + ("met" if met else "MISSED") if viewer else "for comparison")
     print(f"small topics (scan, imu, tf), publish -> converted: p50 {p50:.2f} ms, p99 {p99:.2f} ms "
-          f"(targets p50 <= {P50_TARGET_MS:g}, p99 <= {P99_TARGET_MS:g}: {'met' if met else 'MISSED'})",
-          flush=True)
+          f"({verdict})", flush=True)
 
 
 def main() -> int:
@@ -331,6 +357,8 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=15.0, help="mixed load measured this long")
     parser.add_argument("--warmup", type=float, default=3.0, help="mixed load before measuring")
     parser.add_argument("--only", choices=["capacity", "latency"], help="run one part only")
+    parser.add_argument("--viewer-only", action="store_true",
+                        help="latency: only the host logging to a viewer, not also to a file")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="swanky_live_bench_") as tmp:
         if args.only != "latency":
@@ -343,7 +371,9 @@ def main() -> int:
         if args.only != "capacity":
             mixed = Path(tmp) / "mixed"
             write_bag(mixed, mixed_topics(1.0), 10**9)
-            latency(mixed, args.warmup, args.seconds)
+            latency(mixed, args.warmup, args.seconds, viewer=True)
+            if not args.viewer_only:
+                latency(mixed, args.warmup, args.seconds, viewer=False)
     return 0
 
 
