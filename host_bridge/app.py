@@ -256,7 +256,7 @@ def run(
     if options.bag is None and viewer is not None:
         from host_bridge.offload import HeavyProcess
 
-        dispatcher.offload = HeavyProcess(dispatcher, viewer, sink.recording_id)
+        dispatcher.offload = HeavyProcess(dispatcher, viewer, sink.recording_id, give_up)
     if options.urdf is not None:
         log_urdf_file(options.robot, options.urdf, dispatcher)
     progress = None

@@ -46,7 +46,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -117,8 +117,15 @@ class HeavyProcess:
     waits for its outcome (on the robot's heavy thread, so that thread's queue goes latest-only
     while the child is busy, as it would converting here)."""
 
-    def __init__(self, dispatcher: Dispatcher, viewer: str, recording_id: str) -> None:
+    def __init__(
+        self, dispatcher: Dispatcher, viewer: str, recording_id: str,
+        give_up: Callable[[], bool] = lambda: False,
+    ) -> None:
+        """``give_up()`` true: the host is stopping, so the child stops waiting for a slow
+        viewer too (it is told so by SIGTERM)."""
         self._dispatcher = dispatcher
+        self._give_up = give_up
+        self._told_to_give_up = False
         self._heavy = HeavyTypes(dispatcher.registry)
         self._patch = HeavyTypes(dispatcher.registry, flag="patch")
         self._lock = threading.Lock()
@@ -128,7 +135,8 @@ class HeavyProcess:
         self._ready = False
         self._sent: set[tuple[str, str]] = set()
         ours, theirs = socket.socketpair()
-        command = [sys.executable, "-c", CHILD_MAIN, str(theirs.fileno()), viewer, recording_id]
+        command = [sys.executable, "-c", CHILD_MAIN, str(theirs.fileno()), viewer, recording_id,
+                   "--log-level", str(log.getEffectiveLevel())]
         if dispatcher.strict:
             command.append("--strict")
         with theirs:
@@ -198,6 +206,9 @@ class HeavyProcess:
         """The child's next message; HostError when it exits or ``timeout`` passes first."""
         deadline = None if timeout is None else time.monotonic() + timeout
         while not self._connection.poll(POLL_S):
+            if self._give_up() and not self._told_to_give_up:
+                self._told_to_give_up = True
+                self._process.terminate()
             code = self._process.poll()
             if code is not None and not self._connection.poll(0):
                 raise HostError(f"exited (code {code})")
@@ -338,17 +349,19 @@ def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool)
 
 
 def main(argv: Iterable[str] | None = None) -> int:
-    """The converter process (``FD VIEWER RECORDING_ID [--strict]``), which only
+    """The converter process (``FD VIEWER RECORDING_ID [--strict] [--log-level N]``), which only
     :class:`HeavyProcess` starts."""
     parser = argparse.ArgumentParser(prog="swanky-host's heavy topics' converter process")
     parser.add_argument("fd", type=int)
     parser.add_argument("viewer")
     parser.add_argument("recording_id")
     parser.add_argument("--strict", action="store_true")
+    parser.add_argument("--log-level", type=int, default=logging.INFO)
     args = parser.parse_args(None if argv is None else list(argv))
     # Ctrl-C reaches the whole process group: the host closes this process in its own order.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    logging.basicConfig(level=logging.WARNING, format="swanky-host: %(message)s")
+    # Its lines on the host's stderr read as the host's own (cli.py).
+    logging.basicConfig(level=args.log_level, format="%(name)s: %(levelname)s: %(message)s")
     if sys.platform == "linux":
         # Like the heavy threads of inputs/queues.py: the host's small topics get a core first.
         os.nice(HEAVY_NICENESS)
