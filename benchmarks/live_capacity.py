@@ -156,9 +156,10 @@ def host_pipeline(closing: ExitStack, viewer: str | None = None) -> tuple[Dispat
     sink = RerunSink(SinkOptions(save=Path("/dev/null")) if viewer is None else SinkOptions(connect=viewer))
     closing.callback(sink.close)
     dispatcher = Dispatcher(sink, registry=default_registry())
-    closing.callback(dispatcher.close)
     if viewer is not None:
-        dispatcher.offload = HeavyProcess(dispatcher, viewer, sink.recording_id)
+        offload = dispatcher.offload = HeavyProcess(dispatcher, viewer, sink.recording_id)
+        closing.callback(offload.finish)
+    closing.callback(dispatcher.close)
     return dispatcher, TimedDelivery(dispatcher)
 
 

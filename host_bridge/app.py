@@ -34,6 +34,7 @@ from robot_relay.wire import check_robot_name
 
 if TYPE_CHECKING:
     from host_bridge.demo.run import DemoPlan
+    from host_bridge.offload import HeavyProcess
 
 log = logging.getLogger("swanky.host")
 
@@ -76,6 +77,7 @@ class Outputs:
     sink: RerunSink | None = None
     layout: BlueprintFollower | None = None
     recorder: RawOutput | None = None
+    offload: HeavyProcess | None = None
 
     def close(self) -> bool:
         """Close everything; False (and said why on stderr) when a viewer missed data."""
@@ -85,12 +87,17 @@ class Outputs:
             self.layout.close()
         if self.sink is None:
             return True
+        problems = []
         try:
             self.sink.close()
         except SinkError as err:
-            print(f"swanky-host: error: {err}", file=sys.stderr)
-            return False
-        return True
+            problems.append(str(err))
+        # The heavy topics' process closes its own sink meanwhile (offload.py).
+        if self.offload is not None and (problem := self.offload.finish()) is not None:
+            problems.append(problem)
+        for problem in problems:
+            print(f"swanky-host: error: {problem}", file=sys.stderr)
+        return not problems
 
 
 def resolver(package_path: tuple[str, ...], robot_fetch: RobotFetch | None = None) -> ResourceResolver:
@@ -256,7 +263,8 @@ def run(
     if options.bag is None and viewer is not None:
         from host_bridge.offload import HeavyProcess
 
-        dispatcher.offload = HeavyProcess(dispatcher, viewer, sink.recording_id, give_up)
+        dispatcher.offload = outputs.offload = HeavyProcess(
+            dispatcher, viewer, sink.recording_id, give_up)
     if options.urdf is not None:
         log_urdf_file(options.robot, options.urdf, dispatcher)
     progress = None

@@ -26,8 +26,9 @@ never be written after it, which only the stream that logs /tf can ensure.
 Protocol, over a socket pair with multiprocessing's framing: the child first sends
 ``("ready", None)`` once its sink is open, or ``("failed", why)``. Then per run the host sends a
 :class:`RunHead` and each message's payload as bytes (no pickling of the data); the child
-answers one :class:`Outcome`. ``None`` asks the child to finish; it answers a last Outcome (the
-frames its slow converters named since) and exits.
+answers one :class:`Outcome`. ``None`` asks the child to finish: it answers a last Outcome (the
+frames its slow converters named since), closes its sink while the host closes its own, and
+says ``("closed", None)``, or why the viewer may lack some of its data.
 
 Failure: a child that cannot start, dies or stops answering is warned about once, naming why;
 the run in hand and every later heavy run are converted here, so nothing is lost but the
@@ -69,9 +70,10 @@ POLL_S = 0.5
 CHILD_MAIN = "import sys; from host_bridge.offload import main; sys.exit(main(sys.argv[1:]))"
 """The child's program: :func:`main` of this module by its name (as ``__main__`` the records it
 sends back would be unpickled as the host's ``__main__``'s)."""
-CLOSE_TIMEOUT_S = 10.0
-"""How long the child may take to log what it holds and close its sink (RerunSink waits up to
-6 s for a viewer that stopped answering), before it is asked to give up, then killed."""
+CLOSE_TIMEOUT_S = 15.0
+"""How long the child may take to log what it holds, and then to close its sink (RerunSink
+gives a viewer that stopped answering about 9 s: a probe, then 6 s to disconnect), before it is
+killed."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -229,29 +231,40 @@ class HeavyProcess:
                 robot, outcome.relations.get(robot, ()), outcome.frames.get(robot, ()))
 
     def close(self) -> None:
-        """Let the child log what it holds and close its sink; the frames it named last are
-        noted here."""
+        """Let the child convert and log what it holds; the frames it named last are noted
+        here. It then closes its sink while the host closes its own: :meth:`finish`."""
         with self._lock:
-            if self._problem is None and self._ready:
-                try:
-                    self._connection.send(None)
-                    last = self._receive(CLOSE_TIMEOUT_S)
-                except (OSError, EOFError, HostError) as err:
-                    log.warning("the heavy topics' converter process did not close: %s", err)
-                else:
-                    self._note_frames(last)
-            self._connection.close()
-            self._end_child()
-
-    def _end_child(self) -> None:
-        for ask in (None, self._process.terminate, self._process.kill):
-            if ask is not None:
-                ask()
-            try:
-                self._process.wait(CLOSE_TIMEOUT_S)
+            if self._problem is not None:
                 return
-            except subprocess.TimeoutExpired:
-                continue
+            try:
+                if not self._ready:
+                    self._await_ready()
+                self._connection.send(None)
+                last = self._receive(CLOSE_TIMEOUT_S)
+            except (OSError, EOFError, HostError) as err:
+                self._stop_child(f"did not close ({err})")
+                return
+            self._problem = "closed"
+        self._note_frames(last)
+
+    def finish(self) -> str | None:
+        """Once :meth:`close` returned: wait for the child to close its sink and end (killed
+        after ``CLOSE_TIMEOUT_S``); why the viewer may lack some of its data, None if not."""
+        why: str | None = None
+        if self._problem is None:  # not closed: the host is ending on an error
+            self._stop_child("stopped with the host")
+        if not self._connection.closed:
+            try:
+                _, why = self._receive(CLOSE_TIMEOUT_S)
+            except (OSError, EOFError, HostError) as err:
+                why = f"the heavy topics' converter process did not close its viewer ({err})"
+            self._connection.close()
+        try:
+            self._process.wait(CLOSE_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+            self._process.wait()
+        return why
 
 
 # -- the child ------------------------------------------------------------------------------
@@ -338,13 +351,18 @@ def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool)
         outcome.warnings, outcome.seconds = counters.warnings, counters.convert_seconds
         connection.send(notes.take(outcome))
     converter.close()
-    with contextlib.suppress(OSError):  # the host is gone
-        connection.send(notes.take(Outcome()))
     try:
+        connection.send(notes.take(Outcome()))
         sink.close()
+    except OSError:
+        return 1  # the host is gone
     except SinkError as err:
-        log.warning("heavy topics' converter process: %s", err)
+        with contextlib.suppress(OSError):
+            connection.send(("closed", f"heavy topics: {err}"))
+        if sink.abandoned:
+            os._exit(1)  # Rerun's exit handler would wait for the viewer too (sink.py)
         return 1
+    connection.send(("closed", None))
     return 0
 
 

@@ -88,6 +88,7 @@ def test_heavy_runs_are_converted_in_another_process_into_the_same_recording(
         assert offload.takes(RawMessage(ROBOT, "/points", CLOUD, b""))
         dispatcher.close()
         sink.close()
+        assert offload.finish() is None
     counters = {topic: (c.received, c.converted, c.dropped)
                 for (_, topic), c in dispatcher.counters.items()}
     assert counters == {"/points": (1, 1, 0), "/map": (1, 1, 0), "/mode": (1, 1, 0)}
@@ -124,7 +125,7 @@ def test_a_bad_heavy_payload_is_counted_and_warned_by_the_child(
     with viewer_saving(tmp_path / "viewer.rrd") as url:
         sink = RerunSink(SinkOptions(connect=url))
         dispatcher = Dispatcher(sink)
-        dispatcher.offload = HeavyProcess(dispatcher, url, sink.recording_id)
+        offload = dispatcher.offload = HeavyProcess(dispatcher, url, sink.recording_id)
         good = cloud_cdr(points, "camera")
         dispatcher.take([
             RawMessage(ROBOT, "/points", CLOUD, good[:40], receive_ns=1),
@@ -132,6 +133,7 @@ def test_a_bad_heavy_payload_is_counted_and_warned_by_the_child(
         ])
         dispatcher.close()
         sink.close()
+        assert offload.finish() is None
     counters = dispatcher.counters[(ROBOT, "/points")]
     assert (counters.received, counters.converted, counters.dropped, counters.warnings) == (2, 1, 1, 1)
 
@@ -152,6 +154,7 @@ def test_heavy_topics_are_converted_here_once_the_child_is_gone(
         dispatcher.take([cloud])
         dispatcher.close()
         sink.close()
+        assert offload.finish() is None
     counters = dispatcher.counters[(ROBOT, "/points")]
     assert (counters.received, counters.converted, counters.dropped) == (4, 4, 0)
     assert dispatcher.robot_state(ROBOT).grids == {}

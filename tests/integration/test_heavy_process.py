@@ -1,0 +1,89 @@
+"""``swanky-host --rerun-addr`` (a viewer its one destination) converts heavy topics in a second
+process (host_bridge/offload.py): the viewer gets one recording with every message the host's
+summary says it converted, heavy and small alike, and the second process ends with the host."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+from rerun.chunk import RrdReader
+
+from host_bridge.offload import CHILD_MAIN
+from host_bridge.sink import DISCONNECT_TIMEOUT_S
+from tests.integration.procs import (
+    command,
+    free_port,
+    headless_viewer,
+    rerun_binary,
+    running,
+    wait_listening,
+)
+from tests.integration.test_host_stop import STARTUP_S, STOP_WITHIN_S, converted, started, stop_and_wait
+from tests.rrd import entity_rows
+
+pytestmark = [pytest.mark.integration, pytest.mark.filterwarnings("ignore:RRD file has no footer")]
+
+HEAVY = ("/camera/image_raw", "/camera/depth/image_raw", "/camera/depth/points")
+SMALL = ("/scan", "/odom")
+
+
+def converter_processes(host: int) -> list[int]:
+    """The host's children running the heavy topics' converter."""
+    found = subprocess.run(["ps", "-ww", "-o", "pid=,args=", "--ppid", str(host)],
+                           capture_output=True, text=True, check=False).stdout
+    return [int(line.split()[0]) for line in found.splitlines() if CHILD_MAIN in line]
+
+
+def test_demo_to_a_viewer_converts_heavy_topics_in_a_second_process(tmp_path: Path) -> None:
+    received = tmp_path / "viewer.rrd"
+    port = free_port()
+    with running([str(rerun_binary()), "--port", str(port), "--save", str(received)]) as viewer:
+        wait_listening(port, STARTUP_S, "the viewer")
+        url = f"rerun+http://127.0.0.1:{port}/proxy"
+        with started(command("host_bridge.cli", "--demo", "--rerun-addr", url)) as (host, lines):
+            lines.wait_for("robot sim joined", timeout=STARTUP_S)
+            time.sleep(4)  # images, clouds and the map through both processes
+            children = converter_processes(host.pid)
+            took = stop_and_wait(host, signal.SIGTERM)
+        viewer.send_signal(signal.SIGINT)  # it writes what it received
+        viewer.wait(timeout=60)
+    assert (host.returncode, "Traceback" in lines.text) == (0, False), lines.text
+    assert took < STOP_WITHIN_S
+    assert len(children) == 1, lines.text
+    assert subprocess.run(["kill", "-0", str(children[0])], check=False,
+                          capture_output=True).returncode != 0, "the converter outlived the host"
+    (recording,) = RrdReader(received).recordings()
+    assert recording.application_id == "swanky"
+    rows = entity_rows(received)
+    for topic in (*HEAVY, *SMALL):
+        count = converted(lines.text, "sim", topic)
+        assert count > 0, (topic, lines.text)
+        logged = [r for r in rows[f"/sim{topic}"] if not r["static"]]
+        assert len(logged) == count, topic
+    # The map (latched, heavy) and its walls (the converter process's slow worker).
+    assert converted(lines.text, "sim", "/map") >= 1
+    assert any(r.get("Mesh3D:vertex_positions") for r in rows["/sim/map/walls"])
+
+
+def test_a_frozen_viewer_is_left_behind_by_both_processes_within_seconds() -> None:
+    """The host's stop reaches the converter process too: neither waits for ever on a viewer
+    that stopped answering, and they leave it at once, not one after the other."""
+    with headless_viewer() as (url, _, viewer), started(command(
+        "host_bridge.cli", "--demo", "--rerun-addr", url
+    )) as (host, lines):
+        lines.wait_for("robot sim joined", timeout=STARTUP_S)
+        time.sleep(2)
+        (child,) = converter_processes(host.pid)
+        viewer.send_signal(signal.SIGSTOP)
+        time.sleep(1)
+        took = stop_and_wait(host, signal.SIGTERM)
+    assert host.returncode == 1, lines.text
+    assert took < DISCONNECT_TIMEOUT_S + STOP_WITHIN_S, lines.text
+    assert f"swanky-host: error: gave up closing {url}" in lines.text
+    assert "Traceback" not in lines.text
+    assert subprocess.run(["kill", "-0", str(child)], check=False,
+                          capture_output=True).returncode != 0, "the converter outlived the host"
