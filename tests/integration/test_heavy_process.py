@@ -38,6 +38,10 @@ def converter_processes(host: int) -> list[int]:
     return [int(line.split()[0]) for line in found.splitlines() if CHILD_MAIN in line]
 
 
+def alive(pid: int) -> bool:
+    return subprocess.run(["kill", "-0", str(pid)], check=False, capture_output=True).returncode == 0
+
+
 def test_demo_to_a_viewer_converts_heavy_topics_in_a_second_process(tmp_path: Path) -> None:
     received = tmp_path / "viewer.rrd"
     port = free_port()
@@ -54,8 +58,7 @@ def test_demo_to_a_viewer_converts_heavy_topics_in_a_second_process(tmp_path: Pa
     assert (host.returncode, "Traceback" in lines.text) == (0, False), lines.text
     assert took < STOP_WITHIN_S
     assert len(children) == 1, lines.text
-    assert subprocess.run(["kill", "-0", str(children[0])], check=False,
-                          capture_output=True).returncode != 0, "the converter outlived the host"
+    assert not alive(children[0]), "the converter outlived the host"
     (recording,) = RrdReader(received).recordings()
     assert recording.application_id == "swanky"
     rows = entity_rows(received)
@@ -85,5 +88,20 @@ def test_a_frozen_viewer_is_left_behind_by_both_processes_within_seconds() -> No
     assert took < DISCONNECT_TIMEOUT_S + STOP_WITHIN_S, lines.text
     assert f"swanky-host: error: gave up closing {url}" in lines.text
     assert "Traceback" not in lines.text
-    assert subprocess.run(["kill", "-0", str(child)], check=False,
-                          capture_output=True).returncode != 0, "the converter outlived the host"
+    assert not alive(child), "the converter outlived the host"
+
+
+def test_the_converter_process_ends_when_the_host_is_killed() -> None:
+    """No orphan: a host gone without a word (SIGKILL) closes the converter's socket."""
+    with headless_viewer() as (url, _, _), started(command(
+        "host_bridge.cli", "--demo", "--rerun-addr", url
+    )) as (host, lines):
+        lines.wait_for("robot sim joined", timeout=STARTUP_S)
+        time.sleep(2)
+        (child,) = converter_processes(host.pid)
+        host.kill()
+        host.wait(timeout=30)
+        deadline = time.monotonic() + STOP_WITHIN_S + DISCONNECT_TIMEOUT_S
+        while alive(child):
+            assert time.monotonic() < deadline, "the converter outlived the host"
+            time.sleep(0.1)
