@@ -242,7 +242,8 @@ def run(
     robot_files = None if options.bag is not None else RobotFiles()
     meshes = resolver(options.package_path, None if robot_files is None else robot_files.fetch)
     # Only a bag's recording ends: a live one would hold a growing footer index (see RerunSink).
-    sink = outputs.sink = RerunSink(options.sink, give_up=give_up, index_footer=options.bag is not None)
+    sink = outputs.sink = RerunSink(options.sink, give_up=give_up, index_footer=options.bag is not None,
+                                    eager_batches=options.bag is not None)
     if sink.web_url:
         print(f"Rerun web viewer: {sink.web_url}", flush=True)
         print(f"swanky-host: {sink.web_note}", file=sys.stderr)
