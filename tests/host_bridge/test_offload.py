@@ -15,9 +15,11 @@ import pytest
 from rerun.chunk import RrdReader
 from rosbags.typesys import Stores, get_typestore
 
+from host_bridge.config import HostConfig
 from host_bridge.destinations import SinkOptions
 from host_bridge.dispatch import Dispatcher
 from host_bridge.offload import HeavyProcess
+from host_bridge.registry import default_registry
 from host_bridge.sink import RerunSink
 from robot_relay.wire import RawMessage
 from tests.host_bridge.test_dispatch import grid_cdr
@@ -30,6 +32,13 @@ ROBOT = "r"
 CLOUD = "sensor_msgs/msg/PointCloud2"
 GRID = "nav_msgs/msg/OccupancyGrid"
 STARTUP_S = 60.0
+CONFIG = """\
+topics:
+  /points:
+    entity_path: /{robot}/lidar{topic}
+    restamp: true
+    options: {radius: 0.03}
+"""
 
 
 def cloud_cdr(points: np.ndarray, frame: str) -> bytes:
@@ -78,7 +87,10 @@ def test_heavy_runs_are_converted_in_another_process_into_the_same_recording(
     with viewer_saving(received) as url:
         sink = RerunSink(SinkOptions(connect=url))
         assert sink.shared_viewer() == url
-        dispatcher = Dispatcher(sink, strict=True)
+        config = tmp_path / "host.yaml"
+        config.write_text(CONFIG)
+        dispatcher = Dispatcher(sink, strict=True,
+                                config=HostConfig.load(config, default_registry().types()))
         offload = dispatcher.offload = HeavyProcess(dispatcher, url, sink.recording_id)
         dispatcher.take([
             RawMessage(ROBOT, "/points", CLOUD, cloud_cdr(points, "camera"), receive_ns=5),
@@ -98,10 +110,11 @@ def test_heavy_runs_are_converted_in_another_process_into_the_same_recording(
     # One recording: the host's and the child's rows under the host's recording id.
     assert [r.recording_id for r in RrdReader(received).recordings()] == [sink.recording_id]
     rows = entity_rows(received)
-    cloud = [r for r in rows["/r/points"] if r.get("Points3D:positions")]
-    assert len(cloud) == 1
-    np.testing.assert_array_equal(np.array(cloud[0]["Points3D:positions"], np.float32), points)
-    assert cloud[0]["receive_time"] == 5
+    # The topic's settings from the host configuration, applied in the other process.
+    (cloud,) = rows["/r/lidar/points"]
+    np.testing.assert_array_equal(np.array(cloud["Points3D:positions"], np.float32), points)
+    assert cloud["Points3D:radii"] == [pytest.approx(0.03)]
+    assert (cloud["receive_time"], cloud["ros_time"]) == (5, 5)  # restamped
     assert rows["/r/mode"][0]["TextLog:text"] == ["auto"]
     (grid,) = rows["/r/map"]
     assert grid["GridMap:cell_size"] == [pytest.approx(0.05)]
