@@ -3,11 +3,13 @@ converted in a process of their own, with its own GIL.
 
 Why: in one process every conversion holds the one GIL for a while, and a small message that
 arrives meanwhile waits for it (to be handed over by Zenoh's thread, then to be converted),
-however low the heavy thread's priority. In the issue's mixed load (benchmarks/live_capacity.py,
-a 300k-point cloud at 10 Hz and 640x480 images at 30 Hz beside scans, IMU and TF) the small
-topics' p99 latency was 9.4-11.6 ms with the heavy topics converted on their thread here, and
-7.9-8.7 ms with the same conversions in another process (alternated 10 s runs of a first
-version of this split); dropping the heavy samples unconverted gave 5.2-6.4 ms.
+however low the heavy thread's priority. In the issue's mixed load (benchmarks/live_capacity.py:
+a 300k-point cloud at 10 Hz and 640x480 images at 30 Hz beside scans, IMU and TF, the host
+logging to a headless ``rerun`` viewer) the small topics' p99 latency was 7.3-9.8 ms in 8 runs
+with this process, 11.3 and 11.9 ms in 2 with the heavy topics converted on their thread here.
+Dropping the heavy samples unconverted gave 5.2-6.4 ms. The heavy topics' own latency grows
+(their payloads cross a socket; a cloud's p50 went from 11-13 to 23-27 ms): they are the ones
+that go latest-only.
 
 When: a live host whose one Rerun destination is a gRPC viewer (``--rerun-addr``, ``--spawn``):
 another process can log into the same recording there (same application and recording id). A
