@@ -7,9 +7,9 @@ however low the heavy thread's priority. In the issue's mixed load (benchmarks/l
 a 300k-point cloud at 10 Hz and 640x480 images at 30 Hz beside scans, IMU and TF, the host
 logging to a headless ``rerun`` viewer) the small topics' p99 latency was 7.3-9.8 ms in 8 runs
 with this process, 11.3 and 11.9 ms in 2 with the heavy topics converted on their thread here.
-Dropping the heavy samples unconverted (saving to /dev/null) gave 5.2-6.4 ms. The heavy topics' own latency grows
-(their payloads cross a socket; a cloud's p50 went from 11-13 to 23-27 ms): they are the ones
-that go latest-only.
+Dropping the heavy samples unconverted (saving to /dev/null) gave 5.2-6.4 ms. The heavy topics'
+own latency grows (their payloads cross a socket; a cloud's p50 went from 11-13 to 23-27 ms):
+they are the ones that go latest-only.
 
 When: a live host whose one Rerun destination is a gRPC viewer (``--rerun-addr``, ``--spawn``):
 another process can log into the same recording there (same application and recording id). A
