@@ -48,8 +48,8 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Sequence
-from contextlib import ExitStack, contextmanager
+from collections.abc import Sequence
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
@@ -78,13 +78,7 @@ from host_bridge.registry import default_registry  # noqa: E402
 from host_bridge.sink import RerunSink  # noqa: E402
 from robot_relay.session import ZenohOptions  # noqa: E402
 from robot_relay.wire import RawMessage  # noqa: E402
-from tests.integration.procs import (  # noqa: E402
-    free_port,
-    listening,
-    rerun_binary,
-    running,
-    wait_listening,
-)
+from tests.integration.procs import free_port, listening, saving_viewer  # noqa: E402
 
 # python -m benchmarks gives each script this many seconds at most.
 BUDGET_SECONDS = 120
@@ -161,15 +155,6 @@ def host_pipeline(closing: ExitStack, viewer: str | None = None) -> tuple[Dispat
         closing.callback(offload.finish)
     closing.callback(dispatcher.close)
     return dispatcher, TimedDelivery(dispatcher)
-
-
-@contextmanager
-def headless_viewer() -> Iterator[str]:
-    """A Rerun viewer without a window that writes what it receives to /dev/null: its URL."""
-    port = free_port()
-    with running([str(rerun_binary()), "--port", str(port), "--save", "/dev/null"]):
-        wait_listening(port, START_TIMEOUT_S, "the Rerun viewer")
-        yield f"rerun+http://127.0.0.1:{port}/proxy"
 
 
 def converted(dispatcher: Dispatcher) -> int:
@@ -310,7 +295,8 @@ def latency(mixed_bag: Path, warmup: float, seconds: float, viewer: bool) -> Non
     relay = start_relay(mixed_bag, port, "--rate", "1", "--loop")
     try:
         with ExitStack() as closing:
-            url = closing.enter_context(headless_viewer()) if viewer else None
+            # A viewer without a window, saving what it receives to /dev/null.
+            url = closing.enter_context(saving_viewer(Path("/dev/null")))[0] if viewer else None
             dispatcher, delivery = host_pipeline(closing, url)
             live = open_live(port, dispatcher, closing)
             live.start(delivery)

@@ -4,10 +4,6 @@ host's recording at a real Rerun viewer (the ``rerun`` binary saving what it rec
 from __future__ import annotations
 
 import logging
-import signal
-import subprocess
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +19,7 @@ from host_bridge.registry import default_registry
 from host_bridge.sink import RerunSink
 from robot_relay.wire import RawMessage
 from tests.host_bridge.test_dispatch import grid_cdr
-from tests.integration.procs import free_port, rerun_binary, running, wait_listening
+from tests.integration.procs import saving_viewer
 from tests.rrd import entity_rows
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
@@ -58,21 +54,6 @@ def string_cdr(text: str) -> bytes:
     return bytes(STORE.serialize_cdr(T["std_msgs/msg/String"](data=text), "std_msgs/msg/String"))
 
 
-@contextmanager
-def viewer_saving(received: Path) -> Iterator[str]:
-    """A Rerun viewer without a window that saves what it receives to ``received`` once it gets
-    SIGINT (on leaving): its URL."""
-    port = free_port()
-    with running([str(rerun_binary()), "--port", str(port), "--save", str(received)]) as viewer:
-        wait_listening(port, STARTUP_S, "the viewer")
-        yield f"rerun+http://127.0.0.1:{port}/proxy"
-        viewer.send_signal(signal.SIGINT)
-        try:
-            viewer.wait(30)
-        except subprocess.TimeoutExpired:
-            viewer.kill()
-
-
 @pytest.fixture
 def points() -> np.ndarray:
     return np.arange(300, dtype=np.float32).reshape(100, 3) / 7
@@ -84,7 +65,7 @@ def test_heavy_runs_are_converted_in_another_process_into_the_same_recording(
     received = tmp_path / "viewer.rrd"
     cells = np.zeros((40, 60), np.int8)
     cells[10, 5:50] = 100
-    with viewer_saving(received) as url:
+    with saving_viewer(received) as (url, _):
         sink = RerunSink(SinkOptions(connect=url))
         assert sink.shared_viewer() == url
         config = tmp_path / "host.yaml"
@@ -135,7 +116,7 @@ def test_heavy_runs_are_converted_in_another_process_into_the_same_recording(
 def test_a_bad_heavy_payload_is_counted_and_warned_by_the_child(
     tmp_path: Path, points: np.ndarray
 ) -> None:
-    with viewer_saving(tmp_path / "viewer.rrd") as url:
+    with saving_viewer(tmp_path / "viewer.rrd") as (url, _):
         sink = RerunSink(SinkOptions(connect=url))
         dispatcher = Dispatcher(sink)
         offload = dispatcher.offload = HeavyProcess(dispatcher, url, sink.recording_id)
@@ -154,7 +135,7 @@ def test_a_bad_heavy_payload_is_counted_and_warned_by_the_child(
 def test_heavy_topics_are_converted_here_once_the_child_is_gone(
     tmp_path: Path, points: np.ndarray, caplog: pytest.LogCaptureFixture
 ) -> None:
-    with viewer_saving(tmp_path / "viewer.rrd") as url:
+    with saving_viewer(tmp_path / "viewer.rrd") as (url, _):
         sink = RerunSink(SinkOptions(connect=url))
         dispatcher = Dispatcher(sink, strict=True)
         offload = dispatcher.offload = HeavyProcess(dispatcher, url, sink.recording_id)

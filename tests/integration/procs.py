@@ -55,6 +55,33 @@ def running(cmd: Sequence[str]) -> Iterator[subprocess.Popen[str]]:
                 proc.wait(timeout=10)
 
 
+@contextmanager
+def saving_viewer(received: Path, startup_s: float = 60.0) -> Iterator[tuple[str, subprocess.Popen[str]]]:
+    """A Rerun viewer without a window (the binary itself, so signals reach the server) that
+    saves what it receives to ``received``: its URL and process. It writes the file when it gets
+    SIGINT, which it gets on leaving if the test has not sent it."""
+    port = free_port()
+    with running([str(rerun_binary()), "--port", str(port), "--save", str(received)]) as viewer:
+        wait_listening(port, startup_s, "the viewer")
+        yield f"rerun+http://127.0.0.1:{port}/proxy", viewer
+        if viewer.poll() is None:
+            viewer.send_signal(signal.SIGINT)
+            viewer.wait(timeout=60)
+
+
+def converter_processes(host: int) -> list[int]:
+    """The children of process ``host`` that convert its heavy topics (host_bridge/offload.py)."""
+    from host_bridge.offload import CHILD_MAIN
+
+    found = subprocess.run(["ps", "-ww", "-o", "pid=,args=", "--ppid", str(host)],
+                           capture_output=True, text=True, check=False).stdout
+    return [int(line.split()[0]) for line in found.splitlines() if CHILD_MAIN in line]
+
+
+def alive(pid: int) -> bool:
+    return subprocess.run(["kill", "-0", str(pid)], check=False, capture_output=True).returncode == 0
+
+
 def listening(port: int) -> bool:
     with socket.socket() as sock:
         return sock.connect_ex(("127.0.0.1", port)) == 0

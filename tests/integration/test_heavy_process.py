@@ -7,21 +7,22 @@ from __future__ import annotations
 import signal
 import subprocess
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
 from rerun.chunk import RrdReader
 
-from host_bridge.offload import CHILD_MAIN
 from host_bridge.sink import DISCONNECT_TIMEOUT_S
 from tests.integration.procs import (
+    alive,
     command,
-    free_port,
+    converter_processes,
     headless_viewer,
-    rerun_binary,
-    running,
-    wait_listening,
+    saving_viewer,
 )
+from tests.integration.robot_bags import Lines
 from tests.integration.test_host_stop import STARTUP_S, STOP_WITHIN_S, converted, started, stop_and_wait
 from tests.rrd import entity_rows
 
@@ -31,34 +32,24 @@ HEAVY = ("/camera/image_raw", "/camera/depth/image_raw", "/camera/depth/points")
 SMALL = ("/scan", "/odom")
 
 
-def converter_processes(host: int) -> list[int]:
-    """The host's children running the heavy topics' converter."""
-    found = subprocess.run(["ps", "-ww", "-o", "pid=,args=", "--ppid", str(host)],
-                           capture_output=True, text=True, check=False).stdout
-    return [int(line.split()[0]) for line in found.splitlines() if CHILD_MAIN in line]
-
-
-def alive(pid: int) -> bool:
-    return subprocess.run(["kill", "-0", str(pid)], check=False, capture_output=True).returncode == 0
+@contextmanager
+def demo_to(url: str) -> Iterator[tuple[subprocess.Popen[str], Lines, int]]:
+    """``swanky-host --demo --rerun-addr url`` once its robot joined and data flowed: the host,
+    its stderr and its converter process."""
+    with started(command("host_bridge.cli", "--demo", "--rerun-addr", url)) as (host, lines):
+        lines.wait_for("robot sim joined", timeout=STARTUP_S)
+        time.sleep(3)  # images, clouds and the map through both processes
+        (child,) = converter_processes(host.pid)
+        yield host, lines, child
 
 
 def test_demo_to_a_viewer_converts_heavy_topics_in_a_second_process(tmp_path: Path) -> None:
     received = tmp_path / "viewer.rrd"
-    port = free_port()
-    with running([str(rerun_binary()), "--port", str(port), "--save", str(received)]) as viewer:
-        wait_listening(port, STARTUP_S, "the viewer")
-        url = f"rerun+http://127.0.0.1:{port}/proxy"
-        with started(command("host_bridge.cli", "--demo", "--rerun-addr", url)) as (host, lines):
-            lines.wait_for("robot sim joined", timeout=STARTUP_S)
-            time.sleep(4)  # images, clouds and the map through both processes
-            children = converter_processes(host.pid)
-            took = stop_and_wait(host, signal.SIGTERM)
-        viewer.send_signal(signal.SIGINT)  # it writes what it received
-        viewer.wait(timeout=60)
+    with saving_viewer(received, STARTUP_S) as (url, _), demo_to(url) as (host, lines, child):
+        took = stop_and_wait(host, signal.SIGTERM)
     assert (host.returncode, "Traceback" in lines.text) == (0, False), lines.text
     assert took < STOP_WITHIN_S
-    assert len(children) == 1, lines.text
-    assert not alive(children[0]), "the converter outlived the host"
+    assert not alive(child), "the converter outlived the host"
     (recording,) = RrdReader(received).recordings()
     assert recording.application_id == "swanky"
     rows = entity_rows(received)
@@ -75,12 +66,7 @@ def test_demo_to_a_viewer_converts_heavy_topics_in_a_second_process(tmp_path: Pa
 def test_a_frozen_viewer_is_left_behind_by_both_processes_within_seconds() -> None:
     """The host's stop reaches the converter process too: neither waits for ever on a viewer
     that stopped answering, and they leave it at once, not one after the other."""
-    with headless_viewer() as (url, _, viewer), started(command(
-        "host_bridge.cli", "--demo", "--rerun-addr", url
-    )) as (host, lines):
-        lines.wait_for("robot sim joined", timeout=STARTUP_S)
-        time.sleep(2)
-        (child,) = converter_processes(host.pid)
+    with headless_viewer() as (url, _, viewer), demo_to(url) as (host, lines, child):
         viewer.send_signal(signal.SIGSTOP)
         time.sleep(1)
         took = stop_and_wait(host, signal.SIGTERM)
@@ -93,12 +79,7 @@ def test_a_frozen_viewer_is_left_behind_by_both_processes_within_seconds() -> No
 
 def test_the_converter_process_ends_when_the_host_is_killed() -> None:
     """No orphan: a host gone without a word (SIGKILL) closes the converter's socket."""
-    with headless_viewer() as (url, _, _), started(command(
-        "host_bridge.cli", "--demo", "--rerun-addr", url
-    )) as (host, lines):
-        lines.wait_for("robot sim joined", timeout=STARTUP_S)
-        time.sleep(2)
-        (child,) = converter_processes(host.pid)
+    with headless_viewer() as (url, _, _), demo_to(url) as (host, _, child):
         host.kill()
         host.wait(timeout=30)
         deadline = time.monotonic() + STOP_WITHIN_S + DISCONNECT_TIMEOUT_S

@@ -1,18 +1,18 @@
 """A viewer slower than the data (issue 14): a relay replays camera images of random noise
 (nothing compresses them) on loopback to a host logging to a ``rerun --serve-grpc`` viewer that
 is frozen (SIGSTOP) for FROZEN_S, then resumes. Rerun's gRPC client alone would buffer all of
-it; the host's pacer (host_bridge.sink._ViewerPacer) holds its robot worker back instead, so its
-memory stays bounded, its queue drops (and counts) the images, and the resumed viewer gets the
-newest ones. The viewer saves what it receives, so the test reads what it got."""
+it; the pacer (host_bridge.sink._ViewerPacer) of the host's converter process, which logs the
+images (host_bridge/offload.py), holds it back instead, and with it the robot's heavy thread that
+waits on it, so both processes' memory stays bounded, the host's queue drops (and counts) the
+images, and the resumed viewer gets the newest ones. The viewer saves what it receives, so the
+test reads what it got."""
 
 from __future__ import annotations
 
 import re
 import signal
-import subprocess
 import time
-from collections.abc import Iterator
-from contextlib import ExitStack, contextmanager
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +23,13 @@ from rosbags.rosbag2 import Writer
 
 from host_bridge.contract import TIMELINE_RECEIVE
 from tests.integration.proc_sampler import Sampler
-from tests.integration.procs import command, free_port, rerun_binary, running, wait_listening
+from tests.integration.procs import (
+    command,
+    converter_processes,
+    free_port,
+    running,
+    saving_viewer,
+)
 from tests.integration.robot_bags import START_NS, STORE, Lines
 from tests.integration.robot_traffic import IMAGE_HZ, IMAGE_PERIOD_NS, QOS, TYPES, image
 from tests.integration.test_bad_links import NO_SHM
@@ -62,16 +68,6 @@ def receive_times(path: Path, entity: str) -> list[int]:
     return times
 
 
-@contextmanager
-def saving_viewer(received: Path) -> Iterator[tuple[str, subprocess.Popen[str]]]:
-    """A Rerun viewer without a window (the binary itself, so signals reach the server) that
-    saves what it receives to ``received`` when it gets SIGINT: its URL and process."""
-    port = free_port()
-    with running([str(rerun_binary()), "--port", str(port), "--save", str(received)]) as viewer:
-        wait_listening(port, STARTUP_S, "the viewer")
-        yield f"rerun+http://127.0.0.1:{port}/proxy", viewer
-
-
 def summary_counts(stderr: str) -> tuple[int, int]:
     """received and converted of the image topic in the host's closing summary table."""
     for line in stderr.splitlines():
@@ -106,7 +102,9 @@ def test_frozen_viewer_keeps_host_memory_bounded_and_gets_the_newest_data_after(
             "robot_relay.cli", "--robot", "cam", "--bag", str(bag), "--loop",
             "-e", f"tcp/127.0.0.1:{port}", *NO_SHM, "--wait-for-host", "60")))
         host_lines.wait_for("robot cam joined", timeout=STARTUP_S)
-        sampler = Sampler(host.pid, period_s=0.1)
+        # The images are converted and logged in the host's converter process (offload.py).
+        (converter,) = converter_processes(host.pid)
+        samplers = [Sampler(pid, period_s=0.1) for pid in (host.pid, converter)]
         time.sleep(3)  # healthy: every frame through to the viewer
         healthy = time.monotonic()
         viewer.send_signal(signal.SIGSTOP)
@@ -115,7 +113,8 @@ def test_frozen_viewer_keeps_host_memory_bounded_and_gets_the_newest_data_after(
         viewer.send_signal(signal.SIGCONT)
         resumed, resumed_ns = time.monotonic(), time.time_ns()
         time.sleep(3)  # the viewer catches up and gets new frames
-        sampler.stop()
+        for sampler in samplers:
+            sampler.stop()
         host.send_signal(signal.SIGTERM)
         code = host.wait(timeout=60)
         stopped = time.monotonic()
@@ -126,9 +125,10 @@ def test_frozen_viewer_keeps_host_memory_bounded_and_gets_the_newest_data_after(
 
     # Memory: a frozen viewer left to Rerun's client would cost the host every frame sent meanwhile.
     data_mb = IMAGE_HZ * FRAME_BYTES * FROZEN_S / 2**20
-    before = sampler.peak_mb(healthy - 3, healthy)
-    during = sampler.peak_mb(frozen, resumed)
-    assert during - before < data_mb / 2, (before, during, data_mb)
+    for sampler in samplers:
+        before = sampler.peak_mb(healthy - 3, healthy)
+        during = sampler.peak_mb(frozen, resumed)
+        assert during - before < data_mb / 2, (sampler.pid, before, during, data_mb)
 
     # Drops: counted in the summary, and said why.
     received, converted = summary_counts(stderr)
