@@ -9,6 +9,7 @@ the dispatcher's taps (``--record-mcap``, ``/_stats``, the bag's progress line).
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import threading
 import time
@@ -261,7 +262,8 @@ def run(
         outputs.recorder = recorder
         dispatcher.taps.append(recorder)
     viewer = sink.shared_viewer()
-    if options.bag is None and viewer is not None:
+    # The converter process gets its end of a socket pair by file descriptor (POSIX).
+    if options.bag is None and viewer is not None and os.name == "posix":
         from host_bridge.offload import HeavyProcess
 
         dispatcher.offload = outputs.offload = HeavyProcess(
