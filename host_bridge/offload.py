@@ -333,12 +333,12 @@ def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool)
     while True:
         try:
             head = connection.recv()
-        except EOFError:
-            head = None  # the host is gone: finish what is held
-        if head is None:
-            break
-        run = [RawMessage(head.robot, head.topic, head.msgtype, connection.recv_bytes(),
-                          head.definition, *times) for times in head.times]
+            if head is None:
+                break
+            run = [RawMessage(head.robot, head.topic, head.msgtype, connection.recv_bytes(),
+                              head.definition, *times) for times in head.times]
+        except (EOFError, OSError):
+            break  # the host is gone: finish what is held
         key = (head.robot, head.topic)
         if head.settings is not None:
             entity_path, options, restamp = head.settings
@@ -351,21 +351,23 @@ def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool)
             outcome.error = f"{type(err).__name__}: {err}"
         outcome.converted, outcome.dropped = counters.converted, counters.dropped
         outcome.warnings, outcome.seconds = counters.warnings, counters.convert_seconds
-        connection.send(notes.take(outcome))
+        try:
+            connection.send(notes.take(outcome))
+        except OSError:
+            break
     converter.close()
-    try:
+    with contextlib.suppress(OSError):  # unless the host is gone
         connection.send(notes.take(Outcome()))
+    problem = None
+    try:
         sink.close()
-    except OSError:
-        return 1  # the host is gone
     except SinkError as err:
-        with contextlib.suppress(OSError):
-            connection.send(("closed", f"heavy topics: {err}"))
-        if sink.abandoned:
-            os._exit(1)  # Rerun's exit handler would wait for the viewer too (sink.py)
-        return 1
-    connection.send(("closed", None))
-    return 0
+        problem = f"heavy topics: {err}"
+    with contextlib.suppress(OSError):
+        connection.send(("closed", problem))
+    if sink.abandoned:
+        os._exit(1)  # Rerun's exit handler would wait for the viewer too (sink.py)
+    return 0 if problem is None else 1
 
 
 def main(argv: Iterable[str] | None = None) -> int:
