@@ -609,8 +609,10 @@ class _Window:
         """The buffer and places of the small payloads at ``starts:ends`` of ``chunk``: the
         decompressed chunk itself when they lie in most of it, else a copy of the bytes they
         lie in when they fill most of those (small messages one after another), else of each."""
+        if not isinstance(chunk.data, bytes):  # the file's map: viewed, never copied
+            return self._keep(chunk.view), starts
         low, high = int(starts.min()), int(ends.max())
-        if isinstance(chunk.data, bytes) and 2 * (high - low) >= len(chunk.data):
+        if 2 * (high - low) >= len(chunk.data):
             return self._keep(chunk.data), starts
         sizes = ends - starts
         if 2 * int(sizes.sum()) >= high - low:
