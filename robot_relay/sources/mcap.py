@@ -564,7 +564,8 @@ def _payloads(
 class _Window:
     """Messages gathered for :meth:`McapFile.windows`, in rosbags' order: their channels, log times
     and payloads as places in the window's buffers (no object per payload). A buffer is a
-    decompressed chunk most of which the window reads, else a copy of the bytes the window reads
+    decompressed chunk most of which the window reads (or the file's map, for an uncompressed
+    chunk), else a copy of the bytes the window reads
     of it (so a run kept for long does not pin a large chunk for a few messages), and large
     payloads are memoryviews of their chunk; chunks may go once their range is added."""
 
@@ -607,7 +608,8 @@ class _Window:
     def _small(self, chunk: _Loaded, starts: npt.NDArray[np.int64],
                ends: npt.NDArray[np.int64]) -> tuple[int, npt.NDArray[np.int64]]:
         """The buffer and places of the small payloads at ``starts:ends`` of ``chunk``: the
-        decompressed chunk itself when they lie in most of it, else a copy of the bytes they
+        file's map for an uncompressed chunk, the decompressed chunk itself when they lie in most
+        of it, else a copy of the bytes they
         lie in when they fill most of those (small messages one after another), else of each."""
         if not isinstance(chunk.data, bytes):  # the file's map: viewed, never copied
             return self._keep(chunk.view), starts
