@@ -563,11 +563,11 @@ def _payloads(
 
 class _Window:
     """Messages gathered for :meth:`McapFile.windows`, in rosbags' order: their channels, log times
-    and payloads as places in the window's buffers (no object per payload). A buffer is a
-    decompressed chunk most of which the window reads (or the file's map, for an uncompressed
-    chunk), else a copy of the bytes the window reads
-    of it (so a run kept for long does not pin a large chunk for a few messages), and large
-    payloads are memoryviews of their chunk; chunks may go once their range is added."""
+    and payloads as places in the window's buffers (no object per payload). A buffer is the
+    file's map (an uncompressed chunk), a decompressed chunk most of which the window reads, else
+    a copy of the bytes the window reads of it (so a run kept for long does not pin a large chunk
+    for a few messages), and large payloads are memoryviews of their chunk; chunks may go once
+    their range is added."""
 
     def __init__(self, channels: Mapping[int, TopicInfo]) -> None:
         self._infos = channels
