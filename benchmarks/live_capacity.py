@@ -29,7 +29,7 @@ message's time is its own run's; a bundle's messages, a MessageRun, each by its 
 time). The host logs to a Rerun viewer without a window (``rerun --port N --save /dev/null``),
 as users run it, with the robot's heavy topics (image, cloud) converted in a process of their own
 (offload.py), so the small topics' figures do not include waiting for them; ``--latency-rounds``
-rounds of it (default 3: a round's p50 moves by 0.3 ms with the machine's other work), the
+rounds of it (default 3: a round's p50 moves by 0.4 ms with the machine's other work), the
 verdict on the medians of the rounds' small-topic p50 and p99. Then, for comparison, one round
 of the host saving to /dev/null, its heavy topics on a thread. Same machine, same clock. Printed
 per round the small topics' p50 and p99 (pooled; targets p50 <= 2 ms, p99 <= 10 ms), and for
@@ -343,7 +343,7 @@ def measure_latency(mixed_bag: Path, warmup: float, seconds: float, viewer: bool
 
 def latency(mixed_bag: Path, warmup: float, seconds: float, viewer: bool, rounds: int) -> None:
     """``rounds`` rounds of the mixed load; the verdict on the medians of their small-topic p50
-    and p99 (a round's figures move by 0.3 ms of p50 with the machine's other work), the table
+    and p99 (a round's p50 moves by 0.4 ms with the machine's other work), the table
     of the round with the median p50."""
     host = ("logging to a Rerun viewer (rerun --port N --save /dev/null, no window), heavy topics "
             "converted in a process of their own" if viewer else
