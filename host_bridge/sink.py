@@ -504,8 +504,8 @@ class RerunSink:
         rows = _rows(columns, count)
         if rows is None:
             return False
-        # Rerun's binding itself: rr.log wraps, checks and unwraps the cells again, which cost a
-        # fifth of a live Imu's or TF's conversion and logging (450 -> 380 us).
+        # Rerun's binding itself: rr.log wraps, checks and unwraps the cells again, a tenth to a
+        # sixth of a live Imu's or TF's conversion and logging (Imu 515 -> 445-478 us, TF 450 -> 383).
         native = self.recording.to_native()
         for row, components in enumerate(rows):
             self._set_times({name: int(values[row]) for name, values in times.items()})
