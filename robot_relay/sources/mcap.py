@@ -609,8 +609,8 @@ class _Window:
                ends: npt.NDArray[np.int64]) -> tuple[int, npt.NDArray[np.int64]]:
         """The buffer and places of the small payloads at ``starts:ends`` of ``chunk``: the
         file's map for an uncompressed chunk, the decompressed chunk itself when they lie in most
-        of it, else a copy of the bytes they
-        lie in when they fill most of those (small messages one after another), else of each."""
+        of it, else a copy of the bytes they lie in when they fill most of those (small messages
+        one after another), else of each."""
         if not isinstance(chunk.data, bytes):  # the file's map: viewed, never copied
             return self._keep(chunk.view), starts
         low, high = int(starts.min()), int(ends.max())
