@@ -1,7 +1,7 @@
 """Host memory over a 10-minute robot replay at 10x speed: does the host's RSS stay flat?
 
 The demo's simulated robot (lidar, RGB-D camera with its cloud, IMU, odometry, TF, joint states,
-a map growing with walls, battery, rosout) is recorded as a rosbag2 of ``--minutes`` (10) with
+ground-truth pose and walls, battery, rosout) is recorded as a rosbag2 of ``--minutes`` (10) with
 the demo's own writer (``host_bridge.demo.bag.write_demo_bag``), then replayed by
 ``swanky-relay --bag --rate 10`` over loopback Zenoh into ``swanky-host --save`` (a real .rrd in
 a temporary directory, deleted afterwards), both with their default settings otherwise.

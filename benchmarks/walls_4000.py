@@ -27,8 +27,7 @@ from rosbags.typesys import Stores, get_typestore
 from host_bridge.contract import ConvertContext
 from host_bridge.converters import walls
 from host_bridge.converters.occupancy import grid_from_msg
-from host_bridge.options import GridOptions
-from host_bridge.segments import (
+from host_bridge.converters.segments import (
     TileCache,
     detect_segments,
     join_corners,
@@ -36,6 +35,7 @@ from host_bridge.segments import (
     occupied_mask,
     segments_to_mesh,
 )
+from host_bridge.options import GridOptions
 from host_bridge.state import RobotState, TopicState
 
 SIZE = 4000
@@ -160,7 +160,7 @@ def main() -> None:
 def step_times(msg: Any, ctx: ConvertContext) -> None:
     """Median time of each step of ``wall_items``, run one after the other on their own."""
     grid = grid_from_msg(msg, ctx)
-    options = walls.WallOptions.from_options(grid.options, grid.resolution, grid.topic)
+    options = walls.WallOptions.from_options(GridOptions(), grid.resolution, grid.topic)
     res = grid.resolution
     settings = options.detector(res)
     mask = occupied_mask(grid.cells, options.occupied_threshold)

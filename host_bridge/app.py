@@ -36,6 +36,7 @@ from robot_relay.wire import check_robot_name
 if TYPE_CHECKING:
     from host_bridge.demo.run import DemoPlan
     from host_bridge.offload import HeavyProcess
+    from host_bridge.slam.feeder import SlamTap
 
 log = logging.getLogger("swanky.host")
 
@@ -69,6 +70,9 @@ class HostOptions:
     config: Path | None = None
     print_config: bool = False
     strict: bool = False
+    slam: bool = False
+    """Host-side SLAM for every robot (the config's slam: block may also turn it on per robot)."""
+    save_map: Path | None = None
 
 
 @dataclass
@@ -79,9 +83,12 @@ class Outputs:
     layout: BlueprintFollower | None = None
     recorder: RawOutput | None = None
     offload: HeavyProcess | None = None
+    slam: SlamTap | None = None
 
     def close(self) -> bool:
         """Close everything; False (and said why on stderr) when a viewer missed data."""
+        if self.slam is not None:  # maps what it holds first: its last map goes to the sink
+            self.slam.close()
         if self.recorder is not None:
             self.recorder.close()
         if self.layout is not None:
@@ -223,8 +230,8 @@ def run(
         return run_list(options.zenoh, options.robots, options.duration, stop)
     registry = default_registry()
     config = (
-        HostConfig.load(options.config, registry.types()) if options.config is not None
-        else HostConfig.builtin(registry.types())
+        HostConfig.load(options.config, registry) if options.config is not None
+        else HostConfig.builtin(registry)
     )
     if options.print_config:
         print(config.dump(), end="")
@@ -242,9 +249,7 @@ def run(
     # Live robots serve the meshes this PC lacks (robot_relay/files.py).
     robot_files = None if options.bag is not None else RobotFiles()
     meshes = resolver(options.package_path, None if robot_files is None else robot_files.fetch)
-    # Only a bag's recording ends: a live one would hold a growing footer index (see RerunSink).
-    sink = outputs.sink = RerunSink(options.sink, give_up=give_up, index_footer=options.bag is not None,
-                                    eager_batches=options.bag is not None)
+    sink = outputs.sink = RerunSink(options.sink, give_up=give_up, eager_batches=options.bag is not None)
     if sink.web_url:
         print(f"Rerun web viewer: {sink.web_url}", flush=True)
         print(f"swanky-host: {sink.web_note}", file=sys.stderr)
@@ -271,11 +276,22 @@ def run(
     if options.urdf is not None:
         log_urdf_file(options.robot, options.urdf, dispatcher)
     progress = None
+    extent = None
     if options.bag is not None:
         from host_bridge.progress import Progress, bag_extent
 
-        progress = Progress(bag_extent(options.bag))
+        extent = bag_extent(options.bag)
+        progress = Progress(extent)
         dispatcher.taps.append(progress)
+    if options.slam or config.slam_configured():
+        from host_bridge.slam.feeder import SlamTap
+
+        outputs.slam = SlamTap(
+            dispatcher, lambda robot: config.slam_settings(robot, options.slam),
+            lossless=options.bag is not None, stop=stop, save_map=options.save_map,
+            bag_types=None if extent is None else extent.types,
+        )
+        dispatcher.taps.append(outputs.slam)
     with ExitStack() as closing:
         source = open_input(
             options, dispatcher, demo=demo, robot_files=robot_files, stop=stop, closing=closing
@@ -286,6 +302,8 @@ def run(
         wait_for_end(source, stop, options.duration if live else None,
                      options.until_idle if live else None, None if live else bag_finished(source))
     source.ended()  # what went wrong while the last items were delivered
+    if outputs.slam is not None:
+        outputs.slam.close()
     if progress is not None:
         progress.finish()
         if options.sink.serve_web and not stop.is_set():

@@ -10,9 +10,10 @@ target frame: the data does (host_bridge/frames.py logs the robot's ``map``, ``o
 root as the frame of ``/<robot>`` and keeps every frame of the robot connected to it), so a saved
 blueprint still fits a robot whose frames differ.
 
-:class:`BlueprintFollower` owns the "when": the dispatcher tells it of each new topic, and it
-rebuilds and re-sends the blueprint when the set of (robot, topic, type) changed, at most once per
-interval, so a robot that joins later or a topic that starts late gets its view.
+:class:`BlueprintFollower` owns the "when": the dispatcher tells it of each new topic (and of a
+topic whose type changed), and it rebuilds and re-sends the blueprint when the set of (robot,
+topic, type) changed, at most once per interval, so a robot that joins later or a topic that
+starts late gets its view.
 """
 
 from __future__ import annotations
@@ -24,12 +25,10 @@ from pathlib import Path
 
 import rerun.blueprint as rrb
 
-from host_bridge.contract import ConvertContext
+from host_bridge.contract import STATS_ROOT, WARNINGS_PATH, ConvertContext
 from host_bridge.converters.camera import pinhole_path
-from host_bridge.dispatch import WARNINGS_PATH
 from host_bridge.errors import ConfigError
 from host_bridge.registry import Registry, View, default_registry
-from host_bridge.stats import STATS_ROOT
 
 TIMER_PREFIX = "/instrumentation/timer/"
 
@@ -231,7 +230,8 @@ class BlueprintFollower:
         self._interval = interval
         self._stats = stats
         self._registry = registry or default_registry()
-        self._topics: set[TopicEntry] = set()
+        # Each topic as its latest type (a topic whose type changed is laid out as the new one).
+        self._topics: dict[tuple[str, str], TopicEntry] = {}
         self._sent: frozenset[TopicEntry] = frozenset()
         self._lock = threading.Lock()
         self._timer: threading.Timer | None = None
@@ -240,9 +240,9 @@ class BlueprintFollower:
     def topic_seen(self, robot: str, topic: str, msgtype: str, entity_path: str) -> None:
         entry = TopicEntry(robot, topic, msgtype, entity_path)
         with self._lock:
-            if entry in self._topics or self._closed:
+            if self._topics.get((robot, topic)) == entry or self._closed:
                 return
-            self._topics.add(entry)
+            self._topics[(robot, topic)] = entry
             if self._timer is None:
                 self._timer = threading.Timer(self._interval, self._fire)
                 self._timer.daemon = True
@@ -254,7 +254,7 @@ class BlueprintFollower:
             self._send_if_changed()
 
     def _send_if_changed(self) -> None:
-        topics = frozenset(self._topics)
+        topics = frozenset(self._topics.values())
         if topics == self._sent:
             return
         self._send(build_blueprint(topics, registry=self._registry, stats=self._stats))

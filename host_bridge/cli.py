@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from host_bridge.destinations import LOOPBACK, SinkOptions
+from host_bridge.destinations import LOOPBACK, SAVE_SPLIT_S, SinkOptions
 from host_bridge.errors import HostError
 from robot_relay.session import add_zenoh_arguments, zenoh_options
 
@@ -77,6 +77,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     out.add_argument("--spawn", action="store_true", help="spawn a Rerun viewer")
     out.add_argument("--save", type=Path, metavar="FILE.rrd", help="write a .rrd file")
     out.add_argument(
+        "--save-split", type=float, default=SAVE_SPLIT_S, metavar="SECONDS",
+        help=f"live: go on in a new --save file every SECONDS (default {SAVE_SPLIT_S:g}): "
+        "FILE.rrd becomes FILE_0.rrd, then FILE_1.rrd, ...; `rerun FILE_*.rrd` opens them as one",
+    )
+    out.add_argument(
         "--serve-web", action="store_true", help="serve the web viewer and print its URL"
     )
     out.add_argument(
@@ -111,6 +116,21 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     layout.add_argument(
         "--blueprint", type=Path, metavar="FILE.rbl",
         help="send this saved Rerun blueprint instead of Swanky's layout",
+    )
+    slam = parser.add_argument_group("mapping (host-side 2D SLAM from /scan and odometry)")
+    slam.add_argument(
+        "--slam", action="store_true",
+        help="build each robot's map on this PC from its LaserScan and odometry (on by default "
+        "with --demo; per-robot settings: the slam: block of --config)",
+    )
+    slam.add_argument(
+        "--no-slam", action="store_true",
+        help="with --demo: show the simulated robot without the host's map",
+    )
+    slam.add_argument(
+        "--save-map", type=Path, metavar="DIR",
+        help="at the end, write DIR/<robot>/map.yaml + map.pgm (nav2 map_saver format) and "
+        "DIR/<robot>/trajectory.tum (implies --slam)",
     )
     stop = parser.add_argument_group("stopping (default: Ctrl-C; bags stop at their end)")
     stop.add_argument(
@@ -157,6 +177,7 @@ def sink_options(args: argparse.Namespace) -> SinkOptions:
         grpc_port=args.grpc_port,
         web_bind=args.web_bind,
         recording_id=args.recording_id,
+        save_split_s=None if args.bag is not None else args.save_split,  # a bag's file ends
     )
     if not options.any:
         options = SinkOptions(spawn=True)
@@ -187,6 +208,8 @@ def host_options(args: argparse.Namespace) -> app.HostOptions:
         config=args.config,
         print_config=args.print_config,
         strict=args.strict,
+        slam=not args.no_slam and (args.slam or args.save_map is not None or args.demo),
+        save_map=args.save_map,
     )
 
 

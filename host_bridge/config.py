@@ -3,7 +3,8 @@ whether it is shown, which alternative converter draws it, the converter's optio
 
 Precedence, lowest to highest, merged key by key (``options`` too, option by option):
 
-1. the built-in defaults of the topic's type (its options record in ``host_bridge/options.py``),
+1. the built-in defaults of the topic's type (the options record of its row in the type table,
+   ``host_bridge/registry.py``),
 2. ``defaults``,
 3. matching ``types`` entries: type globs (``sensor_msgs/msg/*``) least specific first, then
    the exact type name,
@@ -13,26 +14,28 @@ Precedence, lowest to highest, merged key by key (``options`` too, option by opt
    and the exact topic name last.
 
 So an exact topic beats any glob, and a glob beats the type. The schema checks what it can; the
-rest (glob syntax, placeholders, whether a converter or option exists *for this type*) is checked
-here and reads the same ``FILE:LINE: KEY: what`` way. A ``types`` entry naming one type is checked
-when the file loads; a glob meets its types only at run time, so a misfit there is reported once
-(as a warning) and only the misfit key is ignored for that topic.
+rest (glob syntax, placeholders, whether a converter or option exists *for this type*: its row's
+options record says) is checked here and reads the same ``FILE:LINE: KEY: what`` way. A
+``types`` entry naming one type is checked when the file loads; a glob meets its types only at
+run time, so a misfit there is reported once (as a warning) and only the misfit key is ignored
+for that topic.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import fnmatch
 import re
 import string
-from collections.abc import Collection, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
 from host_bridge.errors import ConfigError, relay_errors
-from host_bridge.options import CONVERTER_OPTION, OPTIONS_BY_DEFINITION, fixed_defaults
+from host_bridge.options import CONVERTER_OPTION, converter_choices, fixed_defaults, option_names
 from robot_relay.configfile import (
     ConfigDocument,
     KeyPath,
@@ -42,6 +45,12 @@ from robot_relay.configfile import (
     schema,
     schema_validator,
 )
+
+if TYPE_CHECKING:
+    from jsonschema.protocols import Validator
+
+    from host_bridge.registry import Registry
+    from host_bridge.slam.settings import SlamSettings
 
 SCHEMA_NAME = "host"
 DEFAULT_ENTITY_PATH = "/{robot}{topic}"
@@ -101,14 +110,16 @@ class _TopicKey:
         )
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class _TypeRules:
-    """What one type takes: its alternative converters and options (the schema's), and the
-    defaults of its options record."""
+    """What one type takes: its alternative converters, options and their defaults (its row's
+    options record), and the schema that checks its option values (made when first needed)."""
 
     converters: tuple[str, ...]
-    options: Mapping[str, Mapping[str, Any]]
+    options: tuple[str, ...]
     defaults: Mapping[str, Any]
+    schema: Mapping[str, Any]
+    validator: Validator | None = None
 
 
 def by_specificity(patterns: Iterable[str], name: str) -> list[str]:
@@ -139,13 +150,25 @@ def _check_entity_path(text: str) -> None:
             raise ValueError(msg)
 
 
+def _builtin_settings(record: type[Any]) -> dict[str, Any]:
+    """The built-in layer of the types whose row names ``record``: its fixed defaults as a
+    config file would write them (``converter`` and ``options``)."""
+    option_defaults = fixed_defaults(record)
+    settings: dict[str, Any] = {}
+    if CONVERTER_OPTION in option_defaults:
+        settings["converter"] = option_defaults.pop(CONVERTER_OPTION)
+    if option_defaults:
+        settings["options"] = option_defaults
+    return settings
+
+
 class HostConfig:
     """The loaded file (or none) and the per-(robot, topic, type) settings it resolves to."""
 
-    def __init__(self, document: ConfigDocument | None, registered_types: Collection[str]) -> None:
+    def __init__(self, document: ConfigDocument | None, registry: Registry) -> None:
         self._schema = schema(SCHEMA_NAME)
         self._document = document
-        self._registered = frozenset(registered_types)
+        self._registry = registry
         data: Mapping[str, Any] = document.data if document is not None else {}
         self._user = data
         self._defaults = _Layer(("defaults",), data.get("defaults", {}))
@@ -155,21 +178,23 @@ class HostConfig:
         }
         self._topic_keys: list[_TopicKey] = []
         self._rules: dict[str, _TypeRules] = {}
+        self._slam: Mapping[str, Any] = data.get("slam", {})
         self._cache: dict[tuple[str, str, str], TopicSettings] = {}
         self._reported: set[str] = set()
         self._check()
 
     @classmethod
-    def load(cls, path: Path, registered_types: Collection[str]) -> HostConfig:
-        """Read and check ``path``; a mistake raises ConfigError naming file:line:key."""
+    def load(cls, path: Path, registry: Registry) -> HostConfig:
+        """Read and check ``path`` against ``registry``'s types; a mistake raises ConfigError
+        naming file:line:key."""
         with relay_errors():  # the file is read and checked by the relay's shared loader
             document = load_config(path, SCHEMA_NAME)
-        return cls(document, registered_types)
+        return cls(document, registry)
 
     @classmethod
-    def builtin(cls, registered_types: Collection[str]) -> HostConfig:
+    def builtin(cls, registry: Registry) -> HostConfig:
         """No file: every type's built-in defaults only."""
-        return cls(None, registered_types)
+        return cls(None, registry)
 
     def _error(self, path: KeyPath, message: str) -> str:
         assert self._document is not None  # layers with problems come from a file
@@ -196,6 +221,7 @@ class HostConfig:
             self._topic_keys.append(topic_key)
         for layer in (self._defaults, *self._types.values(), *self._topic_layers.values()):
             problems.extend(self._check_values(layer))
+        problems.extend(self._check_slam())
         if problems:
             raise ConfigError("\n".join(problems))
 
@@ -214,24 +240,55 @@ class HostConfig:
             problems.append(self._error(where, f"{depth_range} must be [min, max] with min < max (metres)"))
         return problems
 
+    def _slam_layers(self, robot: str | None) -> list[tuple[KeyPath, Mapping[str, Any]]]:
+        """The slam: block's settings for ``robot``, lowest precedence first: the block itself,
+        then its ``robots`` globs matching the name, least specific first (all of them for None)."""
+        base = {key: value for key, value in self._slam.items() if key != "robots"}
+        robots: Mapping[str, Any] = self._slam.get("robots", {})
+        keys = list(robots) if robot is None else by_specificity(robots, robot)
+        return [(("slam",), base), *((("slam", "robots", key), robots[key]) for key in keys)]
+
+    def _check_slam(self) -> list[str]:
+        from host_bridge.slam.settings import SlamSettings, settings_from
+
+        problems = []
+        for key in self._slam.get("robots", {}):
+            if not _ROBOT_GLOB.fullmatch(key):
+                text = "a robot glob may hold letters, digits, '_', '-' and wildcards only"
+                problems.append(self._error(("slam", "robots", key), text))
+        for path, values in self._slam_layers(None):
+            settings = settings_from(values, SlamSettings(enabled=True))
+            for problem in settings.check():
+                name, _, text = problem.partition(": ")
+                problems.append(self._error((*path, name), text))
+        return problems
+
+    def slam_configured(self) -> bool:
+        """Whether the slam: block turns SLAM on for some robot."""
+        return any(values.get("enabled") for _, values in self._slam_layers(None))
+
+    def slam_settings(self, robot: str, enabled: bool = False) -> SlamSettings:
+        """``robot``'s SLAM settings; ``enabled`` (--slam) turns it on unless the file says no."""
+        from host_bridge.slam.settings import SlamSettings, settings_from
+
+        settings = SlamSettings(enabled=enabled)
+        for _, values in self._slam_layers(robot):
+            settings = settings_from(values, settings)
+        return settings
+
     def _type_rules(self, msgtype: str) -> _TypeRules:
-        """The schema's definition for ``msgtype``: its own, else ``plain`` (a converter without
-        options) or ``generic`` (no converter registered)."""
+        """What ``msgtype`` takes: its row's options record says which converters and options,
+        the schema's description of the type which values (the settings of any type when the
+        schema does not name it: ``test_options.py`` checks it names every type with options)."""
         rules = self._rules.get(msgtype)
         if rules is not None:
             return rules
-        ref = self._schema["properties"]["types"]["properties"].get(msgtype, {}).get("$ref")
-        name = ref.rsplit("/", 1)[-1] if ref else ("plain" if msgtype in self._registered else "generic")
-        properties = self._schema["$defs"][name]["properties"]
-        converter = properties.get("converter", {})
-        options: Mapping[str, Mapping[str, Any]] = properties.get("options", {}).get("properties", {})
-        option_defaults = fixed_defaults(OPTIONS_BY_DEFINITION[name])
-        defaults: dict[str, Any] = {}
-        if CONVERTER_OPTION in option_defaults:
-            defaults["converter"] = option_defaults.pop(CONVERTER_OPTION)
-        if option_defaults:
-            defaults["options"] = option_defaults
-        rules = self._rules[msgtype] = _TypeRules(tuple(converter.get("enum", ())), options, defaults)
+        record = self._registry.row(msgtype).options
+        named = self._schema["properties"]["types"]["properties"]
+        value_schema = {"$defs": self._schema["$defs"], **named.get(msgtype, {"$ref": "#/$defs/settings"})}
+        rules = self._rules[msgtype] = _TypeRules(
+            converter_choices(record), option_names(record), _builtin_settings(record), value_schema
+        )
         return rules
 
     def _fit(self, layer: _Layer, msgtype: str) -> tuple[dict[str, Any], list[str]]:
@@ -250,19 +307,18 @@ class HostConfig:
 
             options = dict(settings["options"])
             for name, value in settings["options"].items():
-                where = (*layer.path, "options", name)
-                spec = rules.options.get(name)
-                if spec is None:
+                if name not in rules.options:
                     known = ", ".join(sorted(rules.options)) or "none"
                     text = f"{msgtype} takes no option {name!r} (its options: {known})"
-                    problems.append(self._error(where, text))
+                    problems.append(self._error((*layer.path, "options", name), text))
                     del options[name]
                     continue
-                validator = schema_validator({"$defs": self._schema["$defs"], **spec})
-                error = best_match(validator.iter_errors(value))
+                if rules.validator is None:
+                    rules.validator = schema_validator(rules.schema)
+                error = best_match(rules.validator.iter_errors({"options": {name: value}}))
                 if error is not None:
                     text = f"{error.message} for {msgtype}"
-                    problems.append(self._error((*where, *error.absolute_path), text))
+                    problems.append(self._error((*layer.path, *error.absolute_path), text))
                     del options[name]
             settings["options"] = options
         return settings, problems
@@ -314,7 +370,7 @@ class HostConfig:
         defaults = {"entity_path": DEFAULT_ENTITY_PATH, "enabled": True, "restamp": False,
                     **self._user.get("defaults", {})}
         types: dict[str, Any] = {}
-        for msgtype in self._schema["properties"]["types"]["properties"]:
+        for msgtype in self._registry.types():
             if self._type_rules(msgtype).defaults:
                 types[msgtype] = dict(self._type_rules(msgtype).defaults)
         for msgtype, settings in self._user.get("types", {}).items():
@@ -322,7 +378,16 @@ class HostConfig:
             types[msgtype] = {**base, **settings}
             if "options" in base and "options" in settings:
                 types[msgtype]["options"] = {**base["options"], **settings["options"]}
-        return {"defaults": defaults, "types": types, "topics": dict(self._user.get("topics", {}))}
+        effective: dict[str, Any] = {"defaults": defaults, "types": types,
+                                     "topics": dict(self._user.get("topics", {}))}
+        if self._slam:
+            from host_bridge.slam.settings import SlamSettings
+
+            base = {key: value for key, value in self._slam.items() if key != "robots"}
+            effective["slam"] = {**dataclasses.asdict(SlamSettings()), **base}
+            if "robots" in self._slam:
+                effective["slam"]["robots"] = dict(self._slam["robots"])
+        return effective
 
     def dump(self) -> str:
         """``effective()`` as YAML, itself a valid host config file."""
@@ -331,4 +396,10 @@ class HostConfig:
             else "the built-in defaults (no --config file)"
         )
         header = f"# swanky-host effective configuration: {source}\n"
+        # A family's defaults as a types entry would reach every type its glob matches.
+        for row in self._registry.rows():
+            builtin = _builtin_settings(row.options) if row.is_family else {}
+            if builtin:
+                flow = yaml.safe_dump(builtin, default_flow_style=True, width=1000).strip()
+                header += f"# built in for the types matching {row.msgtype!r} (no row of their own): {flow}\n"
         return header + yaml.safe_dump(self.effective(), sort_keys=False, default_flow_style=False)

@@ -28,6 +28,10 @@ from host_bridge.state import RobotState, State, TopicState
 TIMELINE_ROS = "ros_time"
 TIMELINE_RECEIVE = "receive_time"
 TIMELINE_LOG = "log_time"
+WARNINGS_PATH = "/_swanky/warnings"
+"""Where every warning of the host goes, beside its log line."""
+STATS_ROOT = "/_stats"
+"""Root of the health series (stats.py) and of SLAM's (slam/feeder.py)."""
 
 if TYPE_CHECKING:
     from host_bridge.columns import Columns

@@ -22,17 +22,8 @@ from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_
 from rosbags.typesys.store import Typestore
 
 from host_bridge.errors import DecodeError, UnknownTypeError
+from host_bridge.schemas import base_typestore
 from robot_relay.wire import MessageDefinition, RawMessage
-
-
-def base_typestore() -> Typestore:
-    """ROS 2 Humble plus the definitions shipped in schemas/msg (vision_msgs, ...)."""
-    from host_bridge.schemas import extra_typesdict
-
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    store.register(extra_typesdict())
-    return store
-
 
 IDL_SEPARATOR = "=" * 80 + "\n"
 SERVICE_EVENT_SUFFIX = "_Event"

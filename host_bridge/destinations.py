@@ -8,6 +8,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 LOOPBACK = "127.0.0.1"
+SAVE_SPLIT_S = 120.0
+"""How long a live ``--save`` file runs before the next one starts (``--save-split``): Rerun
+keeps the index it ends a file with in memory until then (:class:`host_bridge.sink.SavedFile`)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -23,6 +26,8 @@ class SinkOptions:
     web_bind: str = LOOPBACK
     """Address the ``--serve-web`` gRPC server (the recording itself) listens on."""
     recording_id: str | None = None
+    save_split_s: float | None = None
+    """Start a new ``save`` file every this many seconds (a live host's); None: one file."""
 
     @property
     def any(self) -> bool:

@@ -27,14 +27,16 @@ from host_bridge.contract import (
     TIMELINE_LOG,
     TIMELINE_RECEIVE,
     TIMELINE_ROS,
+    WARNINGS_PATH,
     ConvertContext,
     ConverterSpec,
     LogEntry,
     LogItem,
     RunContext,
 )
+from host_bridge.counters import TopicCounters, sequence_gap, sequence_gaps, summary_table
 from host_bridge.decode import Decoder
-from host_bridge.errors import ConfigError, HostError, PartialConvertError
+from host_bridge.errors import ConfigError, HostError, PartialConvertError, TypeChangeError
 from host_bridge.frames import RobotFrames
 from host_bridge.inputs.base import (
     InputItem,
@@ -51,12 +53,11 @@ from robot_relay.wire import RawMessage
 
 log = logging.getLogger("swanky.host")
 
-WARNINGS_PATH = "/_swanky/warnings"
-
 # Sees every run before decoding (the MCAP recorder, the stats); must not raise on good data.
 # Live robots dispatch from one thread each, so a tap must be thread-safe.
 Tap = Callable[[Sequence[RawMessage]], None]
-# Told of each enabled topic when its first message arrives: (robot, topic, type, entity path).
+# Told of each enabled topic when its first message arrives and when its type changes: (robot,
+# topic, type, entity path).
 TopicListener = Callable[[str, str, str, str], None]
 
 
@@ -68,29 +69,34 @@ class Offload(Protocol):
     def close(self) -> None: ...
 
 
-@dataclass(slots=True)
-class TopicCounters:
-    msgtype: str
-    received: int = 0
-    converted: int = 0
-    dropped: int = 0
-    # Disabled in the host config: counted, never decoded.
-    skipped: int = 0
-    warnings: int = 0
-    sequence_gaps: int = 0
-    last_sequence: int | None = None
-    convert_seconds: float = 0.0
-
-
 @dataclass(frozen=True, slots=True)
 class TopicSettings:
-    """How a topic is converted, from the host configuration: where it is logged, its options'
-    state, whether it is converted at all, and whether ros_time is its arrival time."""
+    """How a topic's messages of one type are converted, from the host configuration: where
+    they are logged, their options' state, whether they are converted at all, and whether
+    ros_time is their arrival time."""
 
+    msgtype: str
     entity_path: str
     state: TopicState
     enabled: bool = True
     restamp: bool = False
+
+
+MAX_TYPES_PER_TOPIC = 8
+"""Types a topic's settings are kept for: a topic that switches back to a type it had (a sender
+of garbage between a robot's real messages) finds its converters' state (a video decoder, a
+trail) as it left it; beyond these, the least recently used type's is forgotten, so a stream of
+made-up type names costs no memory."""
+
+
+@dataclass(slots=True)
+class _TopicTypes:
+    """A topic's settings per type of message it came with."""
+
+    current: TopicSettings
+    """The type of its last message."""
+    earlier: dict[str, TopicSettings] = field(default_factory=dict)
+    """Its other types, least recently used first."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,27 +107,6 @@ class _Robot:
     frames: RobotFrames
     # Held from observing logged frames to logging the placements they call for (see log).
     placing: threading.Lock = field(default_factory=threading.Lock)
-
-
-def sequence_gap(last: int | None, sequence: int) -> int:
-    """Messages lost between two wire sequence numbers (u32, wrapping)."""
-    if last is None:
-        return 0
-    gap = (sequence - last - 1) & 0xFFFFFFFF
-    # A relay restart starts again at 0; that is not a loss.
-    return gap if 0 < gap < 0x80000000 and sequence != 0 else 0
-
-
-def sequence_gaps(last: int | None, sequence: npt.NDArray[np.int64]) -> int:
-    """:func:`sequence_gap` summed over a run's sequence numbers, ``last`` before the first."""
-    if not len(sequence):
-        return 0
-    before = np.concatenate([[-1 if last is None else last], sequence[:-1]])
-    gaps = (sequence - before - 1) & 0xFFFFFFFF
-    counted = (gaps > 0) & (gaps < 0x80000000) & (sequence != 0)
-    if last is None:
-        counted[0] = False
-    return int(gaps[counted].sum())
 
 
 Arrivals = tuple[npt.NDArray[np.int64] | None, npt.NDArray[np.int64] | None]
@@ -179,10 +164,12 @@ class Dispatcher:
         self.on_new_topic = on_new_topic
         self.registry = registry or default_registry()
         self.decoder = decoder or Decoder()
-        self.config = config or HostConfig.builtin(self.registry.types())
+        self.config = config or HostConfig.builtin(self.registry)
         self.strict = strict
         self.counters: dict[tuple[str, str], TopicCounters] = {}
-        self._topics: dict[tuple[str, str], TopicSettings] = {}
+        self._topics: dict[tuple[str, str], _TopicTypes] = {}
+        # Taken when a topic's type changes: a robot's two threads may both carry the topic.
+        self._retyping = threading.Lock()
         # Finds mesh files for every robot (each robot's own relay for what is missing here).
         self._resolver = resolver or ResourceResolver.from_env()
         self._robots: dict[str, _Robot] = {}
@@ -237,21 +224,51 @@ class Dispatcher:
                 self.sink.log(updates, {})
 
     def _topic(self, robot: str, name: str, msgtype: str) -> TopicSettings:
+        """The settings ``robot``'s topic ``name`` converts a message of ``msgtype`` with."""
+        found = self._topics.get((robot, name))
+        if found is not None and found.current.msgtype == msgtype:
+            return found.current
+        return self._bind(robot, name, msgtype)
+
+    def _bind(self, robot: str, name: str, msgtype: str) -> TopicSettings:
+        """Bind a topic to ``msgtype``: its first message, or one of another type than its last
+        (a node moved from Twist to TwistStamped; a sender of garbage). Settings belong to the
+        type, so a message of one type never has a later one of another converted with its
+        options or state (a LaserScan with a PointCloud2's). A change is warned about once per
+        topic, naming both types, and counted in its warnings; the layout follows it."""
         key = (robot, name)
-        topic = self._topics.get(key)
-        if topic is None:
-            settings = self.config.resolve(robot, name, msgtype)
-            topic = TopicSettings(
-                settings.entity_path, TopicState(settings.options), settings.enabled, settings.restamp
-            )
-            self._topics[key] = topic
-            if topic.enabled and self.on_new_topic is not None:
-                self.on_new_topic(robot, name, msgtype, topic.entity_path)
-            if settings.problems:
-                err = ConfigError("\n".join(settings.problems) + " (ignored for this topic)")
-                if self.strict:
-                    raise err
-                self.warn(robot, name, err)
+        created = None
+        with self._retyping:
+            found = self._topics.get(key)
+            before = None if found is None else found.current
+            if before is not None and before.msgtype == msgtype:
+                return before
+            topic = None if found is None else found.earlier.pop(msgtype, None)
+            if topic is None:
+                created = self.config.resolve(robot, name, msgtype)
+                topic = TopicSettings(msgtype, created.entity_path, TopicState(created.options),
+                                      created.enabled, created.restamp)
+            if found is None:
+                self._topics[key] = _TopicTypes(topic)
+            else:
+                found.earlier[found.current.msgtype] = found.current
+                if len(found.earlier) >= MAX_TYPES_PER_TOPIC:
+                    del found.earlier[next(iter(found.earlier))]
+                found.current = topic
+                counters = self.counters.get(key)
+                if counters is not None:
+                    counters.msgtype = msgtype
+        if before is not None:
+            self.warn(robot, name, TypeChangeError(
+                f"{name}: type changed from {before.msgtype} to {msgtype}; each message is "
+                "converted as its own type, with that type's options"))
+        if topic.enabled and self.on_new_topic is not None:
+            self.on_new_topic(robot, name, msgtype, topic.entity_path)
+        if created is not None and created.problems:
+            err = ConfigError("\n".join(created.problems) + " (ignored for this topic)")
+            if self.strict:
+                raise err
+            self.warn(robot, name, err)
         return topic
 
     def warn(
@@ -320,18 +337,27 @@ class Dispatcher:
             self.dispatch(batch)
 
     def dispatch(self, batch: Sequence[RawMessage]) -> None:
-        """Convert and log a run of messages; messages of one topic keep their order."""
+        """Convert and log a run of messages; messages of one topic keep their order. A topic's
+        messages are converted in runs of one type: the run's first message decides how all of
+        it is decoded and converted."""
         for tap in self.taps:
             tap(batch)
         if isinstance(batch, MessageRun):
             if len(batch):
                 self._dispatch_run(batch)
             return
-        runs: dict[tuple[str, str], list[RawMessage]] = {}
+        runs: dict[tuple[str, str], list[list[RawMessage]]] = {}
         for raw in batch:
-            runs.setdefault((raw.robot, raw.topic), []).append(raw)
-        for run in runs.values():
-            self._dispatch_run(run)
+            topic_runs = runs.get((raw.robot, raw.topic))
+            if topic_runs is None:
+                runs[(raw.robot, raw.topic)] = [[raw]]
+            elif topic_runs[-1][0].msgtype == raw.msgtype:
+                topic_runs[-1].append(raw)
+            else:
+                topic_runs.append([raw])
+        for topic_runs in runs.values():
+            for run in topic_runs:
+                self._dispatch_run(run)
 
     def _dispatch_run(self, run: Sequence[RawMessage]) -> None:
         first = run[0]
@@ -503,31 +529,8 @@ class Dispatcher:
                 )
 
     def summary(self) -> str:
-        """A table of every topic seen: type, received, converted, dropped, warnings, wire
-        sequence gaps and mean conversion time, with a total row."""
-        header = ("robot", "topic", "type", "received", "converted", "dropped", "warnings", "gaps",
-                  "ms/msg")
-        counters = sorted(self.counters.items())
-        every = [c for _, c in counters]
-        total = TopicCounters(
-            "",
-            received=sum(c.received for c in every),
-            converted=sum(c.converted for c in every),
-            dropped=sum(c.dropped for c in every),
-            warnings=sum(c.warnings for c in every),
-            sequence_gaps=sum(c.sequence_gaps for c in every),
-            convert_seconds=sum(c.convert_seconds for c in every),
-        )
-        rows = [header] + [
-            (robot, topic, c.msgtype, str(c.received), str(c.converted), str(c.dropped),
-             str(c.warnings), str(c.sequence_gaps),
-             f"{c.convert_seconds * 1000 / c.converted:.3f}" if c.converted else "-")
-            for (robot, topic), c in [*counters, (("total", f"{len(counters)} topics"), total)]
-        ]
-        widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
-        return "\n".join(
-            "  ".join(cell.ljust(w) for cell, w in zip(r, widths, strict=True)).rstrip() for r in rows
-        )
+        """A table of every topic seen (counters.summary_table)."""
+        return summary_table(self.counters)
 
 
 class _SlowWorker:

@@ -48,6 +48,20 @@ class MissingResourceError(ConvertError):
         super().__init__(f"{uri} not found ({searched}){hint}")
 
 
+class TypeChangeError(HostError):
+    """A topic's messages came with another type than before (a robot's node migrated, Twist to
+    TwistStamped, or a sender lies): the topic is converted as the new type from then on."""
+
+
+class TypeMismatchError(HostError):
+    """A sample claims another type than its relay's catalog announced for its topic: refused,
+    so it cannot change how the topic's real messages are converted."""
+
+
+class GraphError(HostError):
+    """An rmw_zenoh key, liveliness token or attachment is not in a form rmw_zenoh produces."""
+
+
 class RegistryError(HostError):
     """The converter registry was assembled wrongly (a type registered twice)."""
 
@@ -62,6 +76,35 @@ class ConfigError(HostError):
 
 class SinkError(HostError):
     """The Rerun sink cannot be set up (viewer not spawnable, bad address)."""
+
+
+class SlamError(HostError):
+    """A message SLAM cannot use (too few ranges, no odometry, stamps going back); each kind
+    is warned about once per robot and topic (host_bridge/slam/feeder.py)."""
+
+
+class SparseScanError(SlamError):
+    """A scan with too few valid ranges to match or map."""
+
+
+class StampBackwardsError(SlamError):
+    """A scan stamped no later than one already mapped."""
+
+
+class NoOdometryError(SlamError):
+    """A robot sends no odometry: SLAM matches scans alone."""
+
+
+class NoLaserTransformError(SlamError):
+    """Nothing places the laser frame on the robot's base."""
+
+
+class OdometryJumpError(SlamError):
+    """Odometry reset or jumped: a new trajectory segment starts."""
+
+
+class SlamBehindError(SlamError):
+    """Live scans skipped because SLAM runs slower than they come."""
 
 
 class RecorderError(HostError):

@@ -1,4 +1,4 @@
-"""Heavy topics (images, point clouds, maps: the type table's ``heavy`` and ``patch`` rows)
+"""Heavy topics (images, point clouds, maps: the type table's ``Lane.HEAVY`` and ``Lane.PATCH`` rows)
 converted in a process of their own, with its own GIL.
 
 Why: in one process every conversion holds the one GIL for a while, and a small message that
@@ -56,12 +56,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from host_bridge.errors import ConvertError, HostError
-from host_bridge.inputs.queues import HEAVY_NICENESS, HeavyTypes
+from host_bridge.inputs.queues import HEAVY_NICENESS, TypeLanes
+from host_bridge.registry import Lane
 from robot_relay.wire import MessageDefinition, RawMessage
 
 if TYPE_CHECKING:
     from host_bridge.contract import LogEntry
-    from host_bridge.dispatch import Dispatcher, TopicCounters, TopicSettings
+    from host_bridge.counters import TopicCounters
+    from host_bridge.dispatch import Dispatcher, TopicSettings
 
 log = logging.getLogger("swanky.host")
 
@@ -87,7 +89,8 @@ class RunHead:
     msgtype: str
     definition: MessageDefinition | None
     settings: tuple[str, Mapping[str, Any], bool] | None
-    """The topic's entity path, options and restamp, with its first run only."""
+    """The topic's entity path, options and restamp for its type, with the first run of each
+    type only (settings belong to a topic's type: dispatch.py)."""
     times: list[tuple[int | None, int | None, int | None]]
     """Each message's receive time, log time and wire sequence number."""
 
@@ -130,14 +133,14 @@ class HeavyProcess:
         self._dispatcher = dispatcher
         self._give_up = give_up
         self._told_to_give_up = False
-        self._heavy = HeavyTypes(dispatcher.registry)
-        self._patch = HeavyTypes(dispatcher.registry, flag="patch")
+        self._lanes = TypeLanes(dispatcher.registry)
         self._lock = threading.Lock()
         self._problem: str | None = None
         """Why the child is gone; heavy runs are then converted here."""
         self._warned = False
         self._ready = False
-        self._sent: set[tuple[str, str]] = set()
+        self._sent: set[tuple[str, str, str]] = set()
+        """The (robot, topic, type)s whose settings the child has."""
         ours, theirs = socket.socketpair()
         command = [sys.executable, "-c", CHILD_MAIN, str(theirs.fileno()), viewer, recording_id,
                    "--log-level", str(log.getEffectiveLevel())]
@@ -152,7 +155,7 @@ class HeavyProcess:
 
     def takes(self, raw: RawMessage) -> bool:
         """Whether ``raw``'s topic is converted in the child (while the child works)."""
-        return self._problem is None and (self._heavy(raw) or self._patch(raw))
+        return self._problem is None and self._lanes(raw) is not Lane.SMALL
 
     def convert(self, run: Sequence[RawMessage], topic: TopicSettings, counters: TopicCounters) -> None:
         """Convert ``run`` in the child, or here once the child is gone."""
@@ -178,7 +181,7 @@ class HeavyProcess:
     def _exchange(self, run: Sequence[RawMessage], topic: TopicSettings) -> Outcome | None:
         """The child's outcome of ``run``; None (and ``_problem`` set) when it is gone."""
         first = run[0]
-        key = (first.robot, first.topic)
+        key = (first.robot, first.topic, first.msgtype)
         settings = None if key in self._sent else (
             topic.entity_path, dict(topic.state.values), topic.restamp)
         head = RunHead(first.robot, first.topic, first.msgtype, first.definition, settings,
@@ -303,8 +306,9 @@ class _FrameNotes:
 
 
 def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool) -> int:
+    from host_bridge.counters import TopicCounters
     from host_bridge.destinations import SinkOptions
-    from host_bridge.dispatch import Dispatcher, TopicCounters, TopicSettings
+    from host_bridge.dispatch import Dispatcher, TopicSettings
     from host_bridge.errors import SinkError
     from host_bridge.sink import RerunSink
     from host_bridge.state import TopicState
@@ -323,12 +327,12 @@ def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool)
     signal.signal(signal.SIGTERM, lambda *_: giving_up.set())
     try:
         sink = RerunSink(SinkOptions(connect=viewer, recording_id=recording_id),
-                         give_up=giving_up.is_set, index_footer=False)
+                         give_up=giving_up.is_set)
     except SinkError as err:
         connection.send(("failed", str(err)))
         return 1
     converter = Converter(sink, strict=strict)
-    topics: dict[tuple[str, str], TopicSettings] = {}
+    topics: dict[tuple[str, str, str], TopicSettings] = {}
     connection.send(("ready", None))
     while True:
         try:
@@ -339,11 +343,11 @@ def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool)
                               head.definition, *times) for times in head.times]
         except (EOFError, OSError):
             break  # the host is gone: finish what is held
-        key = (head.robot, head.topic)
+        key = (head.robot, head.topic, head.msgtype)
         if head.settings is not None:
             entity_path, options, restamp = head.settings
-            topics[key] = TopicSettings(entity_path, TopicState(options), True, restamp)
-        counters = converter.counters[key] = TopicCounters(head.msgtype)
+            topics[key] = TopicSettings(head.msgtype, entity_path, TopicState(options), True, restamp)
+        counters = converter.counters[(head.robot, head.topic)] = TopicCounters(head.msgtype)
         outcome = Outcome()
         try:
             converter.convert_run(run, topics[key], counters)

@@ -1,15 +1,18 @@
-"""Converter options as typed records: one dataclass per options block of ``schemas/host.schema.json``.
+"""Converter options as typed records: one frozen dataclass per family of converters.
 
-The dataclass is the one place a default is written. The schema says which options a type takes
-and what values are valid (it is what checks a config file, with ``FILE:LINE: KEY`` messages);
-it holds no defaults, and ``tests/host_bridge/test_options.py`` keeps the two in step (same
-names, compatible types). :mod:`host_bridge.config` reads the defaults from here for the built-in
-layer and ``--print-config``; converters ask their context for their record
-(``ctx.options(LaserScanOptions)``) and read attributes mypy checks.
+A type's row in the table (:mod:`host_bridge.registry`) names its record: the one its converter
+reads (``ctx.options(LaserScanOptions)``, attributes mypy checks). The record is the one place
+a default is written and says which options the type takes; :mod:`host_bridge.config` checks a
+config file's option names, the ``converter`` choices and the built-in layer of
+``--print-config`` against the row's record. ``schemas/host.schema.json`` describes the options
+to users and says which values are valid; it holds no defaults, and
+``tests/host_bridge/test_options.py`` walks the table to keep it in step with the records (same
+names, compatible types, the same converter choices).
 
 A default of ``None`` means the converter derives the value from the data (a costmap's palette
 from its topic name, a wall's thickness from the grid's resolution); such options are not
-printed. ``mode`` is the ``converter`` choice of the types that have alternatives.
+printed. ``mode`` is the ``converter`` choice of the types that have alternatives, a ``Literal``
+of them.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 Options = TypeVar("Options")
 """A converter family's options record (one of the dataclasses below)."""
@@ -27,10 +30,13 @@ Options = TypeVar("Options")
 CONVERTER_OPTION = "mode"
 """The field holding the ``converter`` choice (points/rays/both, auto/depth/color)."""
 
+LaserScanMode = Literal["points", "rays", "both"]
+ImageMode = Literal["auto", "depth", "color"]
+
 
 @dataclass(frozen=True, slots=True)
 class LaserScanOptions:
-    mode: str = "points"
+    mode: LaserScanMode = "points"
     color_by: str = "range"
     colormap: str = "turbo"
     radius: float = 0.02
@@ -38,7 +44,7 @@ class LaserScanOptions:
 
 @dataclass(frozen=True, slots=True)
 class ImageOptions:
-    mode: str = "auto"
+    mode: ImageMode = "auto"
     depth_meter: float | None = None  # REP 118: 1000 for integer depth, 1 for float depth
     colormap: str | None = None
     depth_range: tuple[float, float] | None = None
@@ -54,12 +60,18 @@ class PointCloudOptions:
 
 
 @dataclass(frozen=True, slots=True)
-class GridOptions:
-    """An occupancy grid's drawing and its walls (see converters/occupancy.py and walls.py)."""
+class GridDrawingOptions:
+    """How a grid is drawn, a map or a nav2 costmap (see converters/occupancy.py)."""
 
     color_scheme: str | None = None  # costmap on topics containing "costmap", else map
     opacity: float | None = None  # 0.7 for costmaps, 1 for maps
     draw_order: float | None = None  # 0 for maps, 1 global / 2 local costmaps
+
+
+@dataclass(frozen=True, slots=True)
+class GridOptions(GridDrawingOptions):
+    """An occupancy grid's drawing and its walls (see walls.py); a nav2 costmap has no walls."""
+
     walls: bool | None = None  # on for topics named map
     wall_height: float = 0.5
     wall_thickness: float | None = None  # one cell, at least 0.05 m
@@ -77,6 +89,11 @@ class GridOptions:
 
 @dataclass(frozen=True, slots=True)
 class GridUpdateOptions(GridOptions):
+    grid_topic: str | None = None  # this topic without _updates
+
+
+@dataclass(frozen=True, slots=True)
+class CostmapUpdateOptions(GridDrawingOptions):
     grid_topic: str | None = None  # this topic without _updates
 
 
@@ -129,23 +146,15 @@ class NoOptions:
     """Types whose converter takes no options (``plain`` in the schema)."""
 
 
-OPTIONS_BY_DEFINITION: Mapping[str, type[Any]] = {
-    "laser_scan": LaserScanOptions,
-    "image": ImageOptions,
-    "point_cloud": PointCloudOptions,
-    "occupancy_grid": GridOptions,
-    "grid_update": GridUpdateOptions,
-    "pose": PoseOptions,
-    "pose_covariance": PoseCovarianceOptions,
-    "pose_array": PoseArrayOptions,
-    "path": PathOptions,
-    "imu": ImuOptions,
-    "nav_sat_fix": NavSatFixOptions,
-    "tf": TfOptions,
-    "generic": GenericOptions,
-    "plain": NoOptions,
-}
-"""The options record of each ``$defs`` entry of the host schema that describes a type."""
+def converter_choices(kind: type[Any]) -> tuple[str, ...]:
+    """The alternative converters of ``kind``'s types (its ``mode`` Literal), () for one."""
+    hint = typing.get_type_hints(kind).get(CONVERTER_OPTION)
+    return typing.get_args(hint) if hint is not None else ()
+
+
+def option_names(kind: type[Any]) -> tuple[str, ...]:
+    """The options a config file may set for ``kind``'s types (``mode`` is their converter)."""
+    return tuple(f.name for f in dataclasses.fields(kind) if f.name != CONVERTER_OPTION)
 
 
 def fixed_defaults(kind: type[Any]) -> dict[str, Any]:

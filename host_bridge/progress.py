@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
 
@@ -32,6 +32,8 @@ class BagExtent:
     topics: int
     start_ns: int
     end_ns: int
+    types: Mapping[str, str] = field(default_factory=dict)
+    """Each topic's type (host-side SLAM asks whether the bag holds odometry)."""
 
     @property
     def duration_ns(self) -> int:
@@ -48,6 +50,7 @@ def bag_extent(path: Path) -> BagExtent:
                 topics=source.topic_count,
                 start_ns=source.start_ns,
                 end_ns=source.end_ns,
+                types={info.topic: info.msgtype for info in source.catalog().topics},
             )
     except SourceError as err:
         raise InputError(str(err)) from err

@@ -1,12 +1,14 @@
-"""The type table: each ROS type's converter, and what the layout and the dispatcher need to
-know about it.
+"""The type table: one record per ROS type holding all the host knows about it: its converter,
+where the layout shows it, the options record its converter reads (what a config file may set
+for it), the lane the dispatcher converts it in, and how the relay forwards it.
 
 One :class:`Row` per type, written out in :func:`default_registry` with the full type name, so a
 new type is one converter module and one line there (CONTRIBUTING.md). Nothing registers itself
 on import and a type registered twice is an error. The contract converters follow is
-:mod:`host_bridge.contract`; how the relay forwards a type is its own table,
-``robot_relay.policy.TRAFFIC`` (the robot has no host code), and
-``tests/host_bridge/test_registry.py`` checks that every type it names has a row here.
+:mod:`host_bridge.contract`; the configuration (:mod:`host_bridge.config`) takes each type's
+option names, converter choices and defaults from its row. The relay keeps its own copy of the
+traffic column, ``robot_relay.policy.TRAFFIC`` (the robot has no host code), and
+``tests/host_bridge/test_registry.py`` checks it against the rows.
 
 The converter modules are imported when the table is built, not with this module: the command
 line imports it and must start fast.
@@ -18,9 +20,12 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from enum import Enum
 from fnmatch import fnmatchcase
+from typing import Any
 
 from host_bridge.contract import ConverterSpec, combine
 from host_bridge.errors import RegistryError
+from host_bridge.options import NoOptions
+from robot_relay.policy import DEFAULT_TRAFFIC, TrafficClass
 
 CATCH_ALL = "*"
 _GLOB_CHARS = frozenset("*?[")
@@ -44,6 +49,22 @@ class View(Enum):
     CUSTOM = "the generic converter's: Signals plots, and bar charts of its long arrays"
 
 
+class Lane(Enum):
+    """Where the host converts a type's messages (:mod:`host_bridge.inputs.queues`: each robot
+    has a thread for its small topics and one for its heavy ones) and whether a newer message may
+    take an older one's place when the host falls behind."""
+
+    SMALL = "the robot's thread, every message in order (scans, IMU, TF: small and frequent)"
+    HEAVY = (
+        "the robot's heavy thread (a live host's converter process, offload.py), latest-only when "
+        "behind: big messages of which only the newest matters (a frame, a cloud, a whole map)"
+    )
+    PATCH = (
+        "the heavy thread, in order with the heavy messages it changes in place (a grid's "
+        "updates), never replaced"
+    )
+
+
 @dataclass(frozen=True, slots=True)
 class Row:
     """One line of the table.
@@ -51,20 +72,21 @@ class Row:
     ``msgtype`` is a full type name, or a glob for a family of types (``*/srv/*_Event``), tried
     after the exact names in table order; ``*`` is the catch-all. ``topics`` limits the row to
     the topics it accepts, tried before the type's other row (std_msgs/String on
-    /robot_description is a robot model, elsewhere text). ``heavy``: big messages of which only
-    the newest matters (a frame, a cloud, a whole map): the host may convert them latest-only
-    when it falls behind. ``patch``: messages that change a heavy one in place (a grid's
-    updates): converted in order with the heavy topics, never replaced. ``slow``: a second
-    converter too slow for the receive path (wall meshes of a map), run after ``spec`` in a
-    worker that keeps only the newest message.
+    /robot_description is a robot model, elsewhere text). ``options``: the record the
+    converters read with ``ctx.options`` (:mod:`host_bridge.options`), which is what a config
+    file may set for the type. ``lane``: see :class:`Lane`. ``slow``: a second converter too
+    slow for the receive path (wall meshes of a map), run after ``spec`` in a worker that keeps
+    only the newest message. ``traffic``: the relay's share of the link for the type (its own
+    table, ``robot_relay.policy.TRAFFIC``, must agree).
     """
 
     msgtype: str
     spec: ConverterSpec
     view: View
-    heavy: bool = False
-    patch: bool = False
+    options: type[Any] = NoOptions
+    lane: Lane = Lane.SMALL
     slow: ConverterSpec | None = None
+    traffic: TrafficClass = DEFAULT_TRAFFIC
     topics: Callable[[str], bool] | None = None
 
     @property
@@ -101,6 +123,10 @@ class Registry:
         if not self._families or self._families[-1].msgtype != CATCH_ALL:
             msg = f"the table needs a {CATCH_ALL!r} row last: the converter of every other type"
             raise RegistryError(msg)
+        for routed in self._routed:
+            if routed.options is not self.row(routed.msgtype).options:
+                msg = f"{routed.msgtype!r}: all rows of a type take one options record (set per type)"
+                raise RegistryError(msg)
 
     def row(self, msgtype: str, topic: str = "") -> Row:
         for row in self._routed:
@@ -127,7 +153,8 @@ class Registry:
 
 
 def default_registry() -> Registry:
-    """Swanky's table. Every type spelt out; see :class:`Row` and :class:`View` for the columns."""
+    """Swanky's table. Every type spelt out; see :class:`Row`, :class:`View` and :class:`Lane`
+    for the columns."""
     from host_bridge.converters import (
         camera,
         diagnostics,
@@ -153,39 +180,63 @@ def default_registry() -> Registry:
         vision,
         walls,
     )
+    from host_bridge.options import (
+        CostmapUpdateOptions,
+        GenericOptions,
+        GridDrawingOptions,
+        GridOptions,
+        GridUpdateOptions,
+        ImageOptions,
+        ImuOptions,
+        LaserScanOptions,
+        NavSatFixOptions,
+        PathOptions,
+        PointCloudOptions,
+        PoseArrayOptions,
+        PoseCovarianceOptions,
+        PoseOptions,
+        TfOptions,
+    )
+    from robot_relay.policy import BULK, FRAMES, SCANS, SENSOR, VIDEO
 
     return Registry([
-        Row("tf2_msgs/msg/TFMessage", tf.SPEC, View.SPATIAL),
-        Row("sensor_msgs/msg/LaserScan", laser.SPEC, View.SPATIAL),
-        Row("sensor_msgs/msg/PointCloud2", pointcloud.SPEC, View.SPATIAL, heavy=True),
-        Row("nav_msgs/msg/Odometry", odometry.SPEC, View.ODOMETRY),
-        Row("sensor_msgs/msg/Imu", imu.IMU, View.IMU),
-        Row("sensor_msgs/msg/MagneticField", imu.MAGNETIC_FIELD, View.IMU),
-        Row("sensor_msgs/msg/NavSatFix", geo.SPEC, View.MAP),
-        Row("sensor_msgs/msg/Range", proximity.SPEC, View.SIGNALS),
+        Row("tf2_msgs/msg/TFMessage", tf.SPEC, View.SPATIAL, options=TfOptions, traffic=FRAMES),
+        Row("sensor_msgs/msg/LaserScan", laser.SPEC, View.SPATIAL, options=LaserScanOptions,
+            traffic=SCANS),
+        Row("sensor_msgs/msg/PointCloud2", pointcloud.SPEC, View.SPATIAL, options=PointCloudOptions,
+            lane=Lane.HEAVY, traffic=BULK),
+        Row("nav_msgs/msg/Odometry", odometry.SPEC, View.ODOMETRY, options=PoseOptions),
+        Row("sensor_msgs/msg/Imu", imu.IMU, View.IMU, options=ImuOptions, traffic=SENSOR),
+        Row("sensor_msgs/msg/MagneticField", imu.MAGNETIC_FIELD, View.IMU, traffic=SENSOR),
+        Row("sensor_msgs/msg/NavSatFix", geo.SPEC, View.MAP, options=NavSatFixOptions),
+        Row("sensor_msgs/msg/Range", proximity.SPEC, View.SIGNALS, traffic=SENSOR),
         # Cameras. CompressedImage is not heavy: its format may name a video codec, and a lost
         # video frame spoils the picture until the next keyframe.
-        Row("sensor_msgs/msg/Image", images.IMAGE, View.IMAGE, heavy=True),
-        Row("sensor_msgs/msg/CompressedImage", images.COMPRESSED_IMAGE, View.IMAGE),
-        Row("foxglove_msgs/msg/CompressedVideo", video.SPEC, View.IMAGE),
-        Row("sensor_msgs/msg/CameraInfo", camera.SPEC, View.CAMERA),
+        Row("sensor_msgs/msg/Image", images.IMAGE, View.IMAGE, options=ImageOptions, lane=Lane.HEAVY,
+            traffic=BULK),
+        Row("sensor_msgs/msg/CompressedImage", images.COMPRESSED_IMAGE, View.IMAGE, options=ImageOptions,
+            traffic=BULK),
+        Row("foxglove_msgs/msg/CompressedVideo", video.SPEC, View.IMAGE, traffic=VIDEO),
+        Row("sensor_msgs/msg/CameraInfo", camera.SPEC, View.CAMERA, traffic=SENSOR),
         Row("vision_msgs/msg/Detection2D", vision.DETECTION_2D, View.IMAGE_OVERLAY),
         Row("vision_msgs/msg/Detection2DArray", vision.DETECTION_2D_ARRAY, View.IMAGE_OVERLAY),
         Row("vision_msgs/msg/Detection3D", vision.DETECTION_3D, View.SPATIAL),
         Row("vision_msgs/msg/Detection3DArray", vision.DETECTION_3D_ARRAY, View.SPATIAL),
         # Maps: a grid is drawn at once, its walls come from the slow worker.
-        Row("nav_msgs/msg/OccupancyGrid", occupancy.GRID, View.SPATIAL, heavy=True,
-            slow=walls.GRID_WALLS),
-        Row("map_msgs/msg/OccupancyGridUpdate", occupancy.GRID_UPDATE, View.SPATIAL, patch=True,
-            slow=walls.UPDATE_WALLS),
-        Row("nav2_msgs/msg/Costmap", occupancy.COSTMAP, View.SPATIAL, heavy=True),
-        Row("nav2_msgs/msg/CostmapUpdate", occupancy.COSTMAP_UPDATE, View.SPATIAL, patch=True),
+        Row("nav_msgs/msg/OccupancyGrid", occupancy.GRID, View.SPATIAL, options=GridOptions,
+            lane=Lane.HEAVY, slow=walls.GRID_WALLS),
+        Row("map_msgs/msg/OccupancyGridUpdate", occupancy.GRID_UPDATE, View.SPATIAL,
+            options=GridUpdateOptions, lane=Lane.PATCH, slow=walls.UPDATE_WALLS),
+        Row("nav2_msgs/msg/Costmap", occupancy.COSTMAP, View.SPATIAL, options=GridDrawingOptions,
+            lane=Lane.HEAVY),
+        Row("nav2_msgs/msg/CostmapUpdate", occupancy.COSTMAP_UPDATE, View.SPATIAL,
+            options=CostmapUpdateOptions, lane=Lane.PATCH),
         Row("nav_msgs/msg/GridCells", nav.GRID_CELLS, View.SPATIAL),
-        Row("nav_msgs/msg/Path", nav.PATH, View.SPATIAL),
-        Row("geometry_msgs/msg/PoseStamped", geometry.POSE_STAMPED, View.SPATIAL),
+        Row("nav_msgs/msg/Path", nav.PATH, View.SPATIAL, options=PathOptions),
+        Row("geometry_msgs/msg/PoseStamped", geometry.POSE_STAMPED, View.SPATIAL, options=PoseOptions),
         Row("geometry_msgs/msg/PoseWithCovarianceStamped", geometry.POSE_WITH_COVARIANCE,
-            View.SPATIAL),
-        Row("geometry_msgs/msg/PoseArray", geometry.POSE_ARRAY, View.SPATIAL),
+            View.SPATIAL, options=PoseCovarianceOptions),
+        Row("geometry_msgs/msg/PoseArray", geometry.POSE_ARRAY, View.SPATIAL, options=PoseArrayOptions),
         Row("geometry_msgs/msg/PointStamped", geometry.POINT, View.SPATIAL),
         Row("geometry_msgs/msg/PolygonStamped", geometry.POLYGON, View.SPATIAL),
         Row("geometry_msgs/msg/TwistStamped", geometry.TWIST, View.SIGNALS),
@@ -237,6 +288,6 @@ def default_registry() -> Registry:
         Row("builtin_interfaces/msg/Time", scalars.SECONDS, View.SIGNALS),
         Row("builtin_interfaces/msg/Duration", scalars.SECONDS, View.SIGNALS),
         # Every other type, custom ones included.
-        Row(CATCH_ALL, generic.SPEC, View.CUSTOM),
+        Row(CATCH_ALL, generic.SPEC, View.CUSTOM, options=GenericOptions),
     ])
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from rosbags.interfaces.typing import Typesdict
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys.store import Typestore
 
 from host_bridge.errors import UnknownTypeError
 from robot_relay.wire import MessageDefinition
@@ -41,6 +42,14 @@ def extra_typesdict(root: Path = MSG_DIR) -> Typesdict:
     return types
 
 
+def base_typestore() -> Typestore:
+    """ROS 2 Humble plus the definitions shipped in schemas/msg (vision_msgs, ...): what the
+    decoder starts from."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    store.register(extra_typesdict())
+    return store
+
+
 class BundledDefinitions:
     """Which bundled definition a publisher's type hash names: Humble (plus schemas/msg),
     else Jazzy. ``None`` means "the decoder's own bundled Humble store"."""
@@ -61,9 +70,6 @@ class BundledDefinitions:
 
     @staticmethod
     def _match(msgtype: str, type_hash: str) -> tuple[MessageDefinition | None, str | None]:
-        # At call time: decode.py imports this module for its base typestore.
-        from host_bridge.decode import base_typestore
-
         humble = base_typestore()
         for index, store in enumerate((humble, get_typestore(Stores.ROS2_JAZZY))):
             if msgtype not in store.fielddefs:

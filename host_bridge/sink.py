@@ -13,6 +13,7 @@ import errno
 import ipaddress
 import logging
 import os
+import re
 import shutil
 import socket
 import sys
@@ -67,6 +68,14 @@ logged, and the encoder works while the host converts rather than after. ``swank
 of benchmarks/bag_conversion.py's files, 4 and 3 alternated runs: large (300 images, 100 clouds,
 597 MB) 1.41-1.66 s at 2 MiB, 1.17-1.33 s at this; small (470k messages, mostly send_columns,
 whose chunks skip the batcher) 1.04-1.08 s and 0.95-1.04 s."""
+LIVE_FILE_FLUSH_S = 5.0
+"""A live ``--save`` file is handed the rows Rerun's batcher holds every this long, as one chunk
+per entity: fewer, larger chunks than a viewer's (Rerun's index of a file grows with their
+number, :class:`SavedFile`; the demo robot made 200 a second at the batcher's default 0.2 s tick,
+25 at 5 s). By a flush, not the tick alone: Rerun 0.41's tick fires only after that long without
+any flush, so with images flushed by size every fraction of a second the rows of small topics
+piled up in the batcher until the file closed (the demo's host grew by 130 MB in 2 minutes). A
+host killed outright loses up to this much of its file."""
 PACE_PERIOD_S = 0.2
 """How often the gRPC viewers are asked whether they have taken everything logged so far."""
 PACE_BEHIND_S = 0.5
@@ -301,65 +310,226 @@ def _rows(columns: Sequence[Any], count: int) -> list[_Row] | None:
              if c[row].is_valid} for row in range(count)]
 
 
-class RerunSink:
-    """Logs converter output with the message's timelines."""
+def _stream(recording_id: str | None, batcher: rr.ChunkBatcherConfig | None) -> rr.RecordingStream:
+    stream = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, batcher_config=batcher)
+    # Swanky sets log_time itself (the bag's record time); the SDK's wall clock would clash.
+    rr.set_log_time_enabled(False, recording=stream)
+    rr.set_log_tick_enabled(False, recording=stream)
+    return stream
+
+
+def _numbered(path: Path) -> bool:
+    """Whether a split ``--save path`` gets numbered files (not /dev/null, not a pipe)."""
+    return not path.exists() or path.is_file()
+
+
+def split_path(path: Path, index: int) -> Path:
+    """File ``index`` of a split ``--save path``: out.rrd -> out_0.rrd, out_1.rrd, ... (the
+    names ``ros2 bag record`` gives its splits)."""
+    return path.with_name(f"{path.stem}_{index}{path.suffix}")
+
+
+class SavedFile:
+    """A ``--save`` file, written by a recording stream of its own and ended with Rerun's footer,
+    the index of its chunks that ``rerun rrd verify`` checks and ``RrdReader(...).store()`` reads.
+
+    Rerun builds that index in memory until the file closes: a row per chunk in a column per
+    timeline and component of the whole recording (re_log_encoding's RrdManifestBuilder), about
+    5 KB a chunk for the demo robot, whose host grew by 1 MB/s with it in 0.2 s batches (Rerun's
+    default), 0.3 MB/s in 5 s ones (LIVE_FILE_FLUSH_S). So a live host's file is split every
+    ``split_s`` seconds, as ``ros2 bag record --max-bag-duration`` does: out.rrd is closed
+    with its footer and renamed out_0.rrd, the recording goes on in out_1.rrd, and so on. Each
+    file holds the static data (robot model, /tf_static, video codecs) and the layout logged
+    before it, so it opens alone; all share the recording id, so ``rerun out_*.rrd`` opens them
+    as one recording. A path that is not a regular file (/dev/null, a pipe) gets each in turn.
+
+    A stream of its own because starting the next file replaces the stream's sinks, and a
+    viewer's would be reconnected (``--serve-web``'s server cannot be: its port is taken); and
+    so closing the file waits for no viewer."""
 
     def __init__(
-        self, options: SinkOptions, give_up: Callable[[], bool] = _never, *, index_footer: bool = True,
+        self, path: Path, recording_id: str | None, batcher: rr.ChunkBatcherConfig | None,
+        split_s: float | None = None,
+    ) -> None:
+        """Opens ``path``, which :meth:`check` has found fit."""
+        self.path = path
+        self._numbered = _numbered(path)
+        self.stream = _stream(recording_id, batcher)
+        self.stream.set_sinks(rr.FileSink(str(path)))
+        self.files = 1
+        self.written = False
+        """Whether anything was logged since the file began (a file's time starts with its data)."""
+        self._lock = threading.Lock()
+        self._statics: dict[str, dict[rr.ComponentDescriptor, Any]] = {}
+        self._layout: Callable[[rr.RecordingStream], None] | None = None
+        self._closing = threading.Event()
+        self._worker: threading.Thread | None = None
+        if split_s is not None:
+            self._worker = threading.Thread(
+                target=self._flush_and_split, args=(split_s,), name="rrd-file", daemon=True)
+            self._worker.start()
+
+    @staticmethod
+    def check(path: Path, split_s: float | None) -> None:
+        """A SinkError if ``path`` cannot be written, or if a split recording there would mix
+        its files with an earlier one's (checked before any viewer starts)."""
+        if not path.parent.is_dir():
+            msg = f"--save {path}: directory {path.parent} does not exist"
+            raise SinkError(msg)
+        if split_s is None:
+            return
+        if split_s <= 0:
+            msg = f"--save-split {split_s:g}: the seconds between files must be more than 0"
+            raise SinkError(msg)
+        pattern = re.compile(re.escape(path.stem) + r"_\d+" + re.escape(path.suffix))
+        earlier = sorted(p.name for p in path.parent.iterdir() if pattern.fullmatch(p.name))
+        if earlier and _numbered(path):
+            more = len(earlier) - 3
+            shown = ", ".join(earlier[:3]) + (f" and {more} more" if more > 0 else "")
+            msg = (
+                f"--save {path}: {shown} of an earlier recording are there, and a recording "
+                "longer than --save-split goes on in such files; move them away or save under "
+                "another name"
+            )
+            raise SinkError(msg)
+
+    def _name(self, index: int) -> Path:
+        return split_path(self.path, index) if self._numbered else self.path
+
+    def log_static(self, path: str, archetypes: Sequence[rr.AsComponents]) -> None:
+        """Log static data, kept (the latest of each component) for the files that follow."""
+        with self._lock:
+            self.stream.log(path, *archetypes, static=True)
+            if self._worker is not None:  # files follow
+                kept = self._statics.setdefault(path, {})
+                for archetype in archetypes:
+                    kept.update((batch.component_descriptor(), batch)
+                                for batch in archetype.as_component_batches())
+
+    def send_layout(self, send: Callable[[rr.RecordingStream], None]) -> None:
+        """``send(stream)`` sends the layout; it is sent again at the start of every next file."""
+        with self._lock:
+            send(self.stream)
+            self._layout = send
+
+    def _flush_and_split(self, split_s: float) -> None:
+        """Every LIVE_FILE_FLUSH_S (``split_s`` if shorter) hand the file what the batcher holds;
+        go on in the next file once this one has ``split_s`` seconds of data (its time starts
+        with its first data: a host waiting for robots makes no empty files)."""
+        split_at = time.monotonic() + split_s
+        splitting = True
+        while not self._closing.wait(min(LIVE_FILE_FLUSH_S, split_s)):
+            if not self.written:
+                split_at = time.monotonic() + split_s
+            if not splitting or time.monotonic() < split_at:
+                self.stream.flush()
+                continue
+            try:
+                self._next_file()
+            except (OSError, RuntimeError) as err:
+                log.error("--save: cannot split the recording (%s); it goes on in %s, unsplit",
+                          err, self._name(self.files - 1))
+                splitting = False
+            split_at = time.monotonic() + split_s
+
+    def _next_file(self) -> None:
+        with self._lock:
+            done, following = self._name(self.files - 1), self._name(self.files)
+            # Rerun hands the current file what its batcher holds, ends it with the footer and
+            # closes it before set_sinks returns.
+            self.stream.set_sinks(rr.FileSink(str(following)))
+            self.files += 1
+            self.written = False
+            if self.files == 2 and self._numbered:
+                self.path.rename(done)
+            for path, batches in self._statics.items():
+                self.stream.log(path, list(batches.values()), static=True)
+            if self._layout is not None:
+                self._layout(self.stream)
+        log.info("saved %s; the recording goes on in %s", done, following)
+
+    def flush(self) -> None:
+        """Until the file has everything logged so far (in steps: signals are seen between)."""
+        while True:
+            try:
+                self.stream.flush(timeout_sec=FLUSH_STEP_S)
+                return
+            except RuntimeError as err:
+                if "timed out" not in str(err):
+                    msg = f"--save {self._name(self.files - 1)}: {err}"
+                    raise SinkError(msg) from err
+
+    def close(self) -> None:
+        """End the last file with its footer."""
+        self._closing.set()
+        if self._worker is not None:
+            self._worker.join()
+        self.stream.disconnect()
+        if self.files > 1:
+            log.info("saved %s to %s (%d files; `rerun %s` opens them as one recording)",
+                     self._name(0).name, self._name(self.files - 1).name, self.files,
+                     self.path.parent / f"{self.path.stem}_*{self.path.suffix}")
+
+
+class RerunSink:
+    """Logs converter output with the message's timelines, into one recording stream for the
+    viewers (``--spawn``, ``--rerun-addr``, ``--serve-web``) and one for a ``--save`` file
+    (:class:`SavedFile`); each entry goes to both."""
+
+    def __init__(
+        self, options: SinkOptions, give_up: Callable[[], bool] = _never, *,
         eager_batches: bool = False,
     ) -> None:
         """``give_up()`` true: stop waiting for a slow viewer (the user asked the host to stop).
-
-        ``index_footer``: end a ``--save`` file with Rerun's index of its chunks (the viewer
-        then opens it lazily). Rerun keeps that index in memory until the file closes, growing
-        with every chunk: a live host's RSS grew 317 -> 445 MB over a 4-minute demo replayed at
-        10x with it, and stayed flat without (benchmarks/rss_replay.py). So only a recording
-        that ends (a bag) gets one; ``rerun rrd optimize`` adds one to any other.
 
         ``eager_batches``: hand every row batch of :data:`EAGER_FLUSH_BYTES` or more to Rerun's
         encoder at once (a bag conversion, where the encoder otherwise finishes long after the
         host has logged everything)."""
         self._give_up = give_up
-        self._index_footer = index_footer
-        self.recording = rr.RecordingStream(
-            APPLICATION_ID, recording_id=options.recording_id,
-            batcher_config=rr.ChunkBatcherConfig(flush_num_bytes=EAGER_FLUSH_BYTES) if eager_batches
-            else None,
-        )
-        # Swanky sets log_time itself (the bag's record time); the SDK's wall clock would clash.
-        rr.set_log_time_enabled(False, recording=self.recording)
-        rr.set_log_tick_enabled(False, recording=self.recording)
+        self._batcher = rr.ChunkBatcherConfig(flush_num_bytes=EAGER_FLUSH_BYTES) if eager_batches else None
         self.web_url: str | None = None
         self.web_note: str | None = None
         self._viewers: list[ViewerAddress] = []
         self._viewer_urls: list[str] = []
         self._own_destination = options.save is not None or options.serve_web
-        self._save = options.save
         self.abandoned = False
-        self._open(options)
+        self._viewing, self._file = self._open(options)
+        saving = None if self._file is None else self._file.stream
+        self.streams = tuple(stream for stream in (self._viewing, saving) if stream is not None)
+        self._natives = [stream.to_native() for stream in self.streams]
         self._pacer = (
-            _ViewerPacer(self.recording, "; ".join(viewer.name for viewer in self._viewers))
-            if self._viewers else None
+            None if self._viewing is None or not self._viewers
+            else _ViewerPacer(self._viewing, "; ".join(viewer.name for viewer in self._viewers))
         )
         # Rerun's time context is per thread (the dispatcher and the slow-converter worker).
         self._local = threading.local()
 
-    def _open(self, options: SinkOptions) -> None:
-        sinks: list[rr.sinks.LogSinkLike] = []
+    def _open(self, options: SinkOptions) -> tuple[rr.RecordingStream | None, SavedFile | None]:
+        """The viewers' stream and the file, each if asked for. Every destination is checked
+        before any is opened: nothing is written when one is wrong."""
         if options.save is not None:
-            if not options.save.parent.is_dir():
-                msg = f"--save {options.save}: directory {options.save.parent} does not exist"
-                raise SinkError(msg)
-            sinks.append(rr.FileSink(str(options.save), write_footer=self._index_footer))
-        if options.connect is not None:
-            sinks.append(self._connect(options.connect))
-        if options.spawn:
-            sinks.append(self._spawn())
-        if options.serve_web:
-            sinks.append(self._serve_grpc(options))
-        self.recording.set_sinks(*sinks)
-        if options.serve_web:
-            self._serve_web(options)
+            SavedFile.check(options.save, options.save_split_s)
+        recording_id = options.recording_id
+        viewing = None
+        if options.connect is not None or options.spawn or options.serve_web:
+            viewing = _stream(recording_id, self._batcher)
+            recording_id = str(viewing.get_recording_id())
+            sinks: list[rr.sinks.LogSinkLike] = []
+            if options.connect is not None:
+                sinks.append(self._connect(options.connect))
+            if options.spawn:
+                sinks.append(self._spawn(viewing))
+            if options.serve_web:
+                sinks.append(self._serve_grpc(options))
+            viewing.set_sinks(*sinks)
+            if options.serve_web:
+                self._serve_web(options)
+        if options.save is None:
+            return viewing, None
+        # A live file's rows in longer batches than a viewer's: fewer chunks for its footer.
+        batcher = (rr.ChunkBatcherConfig(flush_tick=LIVE_FILE_FLUSH_S)
+                   if options.save_split_s is not None else self._batcher)
+        return viewing, SavedFile(options.save, recording_id, batcher, options.save_split_s)
 
     def _connect(self, url: str) -> rr.GrpcSink:
         address = viewer_address(url)
@@ -380,7 +550,7 @@ class RerunSink:
         self._viewer_urls.append(url)
         return sink
 
-    def _spawn(self) -> rr.GrpcSink:
+    def _spawn(self, stream: rr.RecordingStream) -> rr.GrpcSink:
         executable = viewer_executable()
         if executable is None:
             msg = (
@@ -391,7 +561,7 @@ class RerunSink:
             raise SinkError(msg)
         try:
             rr.spawn(
-                port=VIEWER_PORT, connect=False, recording=self.recording, executable_path=executable
+                port=VIEWER_PORT, connect=False, recording=stream, executable_path=executable
             )
         except Exception as err:
             msg = (
@@ -461,20 +631,22 @@ class RerunSink:
 
     @property
     def recording_id(self) -> str:
-        return str(self.recording.get_recording_id())
+        return str(self.streams[0].get_recording_id())
 
     def _set_times(self, times: Mapping[str, int]) -> None:
         if times == getattr(self._local, "times", None):
             return
-        native = self.recording.to_native()
-        rerun_bindings.reset_time(native)
-        for name, ns in times.items():
-            rerun_bindings.set_time_timestamp_nanos_since_epoch(name, ns, native)
+        for native in self._natives:
+            rerun_bindings.reset_time(native)
+            for name, ns in times.items():
+                rerun_bindings.set_time_timestamp_nanos_since_epoch(name, ns, native)
         self._local.times = times
 
     def log(self, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
         if self._pacer is not None and not self._pacer.caught_up.is_set():
             self._pacer.wait(self._give_up)
+        if self._file is not None:
+            self._file.written = True
         for entry in entries:
             if isinstance(entry, ColumnsItem):
                 columns = list(entry.columns)
@@ -484,13 +656,21 @@ class RerunSink:
                     rr.TimeColumn(name, timestamp=values.astype(np.int64, copy=False).view("datetime64[ns]"))
                     for name, values in entry.times.items()
                 ]
-                self.recording.send_columns(entry.path, indexes=indexes, columns=columns)
+                for stream in self.streams:
+                    stream.send_columns(entry.path, indexes=indexes, columns=columns)
             elif isinstance(entry, LogItem):
                 if entry.static:
-                    self.recording.log(entry.path, *entry.archetypes, static=True)
+                    self._log_static(entry.path, entry.archetypes)
                 else:
                     self._set_times(times if entry.times is None else entry.times)
-                    self.recording.log(entry.path, *entry.archetypes)
+                    for stream in self.streams:
+                        stream.log(entry.path, *entry.archetypes)
+
+    def _log_static(self, path: str, archetypes: Sequence[rr.AsComponents]) -> None:
+        if self._viewing is not None:
+            self._viewing.log(path, *archetypes, static=True)
+        if self._file is not None:
+            self._file.log_static(path, archetypes)
 
     def _log_rows(
         self, path: str, columns: Sequence[Any], times: Mapping[str, npt.NDArray[np.int64]]
@@ -506,26 +686,39 @@ class RerunSink:
             return False
         # Rerun's binding itself: rr.log wraps, checks and unwraps the cells again, a tenth to a
         # sixth of a live Imu's or TF's conversion and logging (Imu 515 -> 445-478 us, TF 450 -> 383).
-        native = self.recording.to_native()
         for row, components in enumerate(rows):
             self._set_times({name: int(values[row]) for name, values in times.items()})
-            rerun_bindings.log_arrow_msg(path, components=components, static_=False, recording=native)
+            for native in self._natives:
+                rerun_bindings.log_arrow_msg(path, components=components, static_=False, recording=native)
         return True
 
     def send_blueprint(self, blueprint: rrb.Blueprint) -> None:
         """Make ``blueprint`` the viewer's layout (and its default); a saved .rrd keeps it too."""
-        self.recording.send_blueprint(blueprint, make_active=True, make_default=True)
+        self._send_layout(
+            lambda stream: stream.send_blueprint(blueprint, make_active=True, make_default=True))
 
     def send_blueprint_file(self, path: Path) -> None:
         """Send a saved .rbl as is: its blueprint store and activation travel with the data."""
-        rr.log_file_from_path(path, recording=self.recording)
+        self._send_layout(lambda stream: rr.log_file_from_path(path, recording=stream))
+
+    def _send_layout(self, send: Callable[[rr.RecordingStream], None]) -> None:
+        if self._viewing is not None:
+            send(self._viewing)
+        if self._file is not None:
+            self._file.send_layout(send)
 
     def flush(self) -> None:
-        """Wait until every sink has everything logged so far. A viewer that is slow to read is
-        waited for (until ``give_up()``); one that went away is not: SinkError names it."""
+        """Wait until every sink has everything logged so far, the file first. A viewer that is
+        slow to read is waited for (until ``give_up()``); one that went away is not: SinkError
+        names it. Without a viewer (the web viewer's server alone) a flush waits only for this
+        PC: giving up would not stop it, and the user would be told a complete file was not."""
+        if self._file is not None:
+            self._file.flush()
+        if self._viewing is None:
+            return
         while True:
             try:
-                self.recording.flush(timeout_sec=FLUSH_STEP_S)
+                self._viewing.flush(timeout_sec=FLUSH_STEP_S)
                 return
             except RuntimeError as err:
                 lost = self._lost_viewers(err)
@@ -538,7 +731,7 @@ class RerunSink:
                     )
                     msg = f"lost the Rerun viewer at {named}: what it had not received yet is not shown"
                     raise SinkError(msg) from err
-                if self._give_up():
+                if self._viewers and self._give_up():
                     msg = f"stopped before every sink had everything ({err})"
                     raise SinkError(msg) from err
 
@@ -553,8 +746,8 @@ class RerunSink:
         return lost
 
     def close(self) -> None:
-        """Flush and close the sinks, so a saved .rrd is complete even when a viewer is gone
-        (SinkError then names it, after the file is closed).
+        """Flush and close the sinks, the file first: a saved .rrd is complete even when a
+        viewer is gone or stopped answering (SinkError then names it, after the file is closed).
 
         A viewer that stopped answering (frozen, or its network gone without a word) holds
         Rerun's disconnect for ever; after ``DISCONNECT_TIMEOUT_S`` it is left behind and
@@ -567,16 +760,16 @@ class RerunSink:
             self.flush()
         except SinkError as err:
             problem = err
-        closing = threading.Thread(target=self.recording.disconnect, name="rerun-close", daemon=True)
-        closing.start()
-        closing.join(DISCONNECT_TIMEOUT_S)
-        if closing.is_alive():
-            self.abandoned = True
-            stuck = "; ".join(viewer.name for viewer in self._viewers) or "a Rerun sink"
-            saved = "" if self._save is None else (
-                f"; {self._save} lacks its index footer (`rerun rrd optimize` adds one)"
-            )
-            msg = f"gave up closing {stuck} after {DISCONNECT_TIMEOUT_S:.0f} s: it stopped answering{saved}"
-            raise SinkError(msg) from problem
+        if self._file is not None:
+            self._file.close()
+        if self._viewing is not None:
+            closing = threading.Thread(target=self._viewing.disconnect, name="rerun-close", daemon=True)
+            closing.start()
+            closing.join(DISCONNECT_TIMEOUT_S)
+            if closing.is_alive():
+                self.abandoned = True
+                stuck = "; ".join(viewer.name for viewer in self._viewers) or "the --serve-web server"
+                msg = f"gave up closing {stuck} after {DISCONNECT_TIMEOUT_S:.0f} s: it stopped answering"
+                raise SinkError(msg) from problem
         if problem is not None:
             raise problem

@@ -1,5 +1,8 @@
-"""What converters keep between messages: per robot, named fields all its topics share; per
-topic, the topic's options and one record per converter that keeps something, found by class.
+"""What converters keep between messages: per robot, named fields all its topics share (its
+model's kinematics, its grids); per topic, the topic's options and one record per converter
+that keeps something, found by class. The records the robot's fields hold (:class:`RobotModel`,
+:class:`Grid`) are defined here, below the converters that make them, so the layers import one
+way.
 
 Named fields and classes rather than string-keyed dicts: a misspelt key was a bug mypy could not
 see (markers read ``"resolve_uri"`` while the host set ``"resolver"``, so no ``package://``
@@ -11,17 +14,70 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar, cast
+from typing import Any, TypeVar, cast
+
+import numpy as np
+import numpy.typing as npt
+import rerun as rr
 
 from host_bridge.errors import ConvertError
-from host_bridge.options import Options, options_from
+from host_bridge.options import GridDrawingOptions, Options, options_from
 from host_bridge.resources import ResourceResolver
 
-if TYPE_CHECKING:
-    from host_bridge.converters.joints import RobotModel
-    from host_bridge.converters.occupancy import Grid
-
 State = TypeVar("State")
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class MimicModel:
+    joint: str
+    multiplier: float
+    offset: float
+
+
+@dataclass(frozen=True, slots=True)
+class JointModel:
+    """One URDF joint: origin pose (parent link -> joint frame), unit axis, mimic rule."""
+
+    name: str
+    type: str
+    parent: str
+    child: str
+    translation: FloatArray
+    rotation: FloatArray
+    quaternion: FloatArray
+    axis: FloatArray
+    mimic: MimicModel | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class RobotModel:
+    """The kinematics of one URDF, enough to turn joint values into link transforms."""
+
+    name: str
+    joints: Mapping[str, JointModel]
+    mimic_order: tuple[str, ...]
+    # The link no joint moves: the frame the model hangs from (None for a URDF without links).
+    root: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Grid:
+    """One occupancy grid as the converters need it; ``cells`` is read-only, row 0 at the origin.
+
+    ``options`` are the grid topic's own, so an update (whose topic has its own options)
+    renders the patched grid the way the grid topic asked for; a map's hold its walls' too
+    (:class:`~host_bridge.options.GridOptions`), a costmap's do not.
+    """
+
+    topic: str
+    entity_path: str
+    frame: str | None
+    cells: npt.NDArray[np.int8]
+    resolution: float
+    translation: npt.NDArray[np.float64]
+    quaternion: npt.NDArray[np.float64]
+    options: GridDrawingOptions
 
 
 @dataclass(slots=True)
@@ -46,6 +102,18 @@ class RobotState:
     grids: dict[str, Grid] = field(default_factory=dict)
     # Hash of what each wall entity shows, so an unchanged map is not meshed again.
     wall_digests: dict[str, bytes] = field(default_factory=dict)
+
+
+def static_transform_path(robot: str, robot_state: RobotState, child_frame_id: str) -> str:
+    """The one static entity holding the relation into ``child_frame_id``.
+
+    Rerun wants each frame relation on a single entity. A URDF's fixed joints are usually also
+    on /tf_static (robot_state_publisher), so the model logs them here too and whichever of the
+    two arrives last holds the value. The root is the robot's /tf_static entity (configurable),
+    ``/<robot>/tf_static`` until a /tf_static message shows it.
+    """
+    root = robot_state.static_tf_root or f"/{robot}/tf_static"
+    return f"{root}/{rr.escape_entity_path_part(child_frame_id.strip('/'))}"
 
 
 class TopicState:

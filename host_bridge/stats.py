@@ -45,8 +45,8 @@ import numpy.typing as npt
 import rerun as rr
 
 from host_bridge.columns import PackedPayloads
-from host_bridge.contract import TIMELINE_LOG, TIMELINE_RECEIVE, LogItem
-from host_bridge.dispatch import TopicCounters, sequence_gap, sequence_gaps
+from host_bridge.contract import STATS_ROOT, TIMELINE_LOG, TIMELINE_RECEIVE, LogItem
+from host_bridge.counters import TopicCounters, sequence_gap, sequence_gaps
 from host_bridge.inputs.base import MessageRun
 from robot_relay.errors import WireError
 from robot_relay.wire import RawMessage, RelayReport, parse_robot_key, stats_selector
@@ -58,7 +58,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("swanky.host")
 
-STATS_ROOT = "/_stats"
 PERIOD_NS = 1_000_000_000
 # After a silence longer than this many periods, log one empty period and skip the rest.
 MAX_EMPTY_PERIODS = 10

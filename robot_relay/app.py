@@ -125,15 +125,21 @@ def relay_source(options: RelayOptions, source: Source, stop: threading.Event) -
         closing.callback(source.close)
         if replay:
             log.info("robot %s: %d topics from %s", options.robot, len(catalog.topics), options.bag)
-            if not relay.wait_for_host(options.wait_for_host):
+            if not relay.wait_for_host(options.wait_for_host, stop):
+                if stop.is_set():
+                    log.info("robot %s: stopped before a host subscribed; nothing replayed",
+                             options.robot)
+                    return 0
                 log.error("no host subscribed within %.1f s; nothing replayed", options.wait_for_host)
                 return 1
         source.start(RelayOutlet(relay, files))
         while not stop.wait(POLL_S) and not source.ended():
             pass
-        if replay:
+        if replay and stop.is_set():
+            log.info("robot %s: replay stopped, %d messages sent", options.robot, relay.published)
+        elif replay:
             log.info("robot %s: replay finished, %d messages sent", options.robot, relay.published)
-            if options.hold > 0 and not stop.is_set():
+            if options.hold > 0:
                 log.info("robot %s: serving latched topics and files for %s s", options.robot,
                          options.hold)
                 stop.wait(None if math.isinf(options.hold) else options.hold)

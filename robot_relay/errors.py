@@ -11,10 +11,6 @@ class WireError(RelayError):
     """A sample or catalog does not follow schemas/wire.md."""
 
 
-class GraphError(WireError):
-    """An rmw_zenoh key, liveliness token or attachment is not in a form rmw_zenoh produces."""
-
-
 class SourceError(RelayError):
     """A ROS source (bag, rclpy) cannot be opened or read."""
 

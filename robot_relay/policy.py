@@ -51,8 +51,9 @@ BULK = TrafficClass("data_low", "drop")
 SENSOR = TrafficClass("data", "drop")
 VIDEO = TrafficClass("data_low", "block")
 
-# The types forwarded other than DEFAULT_TRAFFIC. The host's type table (host_bridge/registry.py)
-# is separate, since the robot has no host code; a test checks it has a row for each type here.
+# The types forwarded other than DEFAULT_TRAFFIC: a copy of the traffic column of the host's type
+# table (host_bridge/registry.py), which the robot does not have; tests/host_bridge/test_registry.py
+# checks the two agree.
 TRAFFIC: Mapping[str, TrafficClass] = {
     "tf2_msgs/msg/TFMessage": FRAMES,
     "sensor_msgs/msg/LaserScan": SCANS,

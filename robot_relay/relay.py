@@ -53,6 +53,8 @@ from robot_relay.wire import (
 log = logging.getLogger("swanky.relay")
 
 _CONGESTION = {"drop": zenoh.CongestionControl.DROP, "block": zenoh.CongestionControl.BLOCK}
+STOP_POLL_S = 0.05
+"""How often :meth:`Relay.wait_for_host` looks at its stop event."""
 
 
 class DemandListener(Protocol):
@@ -411,11 +413,19 @@ class Relay:
                 self._failed[info.topic] = info
                 log.error("%s is not forwarded: %s", info.topic, err)
 
-    def wait_for_host(self, timeout: float | None) -> bool:
-        """Block until a host subscribes to any non-latched topic (or ``timeout`` passes), woken
-        by the publishers' matching listeners: a replay starts as soon as a host listens."""
+    def wait_for_host(self, timeout: float | None, stop: threading.Event | None = None) -> bool:
+        """Block until a host subscribes to any non-latched topic (True), or ``timeout`` passes
+        or ``stop`` is set (False). Woken by the publishers' matching listeners, so a replay
+        starts as soon as a host listens, and every STOP_POLL_S to look at ``stop``: a
+        condition cannot also wait on an event, and a stop signal must not wait for a host."""
+        deadline = None if timeout is None else time.monotonic() + timeout
         with self._demand_changed:
-            return self._demand_changed.wait_for(self._host_listening, timeout)
+            while not self._host_listening():
+                left = STOP_POLL_S if deadline is None else deadline - time.monotonic()
+                if left <= 0 or (stop is not None and stop.is_set()):
+                    return False
+                self._demand_changed.wait(min(left, STOP_POLL_S))
+            return True
 
     def _host_listening(self) -> bool:
         plain = [p.info.topic for p in self._publishers.values() if not p.info.latched]

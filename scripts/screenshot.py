@@ -26,7 +26,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -154,9 +154,12 @@ def distinct_colours(png: bytes) -> int:
 def capture(
     url: str, *, browser: str, size: tuple[int, int] = (1280, 800), timeout: float = 90.0,
     every: float = 3.0, settle: int = 3, min_colours: int = 200, log: IO[bytes] | None = None,
+    drawn: Callable[[bytes], bool] | None = None,
 ) -> bytes:
     """PNG of ``url`` once it has drawn: ``settle`` captures in a row with at least
     ``min_colours`` colours and nearly the same count, else the last capture at ``timeout``.
+    ``drawn`` replaces that guess where the caller knows what the page must show: the first
+    capture it accepts.
 
     Software GL on a busy machine can take tens of seconds per frame, so a capture that does not
     come back in time ends the wait with the previous one instead of failing.
@@ -189,7 +192,8 @@ def capture(
                       file=sys.stderr, flush=True)
                 recent = counts[-settle:]
                 steady = len(recent) == settle and max(recent) <= 1.25 * min(recent)
-                if (steady and min(recent) >= min_colours) or time.monotonic() >= deadline:
+                done = drawn(shot) if drawn is not None else steady and min(recent) >= min_colours
+                if done or time.monotonic() >= deadline:
                     return shot
         finally:
             tools.close()

@@ -1,8 +1,8 @@
 """Who imports whom, read from the source (AST), not by importing it.
 
-- The host's modules import each other without a cycle at module level, and the imports inside
-  functions (how a module defers a heavy dependency) close no cycle either but the one listed
-  in :data:`DEFERRED_CYCLES`. Imports under ``TYPE_CHECKING`` never run and are not counted.
+- The host's modules import each other without a cycle, at module level, inside functions (how
+  a module defers a heavy dependency) or under ``TYPE_CHECKING`` alike, and only from their own
+  layer or the ones below it (:data:`LAYERS`).
 - The robot side imports nothing from the host (ruff's banned-api rule TID251 says the same for
   the linter), and at module level only the standard library and its ``[relay]`` extra: it runs
   on a Pi with Python 3.10 and none of the host's packages.
@@ -38,14 +38,34 @@ HOST_MAY_IMPORT: dict[str, tuple[str, str]] = {
     ),
     "robot_relay.files": ("host_bridge", "--package-path NAME=DIR is parsed alike on both commands"),
     "robot_relay.relay": ("host_bridge.demo", "the demo is a simulated robot: it runs a relay"),
+    "robot_relay.policy": (
+        "host_bridge.registry", "a row names the relay's traffic class of its type (TrafficClass), "
+        "checked against the relay's own table",
+    ),
     "robot_relay.sources.mcap": (
         "host_bridge", "--bag reads an indexed MCAP with the bulk reader the relay replays it with",
     ),
 }
-# Cycles closed by imports inside functions, with why they are left.
-DEFERRED_CYCLES = [
-    # The bundled definitions need the base typestore and the base typestore includes them.
-    ["host_bridge.decode", "host_bridge.schemas"],
+# The host's layers, lowest first: a module imports from its own layer and the ones below only
+# (at module level, inside functions and for type checking alike). A module is in the layer of
+# the longest prefix naming it.
+LAYERS: list[tuple[str, list[str]]] = [
+    ("errors", ["host_bridge.errors"]),
+    ("core: records, contract, decoding, frame names", [
+        "host_bridge.options", "host_bridge.resources", "host_bridge.schemas", "host_bridge.decode",
+        "host_bridge.columns", "host_bridge.state", "host_bridge.contract", "host_bridge.counters",
+        "host_bridge.colormap", "host_bridge.rvl", "host_bridge.destinations",
+        "host_bridge.frames",
+    ]),
+    ("converters", ["host_bridge.converters"]),
+    ("slam", ["host_bridge.slam"]),
+    ("the type table and the configuration", ["host_bridge.registry", "host_bridge.config"]),
+    ("inputs", ["host_bridge.inputs", "host_bridge.robot_files"]),
+    ("outputs", ["host_bridge.sink", "host_bridge.blueprint", "host_bridge.recorder", "host_bridge.stats",
+                 "host_bridge.progress"]),
+    ("pipeline", ["host_bridge.dispatch", "host_bridge.offload"]),
+    ("app", ["host_bridge", "host_bridge.app", "host_bridge.cli", "host_bridge.listing",
+             "host_bridge.demo"]),
 ]
 # The [relay] extra (pyproject.toml); rclpy and rosbags are imported inside the sources' functions.
 RELAY_THIRD_PARTY = {"zenoh", "yaml", "jsonschema"}
@@ -184,8 +204,30 @@ def host_graph(*when: str) -> dict[str, set[str]]:
 
 
 def test_host_modules_import_each_other_without_a_cycle() -> None:
-    assert cycles(host_graph("module")) == []
-    assert cycles(host_graph("module", "function")) == DEFERRED_CYCLES
+    assert cycles(host_graph("module", "function", "typing")) == []
+
+
+def layer_of(module: str) -> int:
+    """Index in :data:`LAYERS` of the longest prefix naming ``module``."""
+    ranked = [(len(prefix), index) for index, (_, prefixes) in enumerate(LAYERS)
+              for prefix in prefixes if in_package(module, prefix)]
+    assert ranked, f"{module} is in no layer of LAYERS; add it to one"
+    return max(ranked)[1]
+
+
+def test_host_modules_import_only_their_layer_and_the_ones_below() -> None:
+    upward = [
+        f"{where(i)} ({LAYERS[layer_of(i.importer)][0]} -> {LAYERS[layer_of(i.imported)][0]})"
+        for i in ALL_IMPORTS
+        if in_package(i.importer, "host_bridge") and in_package(i.imported, "host_bridge")
+        and layer_of(i.imported) > layer_of(i.importer)
+    ]
+    assert upward == []
+
+
+def test_the_layer_check_sees_an_upward_import() -> None:
+    assert layer_of("host_bridge.converters.laser") > layer_of("host_bridge.contract")
+    assert layer_of("host_bridge.dispatch") > layer_of("host_bridge.sink")
 
 
 def test_cycle_finder_finds_a_cycle() -> None:

@@ -48,11 +48,11 @@ import rerun as rr
 from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem, per_message
 from host_bridge.converters.video import CODEC_SPELLINGS, VideoFrame, video_codec, video_entries
 from host_bridge.errors import ConvertError
-from host_bridge.options import ImageOptions
+from host_bridge.options import ImageOptions, converter_choices
 from host_bridge.rvl import rvl_decode
 from robot_relay.wire import MAX_DECOMPRESSED_BYTES
 
-_MODES = ("auto", "depth", "color")
+_MODES = converter_choices(ImageOptions)
 
 # Rerun's own colormap names are accepted case-insensitively; these are the host's other spellings.
 _COLORMAP_ALIASES = {"gray": "Grayscale", "grey": "Grayscale"}

@@ -49,43 +49,11 @@ from host_bridge.contract import (
 )
 from host_bridge.converters._common import stamps_ns
 from host_bridge.errors import ConvertError, PartialConvertError
+from host_bridge.state import JointModel, RobotModel
 
 MOVABLE_TYPES = frozenset({"revolute", "continuous", "prismatic"})
 
 FloatArray = npt.NDArray[np.float64]
-
-
-@dataclass(frozen=True, slots=True)
-class MimicModel:
-    joint: str
-    multiplier: float
-    offset: float
-
-
-@dataclass(frozen=True, slots=True)
-class JointModel:
-    """One URDF joint: origin pose (parent link -> joint frame), unit axis, mimic rule."""
-
-    name: str
-    type: str
-    parent: str
-    child: str
-    translation: FloatArray
-    rotation: FloatArray
-    quaternion: FloatArray
-    axis: FloatArray
-    mimic: MimicModel | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class RobotModel:
-    """The kinematics of one URDF, enough to turn joint values into link transforms."""
-
-    name: str
-    joints: Mapping[str, JointModel]
-    mimic_order: tuple[str, ...]
-    # The link no joint moves: the frame the model hangs from (None for a URDF without links).
-    root: str | None = None
 
 
 def pose_of_matrix(matrix: FloatArray) -> tuple[FloatArray, FloatArray]:

@@ -29,9 +29,9 @@ from host_bridge.colormap import colormap_packed
 from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
 from host_bridge.converters._common import frame_components, header_frame, time_columns
 from host_bridge.errors import ConvertError
-from host_bridge.options import LaserScanOptions
+from host_bridge.options import LaserScanOptions, converter_choices
 
-_MODES = ("points", "rays", "both")
+_MODES = converter_choices(LaserScanOptions)
 
 
 @lru_cache(maxsize=64)

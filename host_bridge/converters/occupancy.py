@@ -20,8 +20,8 @@ the origin, so rows are flipped.
 Options (per grid topic): ``color_scheme`` "map" | "costmap" | "raw" (default: "costmap" when
 the topic name contains "costmap", else "map"; "raw" shows the byte values as grey levels),
 ``opacity`` and ``draw_order`` (by topic name: 1.0 and 0 for maps, 0.7 and 1 for costmaps, 0.7
-and 2 for local costmaps, so costmaps layer over the map), plus the wall options of
-``walls.py``.
+and 2 for local costmaps, so costmaps layer over the map), plus, for an OccupancyGrid, the wall
+options of ``walls.py``.
 
 State: the last grid of every topic lives in ``ctx.robot_state.grids[topic]`` as an
 immutable :class:`Grid`, because its updates arrive on another topic (``/costmap_updates``
@@ -39,7 +39,7 @@ the same message (an update's walls read the grid this module patched).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -49,7 +49,8 @@ import rerun as rr
 from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components, xyz, xyzw
 from host_bridge.errors import ConvertError
-from host_bridge.options import GridOptions, GridUpdateOptions
+from host_bridge.options import CostmapUpdateOptions, GridDrawingOptions, GridOptions, GridUpdateOptions
+from host_bridge.state import Grid
 
 UPDATES_SUFFIX = "_updates"
 
@@ -66,24 +67,6 @@ COST_TO_OCCUPANCY = np.array(
 )
 
 
-@dataclass(frozen=True, slots=True)
-class Grid:
-    """One occupancy grid as the converters need it; ``cells`` is read-only, row 0 at the origin.
-
-    ``options`` are the grid topic's own, so an update (whose topic has its own options)
-    renders the patched grid the way the grid topic asked for.
-    """
-
-    topic: str
-    entity_path: str
-    frame: str | None
-    cells: npt.NDArray[np.int8]
-    resolution: float
-    translation: npt.NDArray[np.float64]
-    quaternion: npt.NDArray[np.float64]
-    options: GridOptions
-
-
 def _unit_quaternion(orientation: Any, topic: str) -> npt.NDArray[np.float64]:
     q = np.array(xyzw(orientation), dtype=np.float64)
     norm = float(np.linalg.norm(q))
@@ -94,7 +77,8 @@ def _unit_quaternion(orientation: Any, topic: str) -> npt.NDArray[np.float64]:
 
 
 def _grid(
-    msg: Any, info: Any, size: tuple[int, int], data: npt.NDArray[np.int8], ctx: ConvertContext
+    msg: Any, info: Any, size: tuple[int, int], data: npt.NDArray[np.int8], ctx: ConvertContext,
+    *, options: GridDrawingOptions,
 ) -> Grid:
     """Validated Grid of a message with a header, ``info`` (OccupancyGrid's ``info``, Costmap's
     ``metadata``) of the ``size`` (width, height) and the cells ``data`` (not copied)."""
@@ -127,17 +111,18 @@ def _grid(
         resolution=resolution,
         translation=translation,
         quaternion=_unit_quaternion(info.origin.orientation, ctx.topic),
-        options=ctx.options(GridOptions),
+        options=options,
     )
 
 
 def grid_from_msg(msg: Any, ctx: ConvertContext) -> Grid:
     """Validated view of an OccupancyGrid (no copy of the cells)."""
     size = (int(msg.info.width), int(msg.info.height))
-    return _grid(msg, msg.info, size, np.asarray(msg.data, dtype=np.int8), ctx)
+    cells = np.asarray(msg.data, dtype=np.int8)
+    return _grid(msg, msg.info, size, cells, ctx, options=ctx.options(GridOptions))
 
 
-def _scheme(options: GridOptions, topic: str) -> str:
+def _scheme(options: GridDrawingOptions, topic: str) -> str:
     if options.color_scheme is None:
         return "costmap" if "costmap" in topic else "map"
     return options.color_scheme
@@ -147,7 +132,7 @@ def color_scheme(grid: Grid) -> str:
     return _scheme(grid.options, grid.topic)
 
 
-def cost_cells(costs: Any, options: GridOptions, topic: str) -> npt.NDArray[np.int8]:
+def cost_cells(costs: Any, options: GridDrawingOptions, topic: str) -> npt.NDArray[np.int8]:
     """A nav2 costmap's 0..255 costs as grid cells: translated for the palettes, as they are
     for ``raw`` (the byte values are the costs)."""
     data = np.asarray(costs, dtype=np.uint8)
@@ -159,8 +144,9 @@ def cost_cells(costs: Any, options: GridOptions, topic: str) -> npt.NDArray[np.i
 def costmap_from_msg(msg: Any, ctx: ConvertContext) -> Grid:
     """Validated Grid of a nav2_msgs/Costmap."""
     meta = msg.metadata
-    cells = cost_cells(msg.data, ctx.options(GridOptions), ctx.topic)
-    return _grid(msg, meta, (int(meta.size_x), int(meta.size_y)), cells, ctx)
+    options = ctx.options(GridDrawingOptions)
+    cells = cost_cells(msg.data, options, ctx.topic)
+    return _grid(msg, meta, (int(meta.size_x), int(meta.size_y)), cells, ctx, options=options)
 
 
 def grid_map(grid: Grid) -> rr.GridMap:
@@ -211,9 +197,9 @@ def convert_grid(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return grid_items(grid)
 
 
-def grid_for_update(ctx: ConvertContext, grid_type: str = "OccupancyGrid") -> Grid:
-    """The stored grid an update on ``ctx.topic`` patches (``T_updates`` patches ``T``)."""
-    target = ctx.options(GridUpdateOptions).grid_topic
+def grid_for_update(ctx: ConvertContext, target: str | None, grid_type: str = "OccupancyGrid") -> Grid:
+    """The stored grid an update on ``ctx.topic`` patches: ``target`` (the update topic's option
+    ``grid_topic``), else ``T`` for ``T_updates``."""
     if target is None:
         if not ctx.topic.endswith(UPDATES_SUFFIX):
             text = (
@@ -256,7 +242,8 @@ def patched(
 
 def convert_update(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     rectangle = (int(msg.x), int(msg.y), int(msg.width), int(msg.height))
-    grid = patched(grid_for_update(ctx), rectangle, np.asarray(msg.data, dtype=np.int8), ctx.topic)
+    grid = grid_for_update(ctx, ctx.options(GridUpdateOptions).grid_topic)
+    grid = patched(grid, rectangle, np.asarray(msg.data, dtype=np.int8), ctx.topic)
     _store(ctx, grid)
     return grid_items(grid)
 
@@ -269,7 +256,7 @@ def convert_costmap(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
 
 def convert_costmap_update(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     """nav2_msgs/CostmapUpdate: costs of a rectangle of the costmap (``T_updates`` patches ``T``)."""
-    grid = grid_for_update(ctx, "Costmap")
+    grid = grid_for_update(ctx, ctx.options(CostmapUpdateOptions).grid_topic, "Costmap")
     cells = cost_cells(msg.data, grid.options, grid.topic)
     rectangle = (int(msg.x), int(msg.y), int(msg.size_x), int(msg.size_y))
     grid = patched(grid, rectangle, cells, ctx.topic)

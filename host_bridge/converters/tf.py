@@ -28,7 +28,7 @@ from host_bridge.contract import (
 )
 from host_bridge.converters._common import stamps_ns, vectors
 from host_bridge.options import TfOptions
-from host_bridge.state import RobotState
+from host_bridge.state import static_transform_path
 
 
 def _is_static(ctx: TopicContext) -> bool:
@@ -39,18 +39,6 @@ def _is_static(ctx: TopicContext) -> bool:
 def _remember_children(ctx: TopicContext, children: Iterable[str]) -> None:
     # The joint-state kinematics leave frames alone that TF already drives (see joints.py).
     ctx.robot_state.tf_children.update(child.strip("/") for child in children)
-
-
-def static_transform_path(robot: str, robot_state: RobotState, child_frame_id: str) -> str:
-    """The one static entity holding the relation into ``child_frame_id``.
-
-    Rerun wants each frame relation on a single entity. A URDF's fixed joints are usually also
-    on /tf_static (robot_state_publisher), so the model logs them here too and whichever of the
-    two arrives last holds the value. The root is the robot's /tf_static entity (configurable),
-    ``/<robot>/tf_static`` until a /tf_static message shows it.
-    """
-    root = robot_state.static_tf_root or f"/{robot}/tf_static"
-    return f"{root}/{rr.escape_entity_path_part(child_frame_id.strip('/'))}"
 
 
 def _transforms(block: Block) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:

@@ -18,7 +18,7 @@ the scale.
 
 Every joint is a static ``Transform3D(parent_frame, child_frame)`` on the entity /tf_static uses
 for its child frame (``/<robot>/tf_static/<child>``, see
-:func:`host_bridge.converters.tf.static_transform_path`), so a joint robot_state_publisher also
+:func:`host_bridge.state.static_transform_path`), so a joint robot_state_publisher also
 broadcasts sits on one entity, as Rerun requires. Movable joints stand at
 :func:`~host_bridge.converters.joints.zero_positions` (mimic joints at their offset), as in RViz
 and Rerun's own URDF loader: without them a model whose /joint_states never came falls apart
@@ -67,9 +67,6 @@ import rerun as rr
 from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters.joints import (
     MOVABLE_TYPES,
-    JointModel,
-    MimicModel,
-    RobotModel,
     joint_transform,
     link_frame,
     pose_of_matrix,
@@ -77,9 +74,9 @@ from host_bridge.converters.joints import (
     tf_carries,
     zero_positions,
 )
-from host_bridge.converters.tf import static_transform_path
 from host_bridge.errors import ConvertError, MissingResourceError, PartialConvertError
 from host_bridge.resources import ResourceResolver
+from host_bridge.state import JointModel, MimicModel, RobotModel, static_transform_path
 
 if TYPE_CHECKING:
     # Imported where a model is built: trimesh (with scipy) and yourdfpy take about a second to

@@ -1,12 +1,12 @@
 """Wall meshes from occupancy grids: wall cells -> axis runs + Hough on the rest -> merge -> boxes.
 
-The geometry is ``host_bridge/segments.py``; this module applies it to OccupancyGrid messages.
+The geometry is ``host_bridge/converters/segments.py``; this module applies it to OccupancyGrid messages.
 
 Each wall segment is extruded into a box (``wall_thickness`` x ``wall_height``) and all boxes go
 out as ONE ``rr.Mesh3D`` at ``<grid entity>/walls``, in the grid's header frame with the grid's
 full origin pose applied, so the boxes stand on the occupied cells of the GridMap.
 
-Detection (:func:`~host_bridge.segments.detect_segments`): the walls of a building map are
+Detection (:func:`~host_bridge.converters.segments.detect_segments`): the walls of a building map are
 mostly axis-aligned, so wall cells bordering a non-wall cell are taken as runs along rows and
 columns (a few numpy passes per 512x512 tile), the runs of one wall clustered and fitted with
 one line; only the cells no run of ``hough_min_length`` holds go to HoughLinesP (diagonal
@@ -32,8 +32,9 @@ entity already shows yields no items, so a re-published static map costs one has
 walls). A grid without walls yields a ``Clear`` of the wall entity.
 
 Options (the grid topic's :class:`~host_bridge.options.GridOptions`, which holds the fixed
-defaults; lengths in metres): ``walls`` (default: on for topics whose last name part is
-``map``), ``wall_height``, ``wall_thickness`` (default one cell but at least 0.05),
+defaults; a nav2 costmap's record has none, and it no walls; lengths in metres): ``walls``
+(default: on for topics whose last name part is ``map``), ``wall_height``, ``wall_thickness``
+(default one cell but at least 0.05),
 ``wall_color`` (RGB), ``occupied_threshold`` (cell value, map_server's 65),
 ``merge_distance`` (default 4.5 cells but at least 0.1), ``merge_angle_deg``, ``merge_gap``
 (bridges crossing walls and missing cells, not doors; runs on one line are joined across
@@ -58,10 +59,8 @@ import rerun as rr
 
 from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components
-from host_bridge.converters.occupancy import Grid, grid_for_update, grid_from_msg
-from host_bridge.errors import ConvertError
-from host_bridge.options import GridOptions
-from host_bridge.segments import (
+from host_bridge.converters.occupancy import grid_for_update, grid_from_msg
+from host_bridge.converters.segments import (
     DetectorSettings,
     Float64Array,
     TileCache,
@@ -71,7 +70,9 @@ from host_bridge.segments import (
     occupied_mask,
     segments_to_mesh,
 )
-from host_bridge.state import RobotState
+from host_bridge.errors import ConvertError
+from host_bridge.options import GridOptions, GridUpdateOptions
+from host_bridge.state import Grid, RobotState
 
 WALLS_CHILD = "walls"
 
@@ -174,9 +175,14 @@ def wall_segments(grid: Grid, options: WallOptions, cache: TileCache | None = No
     return join_corners(merged, reach=options.join_reach)
 
 
-def walls_enabled(grid: Grid) -> bool:
-    walls = grid.options.walls
-    return grid.topic.rstrip("/").rsplit("/", 1)[-1] == "map" if walls is None else walls
+def wall_options(grid: Grid) -> GridOptions | None:
+    """The grid topic's options when it has walls: a map's ``walls`` (default: on for topics
+    named map); a costmap has none."""
+    options = grid.options
+    if not isinstance(options, GridOptions):
+        return None
+    walls = grid.topic.rstrip("/").rsplit("/", 1)[-1] == "map" if options.walls is None else options.walls
+    return options if walls else None
 
 
 def grid_digest(grid: Grid, options: WallOptions) -> bytes:
@@ -193,10 +199,12 @@ def grid_digest(grid: Grid, options: WallOptions) -> bytes:
     return h.digest()
 
 
-def _grid_wall_items(grid: Grid, robot_state: RobotState, cache: TileCache) -> list[LogEntry]:
-    if not walls_enabled(grid):
+def grid_wall_items(grid: Grid, robot_state: RobotState, cache: TileCache) -> list[LogEntry]:
+    """The wall mesh of ``grid`` (nothing when it is unchanged, a Clear when it has none)."""
+    given = wall_options(grid)
+    if given is None:
         return []
-    options = WallOptions.from_options(grid.options, grid.resolution, grid.topic)
+    options = WallOptions.from_options(given, grid.resolution, grid.topic)
     path = f"{grid.entity_path}/{WALLS_CHILD}"
     # Keyed by wall entity, not per topic: a grid and its updates draw the same walls.
     digests = robot_state.wall_digests
@@ -221,14 +229,15 @@ def _grid_wall_items(grid: Grid, robot_state: RobotState, cache: TileCache) -> l
 
 def wall_items(grid_msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     """Wall mesh of an OccupancyGrid (slow: see the module docstring for cost and threading)."""
-    return _grid_wall_items(
+    return grid_wall_items(
         grid_from_msg(grid_msg, ctx), ctx.robot_state, ctx.topic_state.state(TileCache)
     )
 
 
 def update_wall_items(update_msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     """Walls of the grid an OccupancyGridUpdate patched (the update itself is already in it)."""
-    return _grid_wall_items(grid_for_update(ctx), ctx.robot_state, ctx.topic_state.state(TileCache))
+    grid = grid_for_update(ctx, ctx.options(GridUpdateOptions).grid_topic)
+    return grid_wall_items(grid, ctx.robot_state, ctx.topic_state.state(TileCache))
 
 
 GRID_WALLS = per_message(wall_items)

@@ -7,10 +7,12 @@ robot offers, and everything is a pure function of time and start position, so t
 the same bytes.
 
 - :mod:`~host_bridge.demo.world`: the apartment's walls and exact ray casting against them.
-- :mod:`~host_bridge.demo.robot`: the robot's URDF, frames and motion along the loop.
-- :mod:`~host_bridge.demo.sensors`: lidar, RGB-D camera, map, IMU and battery readings.
+- :mod:`~host_bridge.demo.robot`: the robot's URDF, frames, motion along the loop and its
+  drifting wheel odometry (the robot runs no SLAM and publishes no map).
+- :mod:`~host_bridge.demo.sensors`: lidar, RGB-D camera, IMU and battery readings.
 - :mod:`~host_bridge.demo.driver`: what the robot keeps from tick to tick, and its log lines.
-- :mod:`~host_bridge.demo.messages`: the topics as CDR messages, :func:`simulate` a whole run.
+- :mod:`~host_bridge.demo.messages`: the topics as CDR messages (the ground truth too),
+  :func:`simulate` a whole run.
 - :mod:`~host_bridge.demo.bag`: the run written as a rosbag2.
 - :mod:`~host_bridge.demo.run`: ``swanky-host --demo``, one relay per simulated robot.
 

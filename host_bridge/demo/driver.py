@@ -1,6 +1,6 @@
-"""What runs on the simulated robot from tick to tick: its map, the log lines of the loop
-follower (waypoints reached, doorways passed) and each tick's sensor readings, computed only
-when a message of that tick asks for them."""
+"""What runs on the simulated robot from tick to tick: the log lines of the loop follower
+(waypoints reached, doorways passed) and each tick's sensor readings, computed only when a
+message of that tick asks for them. It builds no map: that is the host's job."""
 
 from __future__ import annotations
 
@@ -12,15 +12,12 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import NDArray
 
-from host_bridge.demo.robot import TICK_HZ, RobotState, nearest_leg
+from host_bridge.demo.robot import TICK_HZ, Pose2D, RobotState, nearest_leg
 from host_bridge.demo.sensors import (
     CAMERA_FOCAL,
     CAMERA_HZ,
-    MAP_HZ,
     SCAN_HZ,
     CameraView,
-    Mapper,
-    MapSnapshot,
     render_camera,
     scan_ranges,
 )
@@ -42,20 +39,20 @@ class LogLine:
 
 
 class Step:
-    """What the message builders see at one tick. Sensors are computed when a builder first
-    asks (a run limited to some topics skips the camera), so builders ask only on their ticks;
-    ``map`` adds this tick's scan to the robot's map, so it is asked once per map tick."""
+    """What the message builders see at one tick: the true ``state`` (what the sensors see) and
+    the wheel ``odom``. Sensors are computed when a builder first asks (a run limited to some
+    topics skips the camera), so builders ask only on their ticks."""
 
     def __init__(
-        self, tick: int, stamp_ns: int, state: RobotState, *, acceleration: float,
-        log: LogLine | None, mapper: Mapper,
+        self, tick: int, stamp_ns: int, state: RobotState, odom: Pose2D, *, acceleration: float,
+        log: LogLine | None,
     ) -> None:
         self.tick = tick
         self.stamp_ns = stamp_ns
         self.state = state
+        self.odom = odom
         self.acceleration = acceleration  # dv/dt over the last tick, m/s^2
         self.log = log
-        self._mapper = mapper
 
     @cached_property
     def scan(self) -> NDArray[np.float32]:
@@ -65,28 +62,21 @@ class Step:
     def camera(self) -> CameraView:
         return render_camera(self.state)
 
-    @cached_property
-    def map(self) -> MapSnapshot:
-        # Like slam_toolbox, which adds a scan only after some travel: one scan per map.
-        self._mapper.add_scan(self.state, self.scan)
-        return self._mapper.snapshot()
-
     @property
     def step_ms(self) -> float:
         """The /instrumentation/timer series: a modelled cost of the step (control, plus each
         sensor due), not a measured one, so that the bag stays byte-for-byte deterministic."""
-        sensors = ((SCAN_HZ, 0.9), (CAMERA_HZ, 2.6), (MAP_HZ, 1.7))  # (rate, ms when due)
+        sensors = ((SCAN_HZ, 0.9), (CAMERA_HZ, 2.6))  # (rate, ms when due)
         due = sum(ms for hz, ms in sensors if self.tick % (TICK_HZ // hz) == 0)
         return 0.8 + 0.1 * math.sin(0.7 * self.tick) + due
 
 
 class Driver:
-    """The memory one simulated robot needs between ticks: its map, the leg it is on, whether
-    it is in a doorway, log lines not yet published (one per tick, as a real /rosout would
-    interleave them)."""
+    """The memory one simulated robot needs between ticks: the leg it is on, whether it is in a
+    doorway, log lines not yet published (one per tick, as a real /rosout would interleave
+    them)."""
 
     def __init__(self) -> None:
-        self.mapper = Mapper()
         self.leg: int | None = None
         self.in_doorway = False
         self.previous_v = 0.0
@@ -122,12 +112,12 @@ class Driver:
             ))
         self.in_doorway = clearance < DOOR_CLEARANCE
 
-    def step(self, tick: int, stamp_ns: int, state: RobotState) -> Step:
+    def step(self, tick: int, stamp_ns: int, state: RobotState, odom: Pose2D) -> Step:
         self._events(state)
         acceleration = (state.v - self.previous_v) * TICK_HZ
         self.previous_v = state.v
         log = self.pending.popleft() if self.pending else None
-        return Step(tick, stamp_ns, state, acceleration=acceleration, log=log, mapper=self.mapper)
+        return Step(tick, stamp_ns, state, odom, acceleration=acceleration, log=log)
 
 
 def _waypoint_text(index: int) -> str:

@@ -3,7 +3,9 @@ rates and QoS a real robot offers: :func:`simulate` gives every message of a run
 
 Everything is a pure function of time and start position (no randomness, no clock), so two runs
 give the same bytes. The URDF goes out on /robot_description and its fixed joints on
-/tf_static, its wheel joints on /tf, as robot_state_publisher would.
+/tf_static, its wheel joints on /tf, as robot_state_publisher would. /odom and /tf's
+odom -> base_footprint are the drifting wheel odometry; the truth, which a real robot cannot
+publish, goes out for the viewer and the tests on /ground_truth/pose and /ground_truth/walls.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from numpy.typing import NDArray
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
-from host_bridge.converters.joints import JointModel, joint_motion
+from host_bridge.converters.joints import joint_motion
 from host_bridge.demo.driver import LOGGER_NAME, Driver, Step
 from host_bridge.demo.robot import (
     BASE_FOOTPRINT_FRAME,
@@ -28,11 +30,12 @@ from host_bridge.demo.robot import (
     IMU_FRAME,
     MAP_FRAME,
     ODOM_FRAME,
+    ODOM_SCALE_ERROR,
     SCAN_FRAME,
     TICK_HZ,
     WHEEL_JOINTS,
+    odometry_track,
     robot_description,
-    trajectory,
     urdf_joints,
 )
 from host_bridge.demo.sensors import (
@@ -43,8 +46,6 @@ from host_bridge.demo.sensors import (
     CAMERA_HZ,
     CAMERA_WIDTH,
     CLOUD_DTYPE,
-    MAP_HZ,
-    MAP_RESOLUTION,
     RANGE_MAX,
     RANGE_MIN,
     SCAN_ANGLES,
@@ -57,13 +58,16 @@ from host_bridge.demo.sensors import (
     depth_cloud,
     imu_acceleration,
 )
+from host_bridge.demo.world import WALLS
+from host_bridge.options import GridOptions
+from host_bridge.state import JointModel
 
 Xyzw = tuple[float, float, float, float]
 
 DEFAULT_START_NS = 1_700_000_000_000_000_000
 
-# diff_drive_controller's default diagonals (x y z roll pitch yaw); constant because the
-# simulated odometry is exact and nothing downstream should read a drift model into it.
+# diff_drive_controller's default diagonals (x y z roll pitch yaw), constant as that driver's
+# are: they do not grow with the drift, which a real driver does not know either.
 _COVARIANCE = np.diag([0.001, 0.001, 0.001, 0.001, 0.001, 0.01]).ravel()
 
 
@@ -150,10 +154,9 @@ def _joint_transform(b: MessageBuilder, stamp_ns: int, joint: JointModel, value:
 
 
 def _build_tf_static(b: MessageBuilder, step: Step) -> Any:
-    fixed = [
+    return b.tf([
         _joint_transform(b, step.stamp_ns, j, 0.0) for j in urdf_joints().values() if j.type == "fixed"
-    ]
-    return b.tf([b.transform(step.stamp_ns, MAP_FRAME, ODOM_FRAME, (0.0, 0.0, 0.0)), *fixed])
+    ])
 
 
 def _build_robot_description(b: MessageBuilder, _step: Step) -> Any:
@@ -161,31 +164,78 @@ def _build_robot_description(b: MessageBuilder, _step: Step) -> Any:
 
 
 def _build_tf(b: MessageBuilder, step: Step) -> Any:
-    state = step.state
+    odom = step.odom
     body = b.transform(
-        step.stamp_ns, ODOM_FRAME, BASE_FOOTPRINT_FRAME, (state.x, state.y, 0.0),
-        _yaw_quaternion(state.yaw),
+        step.stamp_ns, ODOM_FRAME, BASE_FOOTPRINT_FRAME, (odom.x, odom.y, 0.0),
+        _yaw_quaternion(odom.yaw),
     )
     joints = urdf_joints()
     wheels = [
         _joint_transform(b, step.stamp_ns, j, angle)
-        for j, angle in zip((joints[n] for n in WHEEL_JOINTS), state.wheel_angles, strict=True)
+        for j, angle in zip((joints[n] for n in WHEEL_JOINTS), step.state.wheel_angles, strict=True)
     ]
     return b.tf([body, *wheels])
 
 
 def _build_odom(b: MessageBuilder, step: Step) -> Any:
-    t, state = b.t, step.state
+    t, state, odom = b.t, step.state, step.odom
+    # The speed as the (mis-scaled) wheels read it; the turn rate is the commanded one.
     twist = t["geometry_msgs/msg/Twist"](
-        linear=b.vector((state.v, 0.0, 0.0)), angular=b.vector((0.0, 0.0, state.w))
+        linear=b.vector(((1.0 + ODOM_SCALE_ERROR) * state.v, 0.0, 0.0)),
+        angular=b.vector((0.0, 0.0, state.w)),
     )
     return t["nav_msgs/msg/Odometry"](
         header=b.header(step.stamp_ns, ODOM_FRAME),
         child_frame_id=BASE_FOOTPRINT_FRAME,
         pose=t["geometry_msgs/msg/PoseWithCovariance"](
-            pose=b.pose((state.x, state.y, 0.0), _yaw_quaternion(state.yaw)), covariance=_COVARIANCE
+            pose=b.pose((odom.x, odom.y, 0.0), _yaw_quaternion(odom.yaw)), covariance=_COVARIANCE
         ),
         twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=_COVARIANCE),
+    )
+
+
+def _build_ground_truth_pose(b: MessageBuilder, step: Step) -> Any:
+    state = step.state
+    return b.t["geometry_msgs/msg/PoseStamped"](
+        header=b.header(step.stamp_ns, MAP_FRAME),
+        pose=b.pose((state.x, state.y, 0.0), _yaw_quaternion(state.yaw)),
+    )
+
+
+GROUND_TRUTH_WALLS_Z = GridOptions().wall_height + 0.02
+"""Just above the walls the host raises on a map (``wall_height``), so the true walls show on
+top of those of the map the host builds rather than hidden inside them."""
+GROUND_TRUTH_WALLS_WIDTH = 0.03  # m
+GROUND_TRUTH_WALLS_RGBA = (0.1, 0.85, 0.3, 1.0)  # green, apart from the map's grey-blue walls
+
+
+def _build_ground_truth_walls(b: MessageBuilder, step: Step) -> Any:
+    """demo/world.py's WALLS as one LINE_LIST marker: a line per wall segment."""
+    t = b.t
+    marker: Any = t["visualization_msgs/msg/Marker"]  # its class holds the type constants
+    point = t["geometry_msgs/msg/Point"]
+    return marker(
+        header=b.header(step.stamp_ns, MAP_FRAME),
+        ns="walls",
+        id=0,
+        type=marker.LINE_LIST,
+        action=marker.ADD,
+        pose=b.pose((0.0, 0.0, 0.0)),
+        scale=b.vector((GROUND_TRUTH_WALLS_WIDTH, 0.0, 0.0)),
+        color=t["std_msgs/msg/ColorRGBA"](**dict(zip("rgba", GROUND_TRUTH_WALLS_RGBA, strict=True))),
+        lifetime=t["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),  # for ever
+        frame_locked=False,
+        points=[point(x=x, y=y, z=GROUND_TRUTH_WALLS_Z) for x, y in WALLS.reshape(-1, 2).tolist()],
+        colors=[],
+        texture_resource="",
+        texture=t["sensor_msgs/msg/CompressedImage"](
+            header=b.header(0, ""), format="", data=np.zeros(0, dtype=np.uint8)
+        ),
+        uv_coordinates=[],
+        text="",
+        mesh_resource="",
+        mesh_file=t["visualization_msgs/msg/MeshFile"](filename="", data=np.zeros(0, dtype=np.uint8)),
+        mesh_use_embedded_materials=False,
     )
 
 
@@ -281,20 +331,6 @@ def _build_points(b: MessageBuilder, step: Step) -> Any:
     )
 
 
-def _build_map(b: MessageBuilder, step: Step) -> Any:
-    height, width = step.map.cells.shape
-    info = b.t["nav_msgs/msg/MapMetaData"](
-        map_load_time=b.time(step.stamp_ns),
-        resolution=MAP_RESOLUTION,
-        width=width,
-        height=height,
-        origin=b.pose((*step.map.origin, 0.0)),
-    )
-    return b.t["nav_msgs/msg/OccupancyGrid"](
-        header=b.header(step.stamp_ns, MAP_FRAME), info=info, data=step.map.cells.reshape(-1)
-    )
-
-
 POWER_SUPPLY_STATUS_DISCHARGING = 2
 POWER_SUPPLY_HEALTH_GOOD = 1
 POWER_SUPPLY_TECHNOLOGY_LIPO = 4
@@ -361,6 +397,8 @@ class TopicSpec:
 _SCAN_EVERY = TICK_HZ // SCAN_HZ
 _CAMERA_EVERY = TICK_HZ // CAMERA_HZ
 STEP_TIMER_TOPIC = "/instrumentation/timer/sim_step"
+GROUND_TRUTH_POSE_TOPIC = "/ground_truth/pose"
+GROUND_TRUTH_WALLS_TOPIC = "/ground_truth/walls"
 
 TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec("/tf_static", "tf2_msgs/msg/TFMessage", None, _build_tf_static, latched=True),
@@ -368,6 +406,9 @@ TOPICS: tuple[TopicSpec, ...] = (
               latched=True),
     TopicSpec("/tf", "tf2_msgs/msg/TFMessage", 1, _build_tf),
     TopicSpec("/odom", "nav_msgs/msg/Odometry", 1, _build_odom),
+    TopicSpec(GROUND_TRUTH_POSE_TOPIC, "geometry_msgs/msg/PoseStamped", 1, _build_ground_truth_pose),
+    TopicSpec(GROUND_TRUTH_WALLS_TOPIC, "visualization_msgs/msg/Marker", None,
+              _build_ground_truth_walls, latched=True),
     TopicSpec("/joint_states", "sensor_msgs/msg/JointState", 1, _build_joint_states),
     TopicSpec("/imu", "sensor_msgs/msg/Imu", 1, _build_imu),
     TopicSpec(STEP_TIMER_TOPIC, "std_msgs/msg/Float32", 1, _build_step_timer),
@@ -376,11 +417,16 @@ TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec("/camera/image_raw", "sensor_msgs/msg/Image", _CAMERA_EVERY, _build_image),
     TopicSpec("/camera/depth/image_raw", "sensor_msgs/msg/Image", _CAMERA_EVERY, _build_depth),
     TopicSpec("/camera/depth/points", "sensor_msgs/msg/PointCloud2", _CAMERA_EVERY, _build_points),
-    TopicSpec("/map", "nav_msgs/msg/OccupancyGrid", TICK_HZ // MAP_HZ, _build_map, latched=True),
     TopicSpec("/battery_state", "sensor_msgs/msg/BatteryState", TICK_HZ, _build_battery),
     TopicSpec("/rosout", "rcl_interfaces/msg/Log", 1, _build_rosout,
               due=lambda step: step.log is not None),
 )
+
+
+def tick_stamp_ns(tick: int, start_ns: int = DEFAULT_START_NS) -> int:
+    """The stamp (and log time) of a run's messages of ``tick``, the index of
+    :func:`~host_bridge.demo.robot.odometry_track`'s items."""
+    return start_ns + tick * 1_000_000_000 // TICK_HZ
 
 
 def simulate(
@@ -397,9 +443,9 @@ def simulate(
     builder = MessageBuilder(store)
     driver = Driver()
     wanted = [spec for spec in TOPICS if topics is None or spec.topic in topics]
-    for tick, state in enumerate(trajectory(duration_s, route_offset)):
-        stamp_ns = start_ns + tick * 1_000_000_000 // TICK_HZ
-        step = driver.step(tick, stamp_ns, state)
+    for tick, (state, odom) in enumerate(odometry_track(duration_s, route_offset)):
+        stamp_ns = tick_stamp_ns(tick, start_ns)
+        step = driver.step(tick, stamp_ns, state, odom)
         for spec in wanted:
             periodic = tick == 0 if spec.every is None else tick % spec.every == 0
             if periodic and spec.due(step):

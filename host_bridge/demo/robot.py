@@ -5,9 +5,12 @@ read with the host's URDF parser (:func:`host_bridge.converters.urdf.robot_kinem
 frames the demo publishes and the ones the host draws come from one reading of one file.
 
 The robot follows the apartment's closed loop with pure pursuit; its motion is a pure function
-of time and start position. Odometry is exact and the odom frame is the apartment's frame (its
-origin is the apartment's corner, not the start pose), so robots started at different places of
-the loop share one set of coordinates; map -> odom is the identity.
+of time and start position. Like a real robot that runs no SLAM, it has only wheel odometry,
+which drifts (:data:`ODOM_SCALE_ERROR`, :data:`ODOM_HEADING_DRIFT_DEG_PER_M`), and publishes no
+map -> odom: placing ``map`` is the host's SLAM's job. Odometry starts at the true start pose and
+the apartment's corner is the origin of both (not the start pose), so robots started at
+different places of the loop share one set of coordinates, and a SLAM map anchored at the first
+odometry pose is the apartment's frame, the one :func:`odometry_track`'s true poses are in.
 """
 
 from __future__ import annotations
@@ -20,9 +23,9 @@ from importlib import resources
 
 import numpy as np
 
-from host_bridge.converters.joints import JointModel
 from host_bridge.converters.urdf import robot_kinematics
 from host_bridge.demo.world import WAYPOINTS, FloatArray
+from host_bridge.state import JointModel
 
 Xyz = tuple[float, float, float]
 
@@ -52,6 +55,7 @@ WHEEL_SEPARATION = 0.160
 WHEEL_RADIUS = 0.033
 """Kinematics of the drive; tests check them against the URDF's wheel joints and cylinders."""
 MAP_FRAME = "map"
+"""The apartment's frame, in which the ground truth is published (the host's SLAM map frame)."""
 ODOM_FRAME = "odom"
 BASE_FOOTPRINT_FRAME = "base_footprint"
 BASE_LINK_FRAME = "base_link"
@@ -74,10 +78,17 @@ MAX_TURN_RATE = 1.5  # rad/s, below the burger's 2.84 so corners stay gentle
 MAX_ACCEL = 0.5  # m/s^2; only the start needs it, pure pursuit never stops
 LOOKAHEAD = 0.35  # m
 
+ODOM_SCALE_ERROR = 0.05
+"""Wheel odometry reads every distance 5 % long (a wheel radius set 5 % too large)."""
+ODOM_HEADING_DRIFT_DEG_PER_M = 2.0
+"""Wheel odometry's heading creeps to the left (+yaw) by 2 degrees per metre travelled (wheels
+of slightly different sizes): the drift a SLAM front end has to correct."""
+
 
 @dataclass(frozen=True, slots=True)
 class RobotState:
-    """The ground truth at one tick; ``v``/``w`` are the command applied until the next tick."""
+    """The ground truth at one tick, in the apartment's frame; ``v``/``w`` are the command
+    applied until the next tick."""
 
     x: float
     y: float
@@ -91,10 +102,19 @@ class RobotState:
         half = self.w * WHEEL_SEPARATION / 2.0
         return ((self.v - half) / WHEEL_RADIUS, (self.v + half) / WHEEL_RADIUS)
 
-    def to_odom(self, xyz: Xyz) -> tuple[float, float]:
-        """The (x, y) in odom of a point given in base_footprint."""
+    def to_world(self, xyz: Xyz) -> tuple[float, float]:
+        """The (x, y) in the apartment's frame of a point given in base_footprint."""
         c, s = math.cos(self.yaw), math.sin(self.yaw)
         return (self.x + c * xyz[0] - s * xyz[1], self.y + s * xyz[0] + c * xyz[1])
+
+
+@dataclass(frozen=True, slots=True)
+class Pose2D:
+    """A planar pose: what the wheel odometry reads, in the odom frame."""
+
+    x: float
+    y: float
+    yaw: float
 
 
 @cache
@@ -169,3 +189,42 @@ def _tick_count(duration_s: float) -> int:
         msg = f"simulation duration must be a positive number of seconds, got {duration_s!r}"
         raise ValueError(msg)
     return math.ceil(duration_s * TICK_HZ - 1e-9)
+
+
+def odometry_track(
+    duration_s: float, route_offset: float = 0.0
+) -> Iterator[tuple[RobotState, Pose2D]]:
+    """The true state and the wheel odometry's pose at every tick of :func:`trajectory`: the one
+    source of /odom and /tf (the odometry), /ground_truth/pose (the truth) and the tests.
+
+    Odometry starts at the true pose; each tick it adds the true motion since the last tick,
+    taken in the body frame, its distance read :data:`ODOM_SCALE_ERROR` long and its heading
+    change :data:`ODOM_HEADING_DRIFT_DEG_PER_M` per metre to the left. So after the robot has
+    driven ``s`` metres the odometry's heading is ``drift * s`` left of the truth, and its
+    position is the start plus ``1 + scale error`` times the sum of the true steps, each turned
+    by the heading error it was taken with. Deterministic: no noise, two runs agree bit for bit.
+    """
+    states = trajectory(duration_s, route_offset)
+    previous = next(states)
+    odom = Pose2D(previous.x, previous.y, previous.yaw)
+    yield previous, odom
+    for state in states:
+        odom = _odometry_step(odom, previous, state)
+        yield state, odom
+        previous = state
+
+
+def _odometry_step(odom: Pose2D, before: RobotState, after: RobotState) -> Pose2D:
+    """``odom`` moved by the true step from ``before`` to ``after`` as the wheels misread it."""
+    c, s = math.cos(before.yaw), math.sin(before.yaw)
+    dx_world, dy_world = after.x - before.x, after.y - before.y
+    dx, dy = c * dx_world + s * dy_world, -s * dx_world + c * dy_world  # in the body frame
+    turn = math.remainder(after.yaw - before.yaw, 2.0 * math.pi)
+    turn += math.radians(ODOM_HEADING_DRIFT_DEG_PER_M) * math.hypot(dx, dy)
+    scale = 1.0 + ODOM_SCALE_ERROR
+    c, s = math.cos(odom.yaw), math.sin(odom.yaw)
+    return Pose2D(
+        odom.x + scale * (c * dx - s * dy),
+        odom.y + scale * (s * dx + c * dy),
+        math.remainder(odom.yaw + turn, 2.0 * math.pi),
+    )

@@ -4,7 +4,7 @@ The simulator (:mod:`host_bridge.demo.bag`) writes one real rosbag2 per robot; f
 in-process relay replays its bag (looping, real time) over a loopback Zenoh link to this host,
 exactly as ``swanky-relay --bag`` on that robot would. Robots are named ``sim``, ``sim2``,
 ``sim3``...; they drive the same loop through the same apartment, spread evenly along it, each
-with its own frames (``sim2/base_link``), map and sensors.
+with its own frames (``sim2/base_link``), drifting odometry and sensors.
 """
 
 from __future__ import annotations
@@ -94,9 +94,9 @@ def free_loopback_port() -> int:
         return int(sock.getsockname()[1])
 
 
-def _write_bag(job: tuple[Path, float, float]) -> Path:
+def _write_bag(job: tuple[Path, float, float], stop: threading.Event | None = None) -> Path:
     path, seconds, route_offset = job
-    return write_demo_bag(path, seconds, route_offset=route_offset)
+    return write_demo_bag(path, seconds, route_offset=route_offset, stop=stop)
 
 
 @contextmanager
@@ -122,12 +122,8 @@ def write_bags(
     jobs = [(directory / robot, seconds, i * spacing) for i, robot in enumerate(robots)]
     workers = min(len(jobs), os.cpu_count() or 1)
     if workers == 1:
-        bags = []
-        for job in jobs:
-            if stop.is_set():
-                return None
-            bags.append(_write_bag(job))
-        return bags
+        bags = [_write_bag(job, stop) for job in jobs]  # here, each cut short by a stop
+        return None if stop.is_set() else bags
     context = multiprocessing.get_context("spawn")  # never fork a process running zenoh threads
     with _ctrl_c_ignored():  # the pool starts its processes right away
         pool = context.Pool(workers)
@@ -146,11 +142,11 @@ def _replay(
     try:
         session = open_session(ZenohOptions(connect=(endpoint,), multicast_scouting=False))
         try:
-            with BagSource(bag, robot, rate=1.0, loop=True) as source:
+            with BagSource(bag, robot, rate=1.0, loop=True, sleep=stop.wait) as source:
                 relay = Relay(session, source.catalog())
-                if relay.wait_for_host(timeout=HOST_WAIT_SECONDS):
+                if relay.wait_for_host(HOST_WAIT_SECONDS, stop):
                     relay.publish_all(source.messages(), stop)
-                else:
+                elif not stop.is_set():
                     log.error("demo relay %r: the host did not subscribe within %.0f s",
                               robot, HOST_WAIT_SECONDS)
                 relay.close()

@@ -1,5 +1,5 @@
 """What swanky_bot's sensors read at a given state: the lidar, the RGB-D camera (colour render,
-depth, the organised cloud), the map built from the scans, the IMU and the battery.
+depth, the organised cloud), the IMU and the battery.
 
 Each reading is exact geometry against the apartment's walls (:mod:`host_bridge.demo.world`)
 from the sensor's mount on the URDF, with no noise, so a test can check it against the geometry
@@ -15,16 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from host_bridge.demo.robot import BASE_LINK_Z, CAMERA_XYZ, SCAN_XYZ, WHEEL_RADIUS, RobotState, Xyz
-from host_bridge.demo.world import (
-    BOUNDS,
-    WALL_COLORS,
-    WALL_HEIGHT,
-    WALLS,
-    FloatArray,
-    IntArray,
-    cast_rays,
-    ray_hits,
-)
+from host_bridge.demo.world import WALL_COLORS, WALL_HEIGHT, WALLS, FloatArray, cast_rays, ray_hits
 
 # -- the lidar ---------------------------------------------------------------------------------
 
@@ -39,7 +30,7 @@ SCAN_ANGLES: FloatArray = np.arange(SCAN_RAYS, dtype=np.float64) * SCAN_INCREMEN
 
 def scan_ranges(state: RobotState) -> NDArray[np.float32]:
     """The /scan ranges at ``state`` as published: float32, +inf for no return, -inf too close."""
-    origin = state.to_odom(SCAN_XYZ)
+    origin = state.to_world(SCAN_XYZ)
     ranges = cast_rays(origin, state.yaw, SCAN_ANGLES, WALLS, RANGE_MAX).astype(np.float32)
     ranges[ranges < RANGE_MIN] = -np.inf  # REP 117: too close to measure
     return ranges
@@ -92,7 +83,7 @@ def camera_matrix() -> FloatArray:
 def render_camera(state: RobotState) -> CameraView:
     """Ray-cast one image: a ray per column against the walls, then per row whichever of the
     wall, the floor or the ceiling the pixel's ray meets first."""
-    ox, oy = state.to_odom(CAMERA_XYZ)
+    ox, oy = state.to_world(CAMERA_XYZ)
     height = BASE_LINK_Z + CAMERA_XYZ[2]
     left_angles = -np.arctan(_COLUMN_SLOPES)  # image x points right, yaw turns left
     distance, wall = ray_hits((ox, oy), state.yaw + left_angles, WALLS, math.inf)
@@ -146,69 +137,6 @@ def depth_cloud(view: CameraView) -> NDArray[np.void]:
     cloud["z"] = z
     cloud["rgb"] = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
     return cloud
-
-
-# -- the map -----------------------------------------------------------------------------------
-
-MAP_RESOLUTION = 0.05
-MAP_HZ = 1
-# One lattice for every map message; its origin is offset by half a cell so each wall (all on
-# multiples of 5 cm) runs through cell centres and scan hits never fall on a cell border.
-_MAP_ORIGIN = (BOUNDS[0] - 0.525, BOUNDS[1] - 0.525)
-_MAP_SHAPE = (
-    round((BOUNDS[3] - BOUNDS[1] + 1.05) / MAP_RESOLUTION),
-    round((BOUNDS[2] - BOUNDS[0] + 1.05) / MAP_RESOLUTION),
-)
-MAP_GROWTH_CELLS = 20
-"""The published grid grows in 1 m blocks to cover what has been seen, as SLAM maps do."""
-_RAY_STEPS: FloatArray = np.arange(0.0, RANGE_MAX, MAP_RESOLUTION / 2.0)
-
-
-@dataclass(frozen=True, slots=True)
-class MapSnapshot:
-    """A published map: occupancy values (row 0 at the origin) and the origin's (x, y)."""
-
-    cells: NDArray[np.int8]
-    origin: tuple[float, float]
-
-
-class Mapper:
-    """Occupancy from scans: cells a ray crosses are free, cells it ends in are occupied
-    (occupied wins over free, since walls never move), everything else unknown."""
-
-    def __init__(self) -> None:
-        self.free = np.zeros(_MAP_SHAPE, dtype=bool)
-        self.hit = np.zeros(_MAP_SHAPE, dtype=bool)
-
-    @staticmethod
-    def cell(xy: FloatArray) -> tuple[IntArray, IntArray]:
-        """(row, column) of points (..., 2) on the lattice."""
-        col = np.floor((xy[..., 0] - _MAP_ORIGIN[0]) / MAP_RESOLUTION).astype(np.int64)
-        row = np.floor((xy[..., 1] - _MAP_ORIGIN[1]) / MAP_RESOLUTION).astype(np.int64)
-        return row, col
-
-    def add_scan(self, state: RobotState, ranges: NDArray[np.float32]) -> None:
-        ox, oy = state.to_odom(SCAN_XYZ)
-        theta = state.yaw + SCAN_ANGLES
-        cos, sin = np.cos(theta), np.sin(theta)
-        r = ranges.astype(np.float64)
-        hits = np.isfinite(r)
-        self.hit[self.cell(np.stack([ox + r[hits] * cos[hits], oy + r[hits] * sin[hits]], -1))] = True
-        # Samples every half cell along each measured ray, stopping a cell short of its hit.
-        free_up_to = np.where(hits, r - MAP_RESOLUTION, np.where(r == -np.inf, 0.0, RANGE_MAX))
-        steps = np.nonzero(_RAY_STEPS[None, :] < free_up_to[:, None])
-        d = _RAY_STEPS[steps[1]]
-        ray = steps[0]
-        self.free[self.cell(np.stack([ox + d * cos[ray], oy + d * sin[ray]], -1))] = True
-
-    def snapshot(self) -> MapSnapshot:
-        cells = np.where(self.hit, 100, np.where(self.free, 0, -1)).astype(np.int8)
-        rows, cols = np.nonzero(self.hit | self.free)
-        g = MAP_GROWTH_CELLS
-        r0, c0 = (rows.min() // g) * g, (cols.min() // g) * g
-        r1, c1 = min((rows.max() // g + 1) * g, _MAP_SHAPE[0]), min((cols.max() // g + 1) * g, _MAP_SHAPE[1])
-        origin = (_MAP_ORIGIN[0] + c0 * MAP_RESOLUTION, _MAP_ORIGIN[1] + r0 * MAP_RESOLUTION)
-        return MapSnapshot(cells=cells[r0:r1, c0:c1], origin=origin)
 
 
 # -- the IMU and the battery -------------------------------------------------------------------

@@ -1,9 +1,9 @@
 """The apartment the demo robot drives through, and exact 2D geometry against its walls.
 
-The world is a list of 2D wall segments of one height in the odom frame; the loop the robot
-follows is four corners. Every sensor is exact geometry against those segments (the laser and
-the camera cast rays, the map is built from the scans), so a test can check each value against
-the geometry that produced it.
+The world is a list of 2D wall segments of one height in the apartment's frame (``map``, and
+``odom`` at the start); the loop the robot follows is four corners. Every sensor is exact
+geometry against those segments (the laser and the camera cast rays), so a test can check each
+value against the geometry that produced it.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 BOUNDS: tuple[float, float, float, float] = (0.0, 0.0, 8.0, 6.0)
-"""Outer walls as (x_min, y_min, x_max, y_max) in metres, in the odom frame."""
+"""Outer walls as (x_min, y_min, x_max, y_max) in metres, in the apartment's frame."""
 
 WALL_HEIGHT = 2.4
 """Every wall, the furniture included, rises from the floor (z = 0) to the ceiling."""
@@ -42,7 +42,7 @@ WALLS: FloatArray = np.array(
     ],
     dtype=np.float64,
 )
-"""Wall segments, shape (N, 2 endpoints, xy), metres in the odom frame."""
+"""Wall segments, shape (N, 2 endpoints, xy), metres in the apartment's frame."""
 
 # Wall colours of the camera image, by wall index (RGB): outer walls, inner walls, furniture.
 WALL_COLORS: NDArray[np.uint8] = np.array(

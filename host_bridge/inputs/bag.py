@@ -28,23 +28,32 @@ RUN_MESSAGES = 32768
 send_columns call per plotted series, the frames' bookkeeping) ..."""
 RUN_BYTES = 64 * 1024 * 1024
 """... but no more payload bytes than this: a run of images or clouds must not hold a whole bag."""
+DELIVERY_SECONDS = 0.25
+"""About how long converting one delivery may take: the host stops (Ctrl-C, SIGTERM) after the
+delivery under way, and a whole run of a slow type is seconds (24,000 LaserScans: 2.5-5 s)."""
+FIRST_DELIVERY = 256
+"""Messages of a topic delivered first, to time what one of them takes."""
 
 
 def bag_runs(
-    path: Path, robot: str, run_size: int = RUN_MESSAGES, run_bytes: int = RUN_BYTES
+    path: Path, robot: str, run_size: int = RUN_MESSAGES, run_bytes: int = RUN_BYTES,
+    stop: threading.Event | None = None,
 ) -> Iterator[Sequence[RawMessage]]:
     """The bag's messages, every topic's in log-time order, in windows of at most ``run_size``
     messages and ``run_bytes`` bytes of payload (at least one message). An indexed MCAP bag
     gives each window as one :class:`MessageRun` per topic (the run holding the window's last
     message last; see :meth:`~robot_relay.sources.mcap.McapFile.windows`); another bag gives
-    each window as one list of RawMessages in log-time order."""
+    each window as one list of RawMessages in log-time order, read message by message (seconds
+    a window from sqlite3), so it ends early, as the last window, once ``stop`` is set."""
     try:
         with BagSource(path, robot) as source:
             files = source.bulk_files()
             if files is None:
                 messages = source.messages()
-                while window := _window(messages, run_size, run_bytes):
+                while window := _window(messages, run_size, run_bytes, stop):
                     yield window
+                    if stop is not None and stop.is_set():
+                        return
                 return
             source.log_undefined()
             for opened in files:
@@ -57,13 +66,15 @@ def bag_runs(
         raise InputError(str(err)) from err
 
 
-def _window(messages: Iterator[RawMessage], size: int, payload_bytes: int) -> list[RawMessage]:
+def _window(
+    messages: Iterator[RawMessage], size: int, payload_bytes: int, stop: threading.Event | None
+) -> list[RawMessage]:
     window: list[RawMessage] = []
     total = 0
     for raw in messages:
         window.append(raw)
         total += len(raw.data)
-        if len(window) >= size or total >= payload_bytes:
+        if len(window) >= size or total >= payload_bytes or (stop is not None and stop.is_set()):
             break
     return window
 
@@ -95,12 +106,16 @@ class BagInput:
         self._thread.start()
 
     def _read(self, deliver: Deliver) -> None:
+        deliveries = _TimedDeliveries()
         try:
-            for run in bag_runs(self.path, self.robot):
-                self.last_activity = time.monotonic()
-                deliver([run] if isinstance(run, MessageRun) else run)
-                if self._closing.is_set():
-                    return
+            for run in bag_runs(self.path, self.robot, stop=self._closing):
+                for part in deliveries.parts(run):
+                    self.last_activity = time.monotonic()
+                    started = time.perf_counter()
+                    deliver([part] if isinstance(part, MessageRun) else part)
+                    deliveries.took(part, time.perf_counter() - started)
+                    if self._closing.is_set():
+                        return
         except BaseException as err:  # raised on the app's thread by ended()
             self._error = err
         finally:
@@ -115,3 +130,32 @@ class BagInput:
         self._closing.set()
         if self._thread is not None:
             self._thread.join()
+
+
+class _TimedDeliveries:
+    """Splits the bag's runs into deliveries of about DELIVERY_SECONDS each, from what the last
+    delivery of the same topic took a message (a window of several topics, from a bag other than
+    an indexed MCAP, counts as one topic): a fast, columnar topic still goes on in whole runs."""
+
+    def __init__(self) -> None:
+        self._seconds_per_message: dict[str | None, float] = {}
+
+    def parts(self, run: Sequence[RawMessage]) -> Iterator[Sequence[RawMessage]]:
+        start = 0
+        while start < len(run):
+            stop = start + self._size(_topic(run))
+            yield run.part(start, stop) if isinstance(run, MessageRun) else run[start:stop]
+            start = stop
+
+    def took(self, part: Sequence[RawMessage], seconds: float) -> None:
+        self._seconds_per_message[_topic(part)] = seconds / len(part)
+
+    def _size(self, topic: str | None) -> int:
+        seconds = self._seconds_per_message.get(topic)
+        if seconds is None:
+            return FIRST_DELIVERY
+        return max(1, int(DELIVERY_SECONDS / max(seconds, 1e-9)))
+
+
+def _topic(run: Sequence[RawMessage]) -> str | None:
+    return run.topic if isinstance(run, MessageRun) else None

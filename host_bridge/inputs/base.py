@@ -88,6 +88,14 @@ class MessageRun(Sequence[RawMessage]):
               for column in (self.receive_ns, self.log_ns, self.sequence)),
         )
 
+    def part(self, start: int, stop: int) -> MessageRun:
+        """Messages ``start`` to ``stop`` as a run of their own (a slice gives RawMessages)."""
+        return MessageRun(
+            self.robot, self.topic, self.msgtype, self.definition, self.payloads[start:stop],
+            *(None if column is None else column[start:stop]
+              for column in (self.log_ns, self.receive_ns, self.sequence)),
+        )
+
     def __iter__(self) -> Iterator[RawMessage]:
         count = len(self.payloads)
         columns = [[None] * count if column is None else column.tolist()

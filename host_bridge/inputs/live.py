@@ -39,9 +39,8 @@ class LiveInput:
         rmw_zenoh: bool = True,
     ) -> None:
         self.queues = RobotQueues()
-        self._receivers: list[ZenohInput | RmwZenohInput] = [
-            ZenohInput(session, robots=robots, queues=self.queues)
-        ]
+        self._relays = ZenohInput(session, robots=robots, queues=self.queues)
+        self._receivers: list[ZenohInput | RmwZenohInput] = [self._relays]
         if rmw_zenoh:
             self._receivers.append(RmwZenohInput(session, domain, robots, root_robot, self.queues))
         self._closed = False
@@ -68,4 +67,9 @@ class LiveInput:
         self.queues.close()
         if self.queues.dropped:
             log.warning("messages dropped because the host fell behind:\n%s", self.queues.drop_summary())
+        if self._relays.refused:
+            log.warning("messages refused because they claimed another type than their relay's "
+                        "catalog announces for their topic:\n%s", "\n".join(
+                            f"[{robot}] {topic}: {count}"
+                            for (robot, topic), count in sorted(self._relays.refused.items())))
 

@@ -6,12 +6,13 @@ its queue fills and drops its own oldest messages while the other robots keep fl
 messages (``/tf_static``, ``/robot_description``, maps) are never the ones dropped: a late copy
 of them is all a viewer will ever get.
 
-Heavy topics (the type table's ``heavy`` rows: images, point clouds, maps) are converted on a
-thread of their own per robot, with the patches of such messages (``patch`` rows: grid updates,
-which must follow their grid), and go latest-only once that thread is behind: with more than
-:data:`HEAVY_BACKLOG` items waiting there, a heavy topic keeps only its newest message (or run),
-and a newer one replaces it. (Latest-only as soon as one waits lost frames to every short stall
-of a loaded host, which a user asking for every frame, ``congestion: block``, does not expect.)
+Heavy topics (the type table's ``Lane.HEAVY`` rows: images, point clouds, maps) are converted
+on a thread of their own per robot, with the patches of such messages (``Lane.PATCH`` rows: grid
+updates, which must follow their grid), and go latest-only once that thread is behind: with
+more than :data:`HEAVY_BACKLOG` items waiting there, a heavy topic keeps only its newest message
+(or run), and a newer one of its type replaces it. (Latest-only as soon as one waits lost frames to every
+short stall of a loaded host, which a user asking for every frame, ``congestion: block``, does
+not expect.)
 The small topics (IMU, TF, scans) never wait behind a heavy conversion: in the issue's mixed
 load a 300k-point cloud took its robot's one worker for 5-10 ms (more on a loaded host), and
 every scan, IMU and TF message that came meanwhile waited for it
@@ -19,9 +20,10 @@ every scan, IMU and TF message that came meanwhile waited for it
 (:data:`HEAVY_NICENESS`), so on a busy machine the small topics get a core first. A robot's
 small topics are dropped only when its whole queue is full.
 
-Order: each topic's messages are handed over in order, on one thread (a topic's type decides
-its thread). Between a heavy topic and a small one there is no order, as there is none between
-two robots; the dispatcher keeps what a robot's threads share consistent (frames, the model).
+Order: each topic's messages are handed over in order, on one thread (each message's type
+decides its thread, so a message of another type, garbage, changes nothing for the topic's
+others). Between a heavy topic and a small one there is no order, as there is none between two
+robots; the dispatcher keeps what a robot's threads share consistent (frames, the model).
 
 A robot's queue is full at :data:`MAX_PER_ROBOT` messages, a
 :class:`~host_bridge.inputs.base.MessageRun` (a bundle of one topic's messages from the wire)
@@ -51,9 +53,10 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from host_bridge.contract import STATS_ROOT
 from host_bridge.errors import HostError
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun
-from host_bridge.stats import STATS_ROOT
+from host_bridge.registry import Lane
 from robot_relay.wire import RawMessage
 
 if TYPE_CHECKING:
@@ -99,7 +102,7 @@ ItemDeliver = Callable[[Sequence[InputItem]], None]
 """Where the workers put each robot's batches: live records and the MessageRuns of bundles (any
 :data:`~host_bridge.inputs.base.Deliver` takes them)."""
 
-Heavy = Callable[[RawMessage | MessageRun], bool]
+LaneOf = Callable[[RawMessage | MessageRun], Lane]
 
 
 class HostBehindError(HostError):
@@ -107,17 +110,15 @@ class HostBehindError(HostError):
     arrive."""
 
 
-class HeavyTypes:
-    """Whether a message (or run) is of a heavy type (its type table row says ``heavy``; with
-    ``flag="patch"``, whether it patches a heavy one), remembered per type and topic; the table
-    is built on first use unless given."""
+class TypeLanes:
+    """The lane of a message (or run): its type table row's, remembered per type and topic; the
+    table is built on first use unless given."""
 
-    def __init__(self, registry: Registry | None = None, flag: str = "heavy") -> None:
+    def __init__(self, registry: Registry | None = None) -> None:
         self._registry = registry
-        self._flag = flag
-        self._known: dict[tuple[str, str], bool] = {}
+        self._known: dict[tuple[str, str], Lane] = {}
 
-    def __call__(self, raw: RawMessage | MessageRun) -> bool:
+    def __call__(self, raw: RawMessage | MessageRun) -> Lane:
         key = (raw.msgtype, raw.topic)
         found = self._known.get(key)
         if found is None:
@@ -125,7 +126,7 @@ class HeavyTypes:
                 from host_bridge.registry import default_registry
 
                 self._registry = default_registry()
-            found = self._known[key] = bool(getattr(self._registry.row(raw.msgtype, raw.topic), self._flag))
+            found = self._known[key] = self._registry.row(raw.msgtype, raw.topic).lane
         return found
 
 
@@ -142,8 +143,9 @@ class _Entry:
     """Messages it holds: a MessageRun's length, else 1."""
     order: int
     """When it came among its robot's items: the oldest is dropped first."""
-    replaceable: bool = False
-    """A non-latched heavy message (or run), which a newer one of its topic may replace."""
+    replaceable: tuple[str, str] | None = None
+    """The topic and type of a non-latched heavy message (or run), which a newer one of the same
+    topic and type may replace (one of another type, garbage, may not)."""
 
 
 class _Lane:
@@ -154,9 +156,9 @@ class _Lane:
         self.heavy = heavy
         self.items: deque[_Entry] = deque()
         self.messages = 0
-        # Heavy lane: the waiting non-latched entries per topic (one, but for the moment a newer
-        # one comes), so nothing is searched when none waits.
-        self.replaceable: dict[str, int] = {}
+        # Heavy lane: the waiting non-latched entries per topic and type (one, but for the
+        # moment a newer one comes), so nothing is searched when none waits.
+        self.replaceable: dict[tuple[str, str], int] = {}
         self.ready = threading.Condition(lock)
         self.worker: threading.Thread | None = None
         self.dropped: dict[str, int] = {}
@@ -169,14 +171,14 @@ class _Lane:
     def append(self, entry: _Entry) -> None:
         self.items.append(entry)
         self.messages += entry.size
-        if entry.replaceable:
-            self.replaceable[entry.topic] = self.replaceable.get(entry.topic, 0) + 1
+        if entry.replaceable is not None:
+            self.replaceable[entry.replaceable] = self.replaceable.get(entry.replaceable, 0) + 1
 
     def forget(self, entry: _Entry) -> None:
         """``entry`` has left the queue (taken by the worker or dropped)."""
         self.messages -= entry.size
-        if entry.replaceable:
-            self.replaceable[entry.topic] -= 1
+        if entry.replaceable is not None:
+            self.replaceable[entry.replaceable] -= 1
 
     def oldest_droppable(self) -> int | None:
         """The index of the oldest entry that may be dropped (a non-latched message or run)."""
@@ -248,14 +250,12 @@ class RobotQueues:
         max_per_robot: int = MAX_PER_ROBOT,
         *,
         max_items_per_robot: int = MAX_ITEMS_PER_ROBOT,
-        heavy: Heavy | None = None,
-        patch: Heavy | None = None,
+        lanes: LaneOf | None = None,
         heavy_backlog: int = HEAVY_BACKLOG,
     ) -> None:
         self.max_per_robot = max_per_robot
         self.max_items_per_robot = max_items_per_robot
-        self.heavy = heavy if heavy is not None else HeavyTypes()
-        self.patch = patch if patch is not None else HeavyTypes(flag="patch")
+        self.lanes = lanes if lanes is not None else TypeLanes()
         self.heavy_backlog = heavy_backlog
         self.superseded: dict[tuple[str, str], int] = {}
         """Of those, the heavy ones a newer message of their topic replaced."""
@@ -272,9 +272,12 @@ class RobotQueues:
         name, topic = item.robot, _topic(item)
         size = len(item) if isinstance(item, MessageRun) else 1
         message = item if isinstance(item, RawMessage | MessageRun) else None
-        heavy = message is not None and self.heavy(message)
+        type_lane = self.lanes(message) if message is not None else Lane.SMALL
         # Patches of a heavy message (grid updates) go in order with it, and are never replaced.
-        heavy_lane = heavy or (message is not None and self.patch(message))
+        replaceable = (
+            (topic, message.msgtype) if message is not None and type_lane is Lane.HEAVY and not latched
+            else None
+        )
         with self._lock:
             robot = self._robots.get(name)
             if robot is None:
@@ -282,27 +285,27 @@ class RobotQueues:
                     _Lane(self._lock, f"robot-{name}", heavy=False),
                     _Lane(self._lock, f"robot-{name}-heavy", heavy=True),
                 )
-            lane = robot.heavy if heavy_lane else robot.small
-            if (heavy and not latched and len(lane.items) > self.heavy_backlog
-                    and lane.replaceable.get(topic)):
-                self._supersede(name, lane, topic)
+            lane = robot.small if type_lane is Lane.SMALL else robot.heavy
+            if (replaceable is not None and len(lane.items) > self.heavy_backlog
+                    and lane.replaceable.get(replaceable)):
+                self._supersede(name, lane, replaceable)
             if not self._fits(robot, size) and not self._make_room(name, robot, size) and not latched:
                 self._count_drop(name, lane, topic, size)
             else:
                 robot.arrivals += 1
-                lane.append(_Entry(item, topic, latched, size, robot.arrivals,
-                                   replaceable=heavy and not latched))
+                lane.append(_Entry(item, topic, latched, size, robot.arrivals, replaceable))
             self.last_activity = time.monotonic()
             self._start_worker(robot, lane)
             lane.ready.notify()
 
-    def _supersede(self, robot: str, lane: _Lane, topic: str) -> None:
-        """Drop the waiting non-latched messages of heavy ``topic``: a newer one has come."""
+    def _supersede(self, robot: str, lane: _Lane, replaceable: tuple[str, str]) -> None:
+        """Drop the waiting non-latched messages of a heavy topic and type: a newer one has
+        come."""
         kept: deque[_Entry] = deque()
         for entry in lane.items:
-            if entry.replaceable and entry.topic == topic:
+            if entry.replaceable == replaceable:
                 lane.forget(entry)
-                self._count_drop(robot, lane, topic, entry.size, superseded=True)
+                self._count_drop(robot, lane, entry.topic, entry.size, superseded=True)
             else:
                 kept.append(entry)
         lane.items = kept

@@ -24,18 +24,12 @@ from dataclasses import dataclass
 import zenoh
 from zenoh import ext
 
-from host_bridge.errors import UnknownTypeError
+from host_bridge.errors import GraphError, UnknownTypeError
 from host_bridge.inputs.base import InputProblem, RobotEvent
 from host_bridge.inputs.queues import RobotQueues
-from host_bridge.inputs.zenoh import check_robot_pattern, robot_matches
-from host_bridge.schemas import BundledDefinitions
-from robot_relay.errors import GraphError
-from robot_relay.wire import (
+from host_bridge.inputs.rmw_keys import (
     RMW_NODE,
     RMW_PUBLISHER,
-    ROBOT_NAME_PATTERN,
-    MessageDefinition,
-    RawMessage,
     RmwAttachment,
     RmwDataKey,
     RmwGraphEntity,
@@ -45,6 +39,9 @@ from robot_relay.wire import (
     rmw_data_selector,
     rmw_liveliness_selector,
 )
+from host_bridge.inputs.zenoh import check_robot_pattern, robot_matches
+from host_bridge.schemas import BundledDefinitions
+from robot_relay.wire import ROBOT_NAME_PATTERN, MessageDefinition, RawMessage
 
 log = logging.getLogger("swanky.host")
 

@@ -5,6 +5,11 @@ A robot's samples wait (bounded) until its catalog has arrived: a ROS 1 bag repl
 carries CDR laid out after ROS 1 definitions (``Header.seq``), which the bundled ROS 2 types
 would misread. Zenoh callbacks only parse and enqueue (per robot, see queues.py); decoding happens on the
 host's threads.
+
+A relay's topic is of the type its catalog announces (the relay publishes nothing else): a sample
+claiming another type waits for the relay's catalog as it is now (a live robot's node may have
+retyped the topic) and is refused, counted and warned about if that does not announce its type
+either, so a sender of garbage on a robot's keys cannot change how its topics are converted.
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ import zenoh
 from zenoh import ext
 
 from host_bridge.columns import PackedPayloads
-from host_bridge.errors import ConfigError
+from host_bridge.errors import ConfigError, TypeMismatchError
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun, RobotEvent
 from host_bridge.inputs.queues import RobotQueues
 from robot_relay.errors import WireError
@@ -43,6 +48,11 @@ from robot_relay.wire import (
 log = logging.getLogger("swanky.host")
 
 CATALOG_TIMEOUT_S = 5.0
+UNANNOUNCED_WAIT_S = 1.0
+"""Samples of a robot no relay has announced yet (its liveliness token may come after its first
+samples, or the samples are garbage) wait this long before its catalog is asked for: asked at
+once, a query that no relay answers yet ends at once and its samples would go on with the
+bundled types, while a relay starting meanwhile has the definitions."""
 CATALOG_RETRY_S = 2.0
 MAX_PENDING_PER_ROBOT = 2000
 
@@ -119,9 +129,14 @@ def _defined(item: RawMessage | MessageRun, info: TopicInfo) -> RawMessage | Mes
 class _Robot:
     def __init__(self) -> None:
         self.topics: dict[str, TopicInfo] | None = None
+        # Samples waiting for the robot's catalog: its first, or a newer one when a sample's
+        # type is not the one the catalog in hand announces.
         self.pending: list[RawMessage | MessageRun] = []
         self.fetching = False
         self.last_fetch = 0.0
+        # Relays that joined under this robot's name: a catalog asked for before the last one
+        # joined is not its catalog (samples on its keys, garbage, had the host ask earlier).
+        self.joins = 0
 
 
 class ZenohInput:
@@ -135,6 +150,9 @@ class ZenohInput:
         self.session = session
         self.queues = queues or RobotQueues()
         self.dropped = 0
+        self.refused: dict[tuple[str, str], int] = {}
+        """Messages per (robot, topic) refused because they claimed another type than the
+        robot's catalog announces for the topic."""
         self._robots: dict[str, _Robot] = {}
         self._lock = threading.Lock()
         self._closed = threading.Event()
@@ -156,11 +174,11 @@ class ZenohInput:
         self.queues.put(RobotEvent(robot, joined, "swanky relay"))
         if joined:
             with self._lock:
-                state = self._robots.get(robot)
-                if state is not None:
-                    # A restarted relay may bring other topics or definitions: its samples wait
-                    # for the new catalog. (Not on leaving: its last samples may still arrive.)
-                    state.topics = None
+                state = self._robots.setdefault(robot, _Robot())
+                # A restarted relay may bring other topics or definitions: its samples wait
+                # for the new catalog. (Not on leaving: its last samples may still arrive.)
+                state.topics = None
+                state.joins += 1
             self._fetch_catalog(robot)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -203,41 +221,80 @@ class ZenohInput:
     # -- routing -----------------------------------------------------------------------------
 
     def _route(self, raw: RawMessage | MessageRun) -> None:
+        fetch_after: float | None = None
         with self._lock:
             state = self._robots.setdefault(raw.robot, _Robot())
-            latched = False
             if state.topics is None:
-                if len(state.pending) < MAX_PENDING_PER_ROBOT:
-                    state.pending.append(raw)
-                else:
-                    self.dropped += 1
-                fetch = not state.fetching
+                self._hold(state, raw)
+                if not state.fetching:
+                    fetch_after = 0.0 if state.joins else UNANNOUNCED_WAIT_S
             else:
                 info = state.topics.get(raw.topic)
-                fetch = info is None and time.monotonic() - state.last_fetch > CATALOG_RETRY_S
-                if info is not None and info.msgtype == raw.msgtype:
-                    raw = _defined(raw, info)
-                    latched = info.latched
-                # Under the lock, as the catalog's waiting samples are queued: in their order.
-                self._put(raw, latched)
-        if fetch:
-            self._fetch_catalog(raw.robot)
+                wait = state.last_fetch + CATALOG_RETRY_S - time.monotonic()
+                if info is not None and info.msgtype != raw.msgtype:
+                    # The relay may have retyped the topic (its catalog follows the robot's
+                    # graph): the sample waits for the catalog the relay has now, asked for at
+                    # most every CATALOG_RETRY_S.
+                    self._hold(state, raw)
+                    if not state.fetching:
+                        fetch_after = max(0.0, wait)
+                else:
+                    # Under the lock, as the catalog's waiting samples are queued: in order.
+                    self._deliver(raw, info)
+                    if info is None and wait < 0:
+                        fetch_after = 0.0
+        if fetch_after is not None:
+            self._fetch_catalog(raw.robot, fetch_after)
+
+    def _hold(self, state: _Robot, raw: RawMessage | MessageRun) -> None:
+        """Keep ``raw`` until its robot's catalog comes (lock held); counted in ``dropped``
+        past :data:`MAX_PENDING_PER_ROBOT`."""
+        if len(state.pending) < MAX_PENDING_PER_ROBOT:
+            state.pending.append(raw)
+        else:
+            self.dropped += 1
+
+    def _deliver(self, raw: RawMessage | MessageRun, info: TopicInfo | None) -> None:
+        """Queue ``raw`` with the definition its robot's catalog gives its topic (lock held); a
+        topic the catalog leaves out is decoded with the bundled types. The catalog's type is
+        what the topic is: a sample claiming another type is refused, counted in ``refused``,
+        and warned about (once per topic), so it cannot change how the topic's real messages
+        are converted."""
+        if info is None:
+            self._put(raw)
+        elif info.msgtype == raw.msgtype:
+            self._put(_defined(raw, info), info.latched)
+        else:
+            key = (raw.robot, raw.topic)
+            refused = self.refused.get(key, 0)
+            self.refused[key] = refused + (len(raw) if isinstance(raw, MessageRun) else 1)
+            if not refused:
+                self._put(InputProblem(raw.robot, raw.topic, TypeMismatchError(
+                    f"{raw.topic}: a sample claims type {raw.msgtype} but robot {raw.robot}'s "
+                    f"relay announces {info.msgtype} for this topic ({catalog_key(raw.robot)}); "
+                    "refused")))
 
     def _put(self, item: InputItem, latched: bool = False) -> None:
         self.queues.put(item, latched)
 
-    def _fetch_catalog(self, robot: str) -> None:
+    def _fetch_catalog(self, robot: str, after: float = 0.0) -> None:
+        """Ask ``robot``'s relay for its catalog in ``after`` seconds, unless a fetch is under
+        way."""
         with self._lock:
             state = self._robots.setdefault(robot, _Robot())
             if state.fetching:
                 return
             state.fetching = True
-            state.last_fetch = time.monotonic()
+            state.last_fetch = time.monotonic() + after
         threading.Thread(
-            target=self._catalog_worker, args=(robot,), name=f"catalog-{robot}", daemon=True
+            target=self._catalog_worker, args=(robot, after), name=f"catalog-{robot}", daemon=True
         ).start()
 
-    def _catalog_worker(self, robot: str) -> None:
+    def _catalog_worker(self, robot: str, after: float) -> None:
+        if self._closed.wait(after):
+            return
+        with self._lock:
+            joins = self._robots[robot].joins
         key = catalog_key(robot)
         catalog: Catalog | None = None
         error: Exception | None = None
@@ -254,23 +311,24 @@ class ZenohInput:
                 f"robot {robot} did not answer its catalog ({key}) within {CATALOG_TIMEOUT_S} s; "
                 "decoding its topics with the bundled ROS 2 Humble types"
             )
-        if error is not None:
-            self._put(InputProblem(robot, key, error))
         with self._lock:
             state = self._robots[robot]
             state.fetching = False
-            known = dict(state.topics or {})
-            if catalog is not None:
-                known.update({t.topic: t for t in catalog.topics})
-            state.topics = known
-            # Queued under the lock: a sample arriving meanwhile sees the catalog only after
-            # them, and goes after them (else its sequence number came before older ones').
-            for waiting in state.pending:
-                info = known.get(waiting.topic)
-                if info is not None and info.msgtype == waiting.msgtype:
-                    waiting = _defined(waiting, info)  # noqa: PLW2901
-                self._put(waiting, info is not None and info.latched)
-            state.pending = []
+            ask_again = state.joins != joins
+            if not ask_again:
+                if error is not None:
+                    self._put(InputProblem(robot, key, error))
+                known = dict(state.topics or {})
+                if catalog is not None:
+                    known.update({t.topic: t for t in catalog.topics})
+                state.topics = known
+                # Queued under the lock: a sample arriving meanwhile sees the catalog only after
+                # them, and goes after them (else its sequence number came before older ones').
+                for waiting in state.pending:
+                    self._deliver(waiting, known.get(waiting.topic))
+                state.pending = []
+        if ask_again:
+            self._fetch_catalog(robot)
 
     def close(self) -> None:
         self._closed.set()

@@ -7,102 +7,35 @@ value."""
 
 from __future__ import annotations
 
-import math
 import re
 import resource
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Any, cast
 
-import numpy as np
 import pytest
 from hypothesis import given, settings
-from hypothesis import strategies as st
-from rosbags.interfaces import Nodetype
 
 from host_bridge.config import HostConfig
-from host_bridge.contract import ColumnsItem, LogEntry, LogItem
-from host_bridge.decode import Decoder, base_typestore
-from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
+from host_bridge.contract import WARNINGS_PATH, ColumnsItem, LogEntry, LogItem
+from host_bridge.decode import Decoder
+from host_bridge.dispatch import Dispatcher
 from host_bridge.registry import Row, default_registry
 from robot_relay.wire import RawMessage
-from tests.fuzz.fuzzing import FUZZ, mutated
+from tests.fuzz.fuzzing import FUZZ, STORE, payloads
 from tests.reliability import Record
 
 # NaN and infinities in the input make numpy say so; that is the point, not a problem.
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 
 REGISTRY = default_registry()
-STORE = base_typestore()
 DECODER = Decoder(STORE)
-CONFIG = HostConfig.builtin(REGISTRY.types())
+CONFIG = HostConfig.builtin(REGISTRY)
 # Rows of types a ROS 2 host can meet with the bundled definitions (rosgraph_msgs/Log is ROS 1's).
 ROWS = [row for row in REGISTRY.rows() if not row.is_family and row.msgtype in STORE.fielddefs]
 EXAMPLES_PER_TYPE = 30
 GOOD_TOPIC = "/good"
 FLOAT64 = "std_msgs/msg/Float64"
-
-_FLOATS = [0.0, 1.0, -2.5, 0.05, math.nan, math.inf, -math.inf, 1e30, -1e-30, 3.0e38]
-_INT_RANGES = {
-    "int8": (-(2**7), 2**7 - 1), "int16": (-(2**15), 2**15 - 1),
-    "int32": (-(2**31), 2**31 - 1), "int64": (-(2**63), 2**63 - 1),
-    "uint8": (0, 2**8 - 1), "byte": (-(2**7), 2**7 - 1), "char": (0, 2**8 - 1), "octet": (0, 2**8 - 1),
-    "uint16": (0, 2**16 - 1), "uint32": (0, 2**32 - 1), "uint64": (0, 2**64 - 1),
-}
-_STRINGS = ["", "map", "base_link", "rgb8", "16UC1", "32FC1", "jpeg", "png", "compressedDepth png",
-            "h264", "xyz", "x", "rgb", "intensity", "é/../ x", "a" * 300]
-# numpy's dtype of each ROS type rosbags serializes (its "byte" is numpy's signed byte).
-_DTYPES = {"bool": "bool", "byte": "int8", "char": "uint8", "octet": "uint8"}
-
-
-def _number(ros_type: str) -> st.SearchStrategy[Any]:
-    if ros_type in ("float32", "float64"):
-        return st.sampled_from(_FLOATS)
-    if ros_type == "bool":
-        return st.booleans()
-    low, high = _INT_RANGES[ros_type]
-    # The extremes, small counts, and the sizes a hostile header declares (10^5, 10^9).
-    candidates = sorted({v for v in (low, high, 0, 1, 2, 3, 4, 16, 100_000, 10**9) if low <= v <= high})
-    return st.sampled_from(candidates)
-
-
-def _values(draw: st.DrawFn, desc: tuple[Any, Any], count: int) -> Any:
-    """``count`` values of one field type: a numpy array for numbers (what rosbags serializes),
-    a list otherwise."""
-    kind, arg = desc
-    if kind == Nodetype.BASE and arg[0] != "string":
-        ros_type = arg[0]
-        dtype = _DTYPES.get(ros_type, ros_type)
-        if dtype == "uint8" and draw(st.booleans()):
-            return np.frombuffer(draw(st.binary(min_size=count, max_size=count)), np.uint8)
-        return np.array([draw(_number(ros_type)) for _ in range(count)], dtype=dtype)
-    return [_field(draw, desc) for _ in range(count)]
-
-
-def _field(draw: st.DrawFn, desc: tuple[Any, Any]) -> Any:
-    kind, arg = desc
-    if kind == Nodetype.BASE:
-        return draw(st.sampled_from(_STRINGS)) if arg[0] == "string" else draw(_number(arg[0]))
-    if kind == Nodetype.NAME:
-        return _message(draw, arg)
-    if kind == Nodetype.ARRAY:
-        return _values(draw, arg[0], arg[1])
-    # SEQUENCE: short, or (for byte data) up to 64 bytes.
-    return _values(draw, arg[0], draw(st.integers(0, 3 if arg[0][0] == Nodetype.NAME else 64)))
-
-
-def _message(draw: st.DrawFn, msgtype: str) -> Any:
-    _, fields = STORE.fielddefs[msgtype]
-    return STORE.types[msgtype](**{name: _field(draw, desc) for name, desc in fields})
-
-
-@st.composite
-def payloads(draw: st.DrawFn, msgtype: str) -> tuple[bytes, str]:
-    """The CDR of a message with drawn field values, as is or gone bad on the way."""
-    cdr = bytes(STORE.serialize_cdr(_message(draw, msgtype), msgtype))
-    if draw(st.booleans()):
-        return cdr, "odd fields"
-    return draw(mutated(cdr)), "mutated bytes"
 
 
 class RecordingSink:

@@ -15,7 +15,14 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from robot_relay.errors import GraphError, WireError
+from host_bridge.errors import GraphError
+from host_bridge.inputs.rmw_keys import (
+    parse_rmw_attachment,
+    parse_rmw_data_key,
+    parse_rmw_qos,
+    parse_rmw_token,
+)
+from robot_relay.errors import WireError
 from robot_relay.wire import (
     ATTACHMENT_SIZE,
     FLAG_LZ4,
@@ -31,10 +38,6 @@ from robot_relay.wire import (
     decompress,
     parse_cdr_encoding,
     parse_data_key,
-    parse_rmw_attachment,
-    parse_rmw_data_key,
-    parse_rmw_qos,
-    parse_rmw_token,
     parse_robot_key,
 )
 from tests.fuzz.fuzzing import FUZZ, mutated

@@ -220,6 +220,17 @@ def test_follower_sends_once_per_burst_and_again_only_when_topics_change() -> No
     assert len(sent.blueprints) == 2  # closed: nothing more
 
 
+def test_follower_lays_a_topic_out_as_its_latest_type() -> None:
+    """A topic whose type changed (garbage claiming Image on /scan, then the robot's scans) is
+    laid out as the type it has now, not as both."""
+    sent = Sent()
+    follower = BlueprintFollower(sent, interval=60.0)
+    follower.topic_seen("tb3", "/scan", "sensor_msgs/msg/Image", "/tb3/scan")
+    follower.topic_seen("tb3", "/scan", "sensor_msgs/msg/LaserScan", "/tb3/scan")
+    follower.close()
+    assert {str(v.name) for v in views(sent.blueprints[-1])} == {"tb3 3D", "Log"}
+
+
 def test_dispatcher_tells_the_follower_of_each_topic_once(tmp_path: Path) -> None:
     seen: list[tuple[str, str, str, str]] = []
     dispatcher = Dispatcher(

@@ -198,7 +198,7 @@ def raws(topic: str, msgtype: str, data: Sequence[bytes], *, live: bool = False)
 def config(tmp_path: Path, text: str) -> HostConfig:
     path = tmp_path / "host.yaml"
     path.write_text(text)
-    return HostConfig.load(path, REGISTRY.types())
+    return HostConfig.load(path, REGISTRY)
 
 
 def dispatcher(sink: RecordingSink, host_config: HostConfig | None = None,

@@ -20,7 +20,8 @@ from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
 from host_bridge.columns import MESSAGES_PER_BLOCK, Columns, PackedPayloads, read_columns
-from host_bridge.decode import Decoder, base_typestore
+from host_bridge.decode import Decoder
+from host_bridge.schemas import base_typestore
 from robot_relay.sources.bag import BagSource
 
 HUMBLE = get_typestore(Stores.ROS2_HUMBLE)

@@ -3,10 +3,8 @@ honouring enabled, entity_path, converter, options and restamp."""
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
-from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
@@ -18,26 +16,30 @@ from rosbags.typesys import Stores, get_typestore
 
 from host_bridge import cli
 from host_bridge.config import HostConfig, TopicSettings
-from host_bridge.contract import LogEntry, LogItem
-from host_bridge.converters import images, laser
-from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
+from host_bridge.contract import WARNINGS_PATH, LogEntry, LogItem
+from host_bridge.destinations import SinkOptions
+from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import ConfigError
 from host_bridge.registry import default_registry
+from host_bridge.schemas import base_typestore
 from host_bridge.sink import RerunSink
 from robot_relay.wire import RawMessage
+from tests.host_bridge.test_custom_types import costmap
+from tests.rrd import entity_rows
 
-REGISTERED = default_registry().types()
+REGISTRY = default_registry()
 REPO = Path(__file__).resolve().parents[2]
 STORE = get_typestore(Stores.ROS2_HUMBLE)
 T = STORE.types
 SCAN = "sensor_msgs/msg/LaserScan"
 IMAGE = "sensor_msgs/msg/Image"
+COSTMAP = "nav2_msgs/msg/Costmap"
 
 
 def load(tmp_path: Path, text: str) -> HostConfig:
     path = tmp_path / "host.yaml"
     path.write_text(text)
-    return HostConfig.load(path, REGISTERED)
+    return HostConfig.load(path, REGISTRY)
 
 
 def mistakes(tmp_path: Path, text: str) -> list[str]:
@@ -101,19 +103,12 @@ def test_exact_topic_beats_glob_beats_type_key_by_key(tmp_path: Path) -> None:
 
 
 def test_no_file_gives_the_built_in_defaults(tmp_path: Path) -> None:
-    config = HostConfig.builtin(REGISTERED)
+    config = HostConfig.builtin(REGISTRY)
     assert config.resolve("tb3", "/scan", SCAN) == TopicSettings(
         entity_path="/tb3/scan", converter="points",
         options={"color_by": "range", "colormap": "turbo", "radius": 0.02, "mode": "points"},
     )
     assert config.resolve("tb3", "/speed", "std_msgs/msg/Float64") == TopicSettings("/tb3/speed")
-
-
-def test_schema_converter_choices_are_the_converters_modes() -> None:
-    schema = json.loads((files("swanky_schemas") / "host.schema.json").read_text())
-    definitions = schema["$defs"]
-    assert tuple(definitions["laser_scan"]["properties"]["converter"]["enum"]) == laser._MODES
-    assert tuple(definitions["image"]["properties"]["converter"]["enum"]) == images._MODES
 
 
 # --- mistakes: each names file:line: key ---------------------------------------------------------
@@ -242,8 +237,8 @@ def test_print_config_shows_the_file_over_the_defaults(
     # The printout is itself a valid configuration meaning the same.
     again = tmp_path / "again.yaml"
     again.write_text(printed)
-    reloaded = HostConfig.load(again, REGISTERED)
-    original = HostConfig.load(path, REGISTERED)
+    reloaded = HostConfig.load(again, REGISTRY)
+    original = HostConfig.load(path, REGISTRY)
     for robot, topic, msgtype in [("tb3", "/scan_front", SCAN), ("pupper", "/scan", SCAN),
                                   ("tb3", "/cam", IMAGE)]:
         # (The /* glob's color_by misfits images: reported against each file's own line.)
@@ -267,7 +262,7 @@ def test_config_mistake_exits_2_naming_file_line_key(
 
 
 def test_example_config_is_valid() -> None:
-    config = HostConfig.load(REPO / "deploy" / "host.yaml", REGISTERED)
+    config = HostConfig.load(REPO / "deploy" / "host.yaml", REGISTRY)
     assert config.resolve("pupper", "/scan", SCAN).converter == "rays"
     assert config.resolve("tb3", "/scan", SCAN).converter == "both"
     assert not config.resolve("tb3", "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray").enabled
@@ -376,3 +371,33 @@ def test_dispatcher_warns_once_about_a_misfit_glob_and_converts_anyway(tmp_path:
     with pytest.raises(ConfigError, match=r"topics\./cam\*\.converter"):
         Dispatcher(RecordingSink(), config=load(tmp_path, "topics:\n  /cam*:\n    converter: both\n"),
                    strict=True).dispatch([RawMessage("tb3", "/cam1", IMAGE, image_cdr(1))])
+
+
+def costmap_grid(tmp_path: Path, config: HostConfig) -> dict[str, Any]:
+    """The GridMap row a nav2 global costmap is logged as, through the dispatcher into a file."""
+    out = tmp_path / "costmap.rrd"
+    dispatcher = Dispatcher(RerunSink(SinkOptions(save=out)), config=config, strict=True)
+    cdr = bytes(base_typestore().serialize_cdr(costmap([[0, 128], [254, 255]]), COSTMAP))
+    dispatcher.dispatch([RawMessage("tb3", "/global_costmap/costmap_raw", COSTMAP, cdr, log_ns=3 * 10**9)])
+    dispatcher.close()
+    dispatcher.sink.close()
+    assert dispatcher.counters[("tb3", "/global_costmap/costmap_raw")].converted == 1
+    [row] = entity_rows(out, "/tb3/global_costmap/costmap_raw")["/tb3/global_costmap/costmap_raw"]
+    return row
+
+
+def test_a_costmap_takes_the_grid_drawing_options_its_converter_reads(tmp_path: Path) -> None:
+    """Its row names the record the Costmap converter reads; before, the config checked the
+    schema's list of types and refused opacity ("its options: none")."""
+    drawn = costmap_grid(tmp_path, load(tmp_path, f"types:\n  {COSTMAP}:\n    options: {{opacity: 0.5}}\n"))
+    assert drawn["GridMap:opacity"] == [0.5]
+    assert drawn["GridMap:draw_order"] == [1.0]  # still derived: a global costmap over the map
+    assert drawn["GridMap:colormap"] == [rr.components.Colormap.RvizCostmap.value]
+    builtin = costmap_grid(tmp_path, HostConfig.builtin(REGISTRY))
+    assert builtin["GridMap:opacity"] == [pytest.approx(0.7)]  # a costmap's own default
+    assert builtin["GridMap:data"] == drawn["GridMap:data"]
+    # A costmap has no walls, so no wall options.
+    assert mistakes(tmp_path, f"types:\n  {COSTMAP}:\n    options: {{wall_height: 1}}\n") == [
+        "3: types.nav2_msgs/msg/Costmap.options.wall_height: unknown key (expected one of: color_scheme, "
+        "draw_order, opacity)"
+    ]

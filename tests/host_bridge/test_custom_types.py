@@ -14,9 +14,10 @@ from host_bridge.contract import ColumnsItem, LogItem
 from host_bridge.converters import occupancy
 from host_bridge.converters.generic import convert_generic
 from host_bridge.converters.services import event_text
-from host_bridge.decode import Decoder, base_typestore
+from host_bridge.decode import Decoder
 from host_bridge.errors import PartialConvertError, UnknownTypeError
 from host_bridge.registry import default_registry
+from host_bridge.schemas import base_typestore
 from robot_relay.wire import MessageDefinition, RawMessage
 from tests.host_bridge.sensor_test_support import archetype, column_rows, log_item, make_ctx
 from tests.host_bridge.test_user_bags import CHANGE_STATE_DEFINITION, CHANGE_STATE_EVENTS, GID

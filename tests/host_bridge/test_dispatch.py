@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -44,6 +45,44 @@ def grid_cdr(cells: np.ndarray, resolution: float) -> bytes:
     )
     grid = T["nav_msgs/msg/OccupancyGrid"](header=header, info=info, data=cells.ravel())
     return bytes(STORE.serialize_cdr(grid, "nav_msgs/msg/OccupancyGrid"))
+
+
+TWIST = "geometry_msgs/msg/Twist"
+TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
+LASER_SCAN = "sensor_msgs/msg/LaserScan"
+SECOND = 1_000_000_000
+
+
+def stamp(ns: int) -> Any:
+    return T["builtin_interfaces/msg/Time"](sec=ns // SECOND, nanosec=ns % SECOND)
+
+
+def twist(forward: float) -> Any:
+    vector = T["geometry_msgs/msg/Vector3"]
+    return T[TWIST](linear=vector(x=forward, y=0.0, z=0.0), angular=vector(x=0.0, y=0.0, z=0.5))
+
+
+def twist_cdr(forward: float) -> bytes:
+    """A /cmd_vel Twist as Humble's nav2 sends it: ``forward`` m/s, turning at 0.5 rad/s."""
+    return bytes(STORE.serialize_cdr(twist(forward), TWIST))
+
+
+def twist_stamped_cdr(forward: float, ns: int) -> bytes:
+    """The same command as Jazzy's nav2 sends it, stamped ``ns`` in frame base_link."""
+    header = T["std_msgs/msg/Header"](stamp=stamp(ns), frame_id="base_link")
+    return bytes(STORE.serialize_cdr(T[TWIST_STAMPED](header=header, twist=twist(forward)),
+                                     TWIST_STAMPED))
+
+
+def scan_cdr(ranges: list[float], ns: int) -> bytes:
+    """A LaserScan of quarter turns from angle 0 in frame laser, stamped ``ns``."""
+    scan = T[LASER_SCAN](
+        header=T["std_msgs/msg/Header"](stamp=stamp(ns), frame_id="laser"),
+        angle_min=0.0, angle_max=1.5 * np.pi, angle_increment=0.5 * np.pi, time_increment=0.0,
+        scan_time=0.1, range_min=0.1, range_max=10.0,
+        ranges=np.array(ranges, dtype=np.float32), intensities=np.zeros(0, dtype=np.float32),
+    )
+    return bytes(STORE.serialize_cdr(scan, LASER_SCAN))
 
 
 def raw(topic: str, msgtype: str, data: bytes, ns: int, **kw: object) -> RawMessage:
@@ -180,3 +219,72 @@ def test_a_warning_names_its_topic_once(
     # A decoder error does not name the topic itself: the warning adds it, once.
     assert speed.startswith("[tb3] /speed: ")
     assert speed.count("/speed") == 1
+
+
+def test_a_topic_whose_type_changes_is_drawn_as_each_type_with_one_warning(
+    dispatcher: Dispatcher, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Jazzy's Twist -> TwistStamped on /cmd_vel while the robot stays: the batch in which the
+    type changes converts each message as its own type (its first TwistStamped ones were drawn
+    as Twist fields under /cmd_vel/twist), and later batches with TwistStamped's converter."""
+    times = [(i + 1) * SECOND for i in range(8)]
+    dispatcher.dispatch([raw("/cmd_vel", TWIST, twist_cdr(i), times[i]) for i in range(3)])
+    with caplog.at_level(logging.WARNING):
+        dispatcher.dispatch([
+            raw("/cmd_vel", TWIST, twist_cdr(3), times[3]),
+            *(raw("/cmd_vel", TWIST_STAMPED, twist_stamped_cdr(i, times[i]), times[i])
+              for i in (4, 5)),
+        ])
+        dispatcher.dispatch([raw("/cmd_vel", TWIST_STAMPED, twist_stamped_cdr(i, times[i]), times[i])
+                             for i in (6, 7)])
+    assert [r.getMessage() for r in caplog.records] == [
+        "[tb3] /cmd_vel: type changed from geometry_msgs/msg/Twist to "
+        "geometry_msgs/msg/TwistStamped; each message is converted as its own type, with that "
+        "type's options (further TypeChangeErrors on this topic are counted, not shown)"
+    ]
+    counters = dispatcher.counters[("tb3", "/cmd_vel")]
+    assert (counters.msgtype, counters.received, counters.converted, counters.dropped,
+            counters.warnings) == (TWIST_STAMPED, 8, 8, 0, 1)
+    dispatcher.sink.close()
+    rows = entity_rows(tmp_path / "out.rrd")
+    forward = rows["/tb3/cmd_vel/linear/x"]
+    assert [r["Scalars:scalars"] for r in forward] == [[float(i)] for i in range(8)]
+    assert [r.get("ros_time") for r in forward] == [None] * 4 + times[4:]
+    assert [r["Scalars:scalars"] for r in rows["/tb3/cmd_vel/angular/z"]] == [[0.5]] * 8
+    arrows = [r for r in rows["/tb3/cmd_vel"] if r.get("Arrows3D:vectors")]
+    assert [(r["ros_time"], r["Arrows3D:vectors"]) for r in arrows] == [
+        (times[i], [[float(i), 0.0, 0.0], [0.0, 0.0, 0.5]]) for i in (4, 5, 6, 7)
+    ]
+    assert not [path for path in rows if path.startswith("/tb3/cmd_vel/twist")]
+
+
+def test_messages_of_another_type_never_change_how_a_topics_messages_convert(
+    dispatcher: Dispatcher, tmp_path: Path
+) -> None:
+    """Garbage on /scan: a Twist first (its generic converter's options, max_array, made every
+    later scan fail: 'LaserScanOptions takes no option max_array'), then a batch that starts
+    with a cut PointCloud2 (its converter took the scans behind it: 'LaserScan object has no
+    attribute data'), then scans alone. Every scan is drawn, point for point."""
+    times = [(i + 1) * SECOND for i in range(6)]
+    dispatcher.dispatch([raw("/scan", TWIST, twist_cdr(1.0), times[0])])
+    dispatcher.dispatch([raw("/scan", LASER_SCAN, scan_cdr([1.0, 2.0, 3.0, 4.0], times[1]), times[1])])
+    dispatcher.dispatch([
+        raw("/scan", "sensor_msgs/msg/PointCloud2", scan_cdr([1.0], times[2])[:9], times[2]),
+        raw("/scan", LASER_SCAN, scan_cdr([2.0, 2.0, 2.0, 2.0], times[3]), times[3]),
+        raw("/scan", LASER_SCAN, scan_cdr([1.0, 20.0, 1.0, 0.05], times[4]), times[4]),
+        raw("/scan", TWIST, twist_cdr(2.0), times[5]),
+    ])
+    counters = dispatcher.counters[("tb3", "/scan")]
+    # The cut PointCloud2 alone is lost; 4 type changes and it counted in the warnings.
+    assert (counters.received, counters.converted, counters.dropped) == (6, 5, 1)
+    assert (counters.msgtype, counters.warnings) == (TWIST, 4 + 1)
+    dispatcher.sink.close()
+    scans = [r for r in entity_rows(tmp_path / "out.rrd")["/tb3/scan"] if "Points3D:positions" in r]
+    assert [r["ros_time"] for r in scans] == [times[1], times[3], times[4]]
+    expected = [
+        [[1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [-3.0, 0.0, 0.0], [0.0, -4.0, 0.0]],
+        [[2.0, 0.0, 0.0], [0.0, 2.0, 0.0], [-2.0, 0.0, 0.0], [0.0, -2.0, 0.0]],
+        [[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]],  # 20 m is beyond range_max, 5 cm short of range_min
+    ]
+    for row, points in zip(scans, expected, strict=True):
+        np.testing.assert_allclose(row["Points3D:positions"], points, atol=1e-6)

@@ -27,6 +27,7 @@ T = STORE.types
 ROBOT = "r"
 CLOUD = "sensor_msgs/msg/PointCloud2"
 GRID = "nav_msgs/msg/OccupancyGrid"
+IMAGE = "sensor_msgs/msg/Image"
 STARTUP_S = 60.0
 CONFIG = """\
 topics:
@@ -71,7 +72,7 @@ def test_heavy_runs_are_converted_in_another_process_into_the_same_recording(
         config = tmp_path / "host.yaml"
         config.write_text(CONFIG)
         dispatcher = Dispatcher(sink, strict=True,
-                                config=HostConfig.load(config, default_registry().types()))
+                                config=HostConfig.load(config, default_registry()))
         offload = dispatcher.offload = HeavyProcess(dispatcher, url, sink.recording_id)
         dispatcher.take([
             RawMessage(ROBOT, "/points", CLOUD, cloud_cdr(points, "camera"), receive_ns=5),
@@ -130,6 +131,36 @@ def test_a_bad_heavy_payload_is_counted_and_warned_by_the_child(
         assert offload.finish() is None
     counters = dispatcher.counters[(ROBOT, "/points")]
     assert (counters.received, counters.converted, counters.dropped, counters.warnings) == (2, 1, 1, 1)
+
+
+def test_a_heavy_topic_whose_type_changes_is_converted_in_the_child_as_each_type(
+    tmp_path: Path, points: np.ndarray
+) -> None:
+    """An Image, then a PointCloud2 on /points (a sender of garbage, or a node that changed):
+    the child gets each type's settings with its first run (it converted the cloud with the
+    image's type and options)."""
+    header = T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="camera")
+    image = T[IMAGE](header=header, height=2, width=2, encoding="mono8", is_bigendian=0, step=2,
+                     data=np.array([0, 64, 128, 255], np.uint8))
+    with saving_viewer(tmp_path / "viewer.rrd") as (url, _):
+        sink = RerunSink(SinkOptions(connect=url))
+        dispatcher = Dispatcher(sink, strict=True)
+        offload = dispatcher.offload = HeavyProcess(dispatcher, url, sink.recording_id)
+        dispatcher.take([
+            RawMessage(ROBOT, "/points", IMAGE, bytes(STORE.serialize_cdr(image, IMAGE)),
+                       receive_ns=1),
+            RawMessage(ROBOT, "/points", CLOUD, cloud_cdr(points, "camera"), receive_ns=2),
+        ])
+        dispatcher.close()
+        sink.close()
+        assert offload.finish() is None
+    counters = dispatcher.counters[(ROBOT, "/points")]
+    assert (counters.msgtype, counters.received, counters.converted, counters.dropped,
+            counters.warnings) == (CLOUD, 2, 2, 0, 1)
+    (cloud,) = [r for r in entity_rows(tmp_path / "viewer.rrd")["/r/points"]
+                if "Points3D:positions" in r]
+    np.testing.assert_array_equal(np.array(cloud["Points3D:positions"], np.float32), points)
 
 
 def test_heavy_topics_are_converted_here_once_the_child_is_gone(

@@ -1,9 +1,12 @@
-"""Converter options: the records in host_bridge/options.py are the only defaults, the schema
-names exactly their fields with compatible types, and a topic's configured values become them."""
+"""Converter options: each type's row in the table names its record (host_bridge/options.py),
+the only place a default is written; the schema describes exactly that record's fields for the
+type, --print-config shows its defaults, and a topic's configured values become it."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import json
 import types
 import typing
@@ -11,25 +14,33 @@ from importlib.resources import files
 from typing import Any
 
 import pytest
+import yaml
 
+from host_bridge import cli
 from host_bridge.config import HostConfig
 from host_bridge.errors import ConvertError
 from host_bridge.options import (
     CONVERTER_OPTION,
-    OPTIONS_BY_DEFINITION,
     GridOptions,
     GridUpdateOptions,
     ImageOptions,
     LaserScanOptions,
     PoseCovarianceOptions,
+    converter_choices,
     fixed_defaults,
+    option_names,
     options_from,
 )
-from host_bridge.registry import default_registry
+from host_bridge.registry import Row, default_registry
 from tests.host_bridge.sensor_test_support import make_ctx
 
 SCHEMA = json.loads((files("swanky_schemas") / "host.schema.json").read_text())
 DEFINITIONS = SCHEMA["$defs"]
+NAMED = SCHEMA["properties"]["types"]["properties"]
+"""The types the schema describes one by one; type globs and other types get ``settings``."""
+TABLE = default_registry()
+TYPE_ROWS = {row.msgtype: row for row in TABLE.rows() if not row.is_family and row.topics is None}
+"""One row per type spelt out (the table checks a type's rows take one options record)."""
 # JSON schema type -> the Python type an option record declares for it.
 JSON_TYPES: dict[str, type] = {"number": float, "integer": int, "boolean": bool, "string": str}
 
@@ -65,34 +76,71 @@ def declared(hint: Any) -> tuple[Any, bool]:
     return hint, False
 
 
-def type_definitions() -> set[str]:
-    """The $defs a type's settings refer to, and the two the config falls back to."""
-    refs = {spec["$ref"].rsplit("/", 1)[-1] for spec in SCHEMA["properties"]["types"]["properties"].values()}
-    return refs | {"plain", "generic"}
-
-
-def test_every_schema_definition_of_a_type_has_an_options_record() -> None:
-    assert set(OPTIONS_BY_DEFINITION) == type_definitions()
-
-
-@pytest.mark.parametrize("definition", sorted(OPTIONS_BY_DEFINITION))
-def test_schema_lists_exactly_the_record_fields_with_compatible_types(definition: str) -> None:
-    record = OPTIONS_BY_DEFINITION[definition]
-    properties = DEFINITIONS[definition]["properties"]
-    schema_options = properties.get("options", {}).get("properties", {})
+def check_fields(where: str, record: type[Any], schema_options: dict[str, Any]) -> None:
+    """Each of ``schema_options`` is a field of ``record`` of a compatible type, None-able
+    exactly when its default is None (the record saying "derived from the data")."""
     hints = typing.get_type_hints(record)
     fields = {f.name: f for f in dataclasses.fields(record)}
-    # The converter choice is the record's mode; every other field is an option.
-    assert ("converter" in properties) == (CONVERTER_OPTION in fields)
-    assert set(schema_options) == set(fields) - {CONVERTER_OPTION}
     for name, spec in schema_options.items():
         kind, optional = declared(hints[name])
-        assert kind == python_type(spec), f"{definition}.{name}: {hints[name]} vs {resolved(spec)}"
-        # None is the record saying "derived from the data"; only then may the field be None.
-        assert optional == (fields[name].default is None), f"{definition}.{name}"
-    if CONVERTER_OPTION in fields:
-        assert hints[CONVERTER_OPTION] is str
-        assert fields[CONVERTER_OPTION].default in properties["converter"]["enum"]
+        assert kind == python_type(spec), f"{where}.{name}: {hints[name]} vs {resolved(spec)}"
+        assert optional == (fields[name].default is None), f"{where}.{name}"
+
+
+@pytest.fixture(scope="module")
+def printed() -> dict[str, Any]:
+    """What ``swanky-host --print-config`` prints without a file, as YAML and its header."""
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert cli.main(["--print-config"]) == 0
+    text = out.getvalue()
+    header = [line for line in text.splitlines() if line.startswith("#")]
+    return {"config": yaml.safe_load(text), "header": header}
+
+
+@pytest.mark.parametrize("row", TYPE_ROWS.values(), ids=lambda row: row.msgtype)
+def test_the_schema_and_print_config_show_each_row_s_options(row: Row, printed: dict[str, Any]) -> None:
+    record, msgtype = row.options, row.msgtype
+    names, choices = option_names(record), converter_choices(record)
+    if names or choices:
+        assert msgtype in NAMED, f"{msgtype} takes options: give it its settings in the schema's types"
+        properties = resolved(NAMED[msgtype])["properties"]
+        schema_options = properties.get("options", {}).get("properties", {})
+        assert sorted(schema_options) == sorted(names), msgtype
+        assert tuple(properties.get("converter", {}).get("enum", ())) == choices, msgtype
+        check_fields(msgtype, record, schema_options)
+    else:  # `settings`: the config refuses every converter and option of the type, naming it
+        assert msgtype not in NAMED
+    defaults = fixed_defaults(record)
+    shown = printed["config"]["types"].get(msgtype, {})
+    assert shown.get("converter") == defaults.pop(CONVERTER_OPTION, None), msgtype
+    assert shown.get("options", {}) == defaults, msgtype
+
+
+def test_the_schema_names_only_types_of_the_table() -> None:
+    assert sorted(set(NAMED) - set(TYPE_ROWS)) == []
+
+
+def test_globs_and_other_types_may_set_every_option_and_converter_of_the_table(
+    printed: dict[str, Any],
+) -> None:
+    """``settings`` (type globs, topics, types the schema does not name: custom ones get the
+    catch-all row's record) offers each row's options; the config checks them per type."""
+    settings = DEFINITIONS["settings"]["properties"]
+    offered = settings["options"]["properties"]
+    assert sorted(offered) == sorted({name for row in TABLE.rows() for name in option_names(row.options)})
+    assert sorted(settings["converter"]["enum"]) == sorted(
+        {choice for row in TABLE.rows() for choice in converter_choices(row.options)}
+    )
+    for row in TABLE.rows():
+        check_fields(row.msgtype, row.options, {name: offered[name] for name in option_names(row.options)})
+    # A family's defaults cannot be a types entry (it would set them on every type its glob
+    # matches): the header names them.
+    families = [row for row in TABLE.rows() if row.is_family and fixed_defaults(row.options)]
+    assert [row.msgtype for row in families] == ["*"]
+    assert printed["header"][1] == "# built in for the types matching '*' (no row of their own): " \
+        "{options: {max_array: 64}}"
+    assert not any(row.msgtype in printed["config"]["types"] for row in families)
 
 
 def test_the_schema_holds_no_default_copies() -> None:
@@ -101,13 +149,15 @@ def test_the_schema_holds_no_default_copies() -> None:
 
 
 def test_the_built_in_layer_is_the_records_defaults() -> None:
-    config = HostConfig.builtin(default_registry().types())
+    config = HostConfig.builtin(TABLE)
     walls = config.resolve("tb3", "/map", "nav_msgs/msg/OccupancyGrid").options
     assert walls == fixed_defaults(GridOptions)
     assert walls["wall_height"] == 0.5
     assert walls["wall_color"] == [170, 180, 200]
     assert "wall_thickness" not in walls  # derived from the grid's resolution
     assert fixed_defaults(PoseCovarianceOptions) == {"trail_length": 500, "axis_length": 0.3, "sigma": 1.0}
+    # A costmap is drawn as a grid and has no walls: nothing fixed, all derived from its topic.
+    assert config.resolve("tb3", "/global_costmap/costmap_raw", "nav2_msgs/msg/Costmap").options == {}
 
 
 def test_configured_values_become_the_record() -> None:

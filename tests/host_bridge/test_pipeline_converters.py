@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -14,7 +15,9 @@ from host_bridge.converters.generic import convert_generic
 from host_bridge.converters.laser import convert_scan
 from host_bridge.converters.odometry import SPEC as ODOMETRY
 from host_bridge.converters.tf import SPEC as TF
+from host_bridge.options import Options
 from host_bridge.registry import Row, default_registry
+from host_bridge.state import TopicState
 from tests.host_bridge.sensor_test_support import make_ctx
 
 T = get_typestore(Stores.ROS2_HUMBLE).types
@@ -172,6 +175,20 @@ def test_generic_fallback_plots_numbers_and_logs_text() -> None:
 TABLE = default_registry()
 
 
+class AskedOptions(TopicState):
+    """A topic's state that notes which options records the converters ask for."""
+
+    __slots__ = ("asked",)
+
+    def __init__(self, options: dict[str, Any]) -> None:
+        super().__init__(options)
+        self.asked: set[type[Any]] = set()
+
+    def options(self, kind: type[Options], topic: str) -> Options:
+        self.asked.add(kind)
+        return super().options(kind, topic)
+
+
 @pytest.mark.parametrize(
     "row",
     [row for row in TABLE.rows() if not row.is_family],
@@ -180,9 +197,10 @@ TABLE = default_registry()
 def test_every_registered_type_has_a_converter_that_handles_a_default_message(row: Row) -> None:
     """Walks the type table: each row's converter (and its slow one) accepts a
     default-constructed message of its type (or refuses it with a ConvertError, never another
-    exception)."""
-    from host_bridge.decode import base_typestore
+    exception), and reads its options as the row's record, the one the configuration checks a
+    file against (given every option of it, as a config may set them all)."""
     from host_bridge.errors import ConvertError
+    from host_bridge.schemas import base_typestore
 
     store = base_typestore()
     if row.msgtype not in store.types:
@@ -190,7 +208,8 @@ def test_every_registered_type_has_a_converter_that_handles_a_default_message(ro
     topic = "/robot_description" if row.topics is not None else "/topic"
     assert TABLE.row(row.msgtype, topic) is row
     msg = _default_message(store, row.msgtype)
-    context = ctx(topic)
+    topic_state = AskedOptions(dataclasses.asdict(row.options()))
+    context = make_ctx(topic, robot="tb3", times={"ros_time": 5, "log_time": 6}, topic_state=topic_state)
     for spec in (row.spec, row.slow):
         if spec is None:
             continue
@@ -199,6 +218,7 @@ def test_every_registered_type_has_a_converter_that_handles_a_default_message(ro
         except ConvertError:
             continue
         assert all(e.path.startswith("/tb3/") for e in entries)
+    assert topic_state.asked <= {row.options}
 
 
 def _default_message(store: Any, msgtype: str) -> Any:

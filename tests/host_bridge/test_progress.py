@@ -78,7 +78,8 @@ def test_progress_on_a_terminal_redraws_at_most_four_times_a_second() -> None:
 def test_summary_of_a_real_bag(shared_data: Path, tmp_path: Path) -> None:
     bag = shared_data / "tf_nav2_sim_evo" / "tf_example"
     extent = bag_extent(bag)
-    assert extent == BagExtent(518, 2, extent.start_ns, extent.start_ns + extent.duration_ns)
+    assert extent == BagExtent(518, 2, extent.start_ns, extent.start_ns + extent.duration_ns, {
+        "/tf_static": "tf2_msgs/msg/TFMessage", "/tf": "tf2_msgs/msg/TFMessage"})
     assert round(extent.duration_ns / 1e9, 1) == 51.7
     stream = io.StringIO()
     progress = Progress(extent, stream)

@@ -18,8 +18,10 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
+from host_bridge.contract import WARNINGS_PATH
+from host_bridge.counters import TopicCounters
 from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import WARNINGS_PATH, Dispatcher, TopicCounters
+from host_bridge.dispatch import Dispatcher
 from host_bridge.inputs.bag import bag_runs
 from host_bridge.sink import RerunSink
 from tests.host_bridge.sensor_test_support import ROBOT, read_topic, rgba

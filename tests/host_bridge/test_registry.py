@@ -1,6 +1,6 @@
 """The type table: which converter each type gets, the rows routed by topic or family, the
-columns others read (view, heavy, slow), the table's own rules, and that it agrees with the
-relay's traffic table."""
+columns others read (view, lane, slow), the table's own rules, and that the relay's traffic
+table agrees with its traffic column."""
 
 from __future__ import annotations
 
@@ -23,8 +23,9 @@ from host_bridge.converters import (
     walls,
 )
 from host_bridge.errors import RegistryError
-from host_bridge.registry import CATCH_ALL, Registry, Row, View, default_registry
-from robot_relay.policy import TRAFFIC
+from host_bridge.options import GenericOptions
+from host_bridge.registry import CATCH_ALL, Lane, Registry, Row, View, default_registry
+from robot_relay.policy import DEFAULT_TRAFFIC, TRAFFIC
 
 TABLE = default_registry()
 
@@ -80,21 +81,26 @@ def test_special_cases_are_plain_rows() -> None:
     assert [t for t in TABLE.types() if set(t) & set("*?[")] == []
 
 
-def test_slow_and_heavy_columns() -> None:
+def test_slow_and_lane_columns() -> None:
     assert TABLE.slow_converters() == {
         "nav_msgs/msg/OccupancyGrid": walls.GRID_WALLS,
         "map_msgs/msg/OccupancyGridUpdate": walls.UPDATE_WALLS,
     }
-    heavy = sorted(row.msgtype for row in TABLE.rows() if row.heavy)
-    assert heavy == [
+    lanes = {lane: sorted(row.msgtype for row in TABLE.rows() if row.lane is lane) for lane in Lane}
+    assert lanes[Lane.HEAVY] == [
         "nav2_msgs/msg/Costmap", "nav_msgs/msg/OccupancyGrid", "sensor_msgs/msg/Image",
         "sensor_msgs/msg/PointCloud2",
     ]  # never video, which a lost frame spoils: CompressedImage may carry it
+    assert lanes[Lane.PATCH] == ["map_msgs/msg/OccupancyGridUpdate", "nav2_msgs/msg/CostmapUpdate"]
 
 
-def test_every_type_the_relay_classes_has_a_row_on_the_host() -> None:
-    """The relay's traffic table (robot_relay/policy.py) cannot import the host's; a type
-    spelt differently in one of them would silently get the defaults."""
+def test_the_relay_s_traffic_table_is_the_rows_traffic_column() -> None:
+    """The relay's traffic table (robot_relay/policy.py) cannot import the host's (the robot has
+    no host code): it must name exactly the rows whose class is not the default, with their
+    class; a type spelt differently in one of them would silently get the defaults."""
+    classed = {row.msgtype: row.traffic for row in TABLE.rows() if row.traffic != DEFAULT_TRAFFIC}
+    assert not [t for t in classed if TABLE.row(t).is_family]  # the relay's table names types
+    assert {t: c for t, c in TRAFFIC.items() if t not in RELAY_ONLY} == classed
     assert sorted(set(TRAFFIC) - set(TABLE.types())) == sorted(RELAY_ONLY)
     assert TABLE.get("sensor_msgs/msg/PointCloud") is generic.SPEC
 
@@ -118,6 +124,11 @@ def test_table_rules() -> None:
         Registry([CATCH, Row("acme_msgs/*", SPEC, View.SIGNALS)])
     with pytest.raises(RegistryError, match="a slow converter is run per type"):
         Registry([Row("acme_msgs/*", SPEC, View.SIGNALS, slow=SPEC), CATCH])
+    # The configuration sets options per type, not per topic.
+    with pytest.raises(RegistryError, match="'acme_msgs/msg/Gauge': all rows of a type take one options"):
+        Registry([Row("acme_msgs/msg/Gauge", SPEC, View.SIGNALS, topics=lambda topic: topic == "/gauge",
+                      options=GenericOptions),
+                  Row("acme_msgs/msg/Gauge", SPEC, View.SIGNALS), CATCH])
     # An exact row after the catch-all is fine: exact names are looked up first.
     table = Registry([CATCH, Row("acme_msgs/msg/Gauge", SPEC, View.SIGNALS)])
     assert table.row("acme_msgs/msg/Gauge").view is View.SIGNALS

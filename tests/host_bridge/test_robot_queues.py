@@ -14,16 +14,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from host_bridge.contract import WARNINGS_PATH
 from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
+from host_bridge.dispatch import Dispatcher
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun, RobotEvent
 from host_bridge.inputs.queues import (
     GIL_SWITCH_INTERVAL_S,
     HEAVY_NICENESS,
-    HeavyTypes,
     HostBehindError,
     RobotQueues,
+    TypeLanes,
 )
+from host_bridge.registry import Lane
 from host_bridge.sink import RerunSink
 from host_bridge.stats import StatsTracker, topic_stats_items
 from robot_relay.wire import RawMessage
@@ -132,6 +134,7 @@ def test_robot_events_count_as_activity() -> None:
 IMAGE, CLOUD, IMU = "sensor_msgs/msg/Image", "sensor_msgs/msg/PointCloud2", "sensor_msgs/msg/Imu"
 GRID, TF = "nav_msgs/msg/OccupancyGrid", "tf2_msgs/msg/TFMessage"
 GRID_UPDATE = "map_msgs/msg/OccupancyGridUpdate"
+SCAN = "sensor_msgs/msg/LaserScan"
 
 
 def typed(robot: str, topic: str, msgtype: str, n: int) -> RawMessage:
@@ -202,12 +205,14 @@ def delivered(queues: RobotQueues, count: int) -> dict[str, list[tuple[str, int]
     return found
 
 
-def test_heavy_types_come_from_the_type_table() -> None:
-    heavy = HeavyTypes()
-    types = (IMAGE, CLOUD, GRID, IMU, "std_msgs/msg/Int32", "sensor_msgs/msg/CompressedImage")
-    assert [heavy(typed("a", "/t", t, 0)) for t in types] == [True, True, True, False, False, False]
-    assert heavy(run_of("a", "/t", CLOUD, [0, 1]))
-    assert not heavy(run_of("a", "/t", IMU, [0]))
+def test_lanes_come_from_the_type_table() -> None:
+    lanes = TypeLanes()
+    types = (IMAGE, CLOUD, GRID, GRID_UPDATE, IMU, "std_msgs/msg/Int32", "sensor_msgs/msg/CompressedImage")
+    assert [lanes(typed("a", "/t", t, 0)) for t in types] == [
+        Lane.HEAVY, Lane.HEAVY, Lane.HEAVY, Lane.PATCH, Lane.SMALL, Lane.SMALL, Lane.SMALL,
+    ]
+    assert lanes(run_of("a", "/t", CLOUD, [0, 1])) is Lane.HEAVY
+    assert lanes(run_of("a", "/t", IMU, [0])) is Lane.SMALL
 
 
 def test_heavy_topics_go_to_a_thread_of_their_own_keeping_only_their_newest() -> None:
@@ -317,6 +322,25 @@ def test_latched_heavy_messages_are_never_replaced() -> None:
         "robot-a-heavy": [("/map", 0), ("/map", 1), ("/map", 2), ("/camera", 11)]
     }
     assert queues.dropped == {("a", "/camera"): 1}
+
+
+def test_a_message_of_another_type_neither_replaces_nor_moves_a_topics_messages() -> None:
+    """Garbage on a robot's keys: a cloud claimed on /camera does not replace the image waiting
+    there, and an image claimed on /scan takes the scans to neither the heavy thread nor
+    latest-only; each message's own type decides."""
+    queues = RobotQueues(heavy_backlog=0)
+    queues.put(typed("a", "/camera", IMAGE, 0))
+    queues.put(typed("a", "/camera", CLOUD, 1))  # another type: both wait
+    queues.put(typed("a", "/camera", IMAGE, 2))  # replaces image 0 only
+    queues.put(typed("a", "/scan", IMAGE, 10))
+    for n in range(11, 14):
+        queues.put(typed("a", "/scan", SCAN, n))
+    queues.put(typed("a", "/scan", IMAGE, 14))  # replaces image 10 only
+    assert delivered(queues, 6) == {
+        "robot-a": [("/scan", 11), ("/scan", 12), ("/scan", 13)],
+        "robot-a-heavy": [("/camera", 1), ("/camera", 2), ("/scan", 14)],
+    }
+    assert queues.dropped == {("a", "/camera"): 1, ("a", "/scan"): 1}
 
 
 def test_a_full_queue_and_replacement_count_each_drop_once() -> None:

@@ -57,7 +57,8 @@ def send_columns(sink: RerunSink, item: ColumnsItem) -> None:
     """What the sink does with many rows, done here for rows it would log one by one."""
     indexes = [rr.TimeColumn(name, timestamp=values.view("datetime64[ns]"))
                for name, values in item.times.items()]
-    sink.recording.send_columns(item.path, indexes=indexes, columns=list(item.columns))
+    for stream in sink.streams:
+        stream.send_columns(item.path, indexes=indexes, columns=list(item.columns))
 
 
 def without_log_time(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:

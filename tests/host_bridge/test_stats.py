@@ -10,8 +10,8 @@ import pytest
 
 from host_bridge.columns import PackedPayloads
 from host_bridge.contract import TIMELINE_LOG, TIMELINE_RECEIVE
+from host_bridge.counters import TopicCounters, sequence_gap, sequence_gaps
 from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import TopicCounters, sequence_gap, sequence_gaps
 from host_bridge.inputs.base import MessageRun
 from host_bridge.sink import RerunSink
 from host_bridge.stats import (

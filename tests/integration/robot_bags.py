@@ -17,7 +17,7 @@ from typing import IO, Any
 
 import numpy as np
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
-from rosbags.rosbag2 import Writer
+from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
@@ -98,6 +98,29 @@ def occupancy_grid(ns: int, width: int, height: int, resolution: float, cells: S
     )
 
 
+def laser_scan(ns: int, ranges: int) -> Any:
+    """A 240-degree scan of ``ranges`` readings, a wall 2 m away (a Hokuyo's shape)."""
+    return STORE.types["sensor_msgs/msg/LaserScan"](
+        header=header(ns, "laser"), angle_min=-2.09, angle_max=2.09,
+        angle_increment=4.18 / (ranges - 1), time_increment=0.0, scan_time=0.1, range_min=0.02,
+        range_max=5.6, ranges=np.full(ranges, 2.0, np.float32), intensities=np.zeros(0, np.float32),
+    )
+
+
+def write_copies(
+    path: Path, topic: str, msgtype: str, msg: Any, *, count: int, period_ns: int,
+    storage: StoragePlugin = StoragePlugin.MCAP,
+) -> Path:
+    """A rosbag2 of ``count`` copies of ``msg``, ``period_ns`` apart: serialized once, so a bag
+    that takes the host seconds to convert is written in about one."""
+    data = bytes(STORE.serialize_cdr(msg, msgtype))
+    with Writer(path, version=9, storage_plugin=storage) as writer:
+        connection = writer.add_connection(topic, msgtype, typestore=STORE)
+        for i in range(count):
+            writer.write(connection, START_NS + i * period_ns, data)
+    return path
+
+
 @dataclass(frozen=True, slots=True)
 class Entry:
     """One message to write: topic, type, log time (ns after START_NS), message, publishers."""
@@ -152,3 +175,9 @@ class Lines:
     @property
     def text(self) -> str:
         return "".join(self.lines)
+
+    def all_text(self, timeout: float = 10.0) -> str:
+        """Every line, once the process has ended and its stderr closed (the reader took the
+        last lines after ``wait()`` returned)."""
+        self._thread.join(timeout)
+        return self.text

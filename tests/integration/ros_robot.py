@@ -297,8 +297,12 @@ def main(argv: list[str]) -> int:
         camera(stop)
     elif argv[:1] == ["late"] and len(argv) == 2:
         late(float(argv[1]), stop)
+    elif argv[:1] == ["laser"] and len(argv) == 2:
+        from tests.integration.ros_laser_robot import drive
+
+        drive(float(argv[1]), stop)
     else:
-        print("usage: ros_robot.py robot | camera | late SECONDS", file=sys.stderr)
+        print("usage: ros_robot.py robot | camera | late SECONDS | laser SECONDS", file=sys.stderr)
         return 2
     return 0
 

@@ -19,13 +19,21 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from host_bridge.demo.messages import STEP_TIMER_TOPIC, TOPICS, simulate
-from host_bridge.demo.robot import BASE_LINK_Z, SCAN_XYZ, WHEEL_RADIUS
+from host_bridge.demo.messages import (
+    GROUND_TRUTH_POSE_TOPIC,
+    GROUND_TRUTH_WALLS_TOPIC,
+    GROUND_TRUTH_WALLS_Z,
+    STEP_TIMER_TOPIC,
+    TOPICS,
+    simulate,
+    tick_stamp_ns,
+)
+from host_bridge.demo.robot import BASE_LINK_Z, SCAN_XYZ, WHEEL_RADIUS, odometry_track
 from host_bridge.demo.run import demo_bag_seconds
 from host_bridge.demo.sensors import DEPTH_MAX, camera_matrix
-from host_bridge.demo.world import BOUNDS, distance_to_walls
+from host_bridge.demo.world import BOUNDS, WALLS, distance_to_walls
 from tests.integration.procs import command, running
-from tests.rrd import entity_rows
+from tests.rrd import entity_rows, verify
 
 pytestmark = pytest.mark.integration
 
@@ -57,6 +65,7 @@ def demo_command(directory: Path) -> list[str]:
     return command(
         "host_bridge.cli", "--demo", "--duration", str(DEMO_SECONDS),
         "--save", str(directory / "demo.rrd"), "--record-mcap", str(directory / "demo.mcap"),
+        "--save-map", str(directory / "maps"),
     )
 
 
@@ -81,6 +90,12 @@ def test_demo_ends_by_itself_with_a_summary(demo: DemoRun) -> None:
     assert set(summary) == {spec.topic for spec in TOPICS}
 
 
+def test_demo_saves_one_file_rerun_accepts(demo: DemoRun) -> None:
+    """20 s is shorter than --save-split: demo.rrd itself, with its footer."""
+    assert sorted(path.name for path in demo.directory.glob("*.rrd")) == ["demo.rrd"]
+    verify(demo.directory / "demo.rrd")
+
+
 def _scalars(rows: list[dict[str, Any]]) -> NDArray[np.float64]:
     return np.array([r["Scalars:scalars"][0] for r in rows if r.get("Scalars:scalars")])
 
@@ -93,14 +108,18 @@ def _quaternion_rotate(q: list[float], v: NDArray[np.float64]) -> NDArray[np.flo
     )
 
 
+def _true_poses(demo: DemoRun) -> dict[int, dict[str, Any]]:
+    """The /ground_truth/pose rows by ros_time."""
+    return {r["ros_time"]: r for r in demo.entity(f"/{ROBOT}{GROUND_TRUTH_POSE_TOPIC}")
+            if r.get("Transform3D:translation")}
+
+
 def test_scan_points_lie_on_the_apartment_walls(demo: DemoRun) -> None:
+    """Seen from the true pose (the drifting odometry would smear them: the host's SLAM's job)."""
     scans = [r for r in demo.entity(f"/{ROBOT}/scan") if r.get("Points3D:positions")]
     assert len(scans) >= 3 * DEMO_SECONDS // 2  # 5 Hz; the machine may drop some
     assert scans[0]["CoordinateFrame:frame"] == [f"{ROBOT}/base_scan"]
-    body = {
-        r["ros_time"]: r for r in demo.entity(f"/{ROBOT}/tf")
-        if r.get("Transform3D:child_frame") == [f"{ROBOT}/base_footprint"]
-    }
+    body = _true_poses(demo)
     offset = np.add(SCAN_XYZ, (0.0, 0.0, BASE_LINK_Z))
     checked = 0
     for scan in scans:
@@ -153,20 +172,63 @@ def test_camera_image_depth_and_cloud(demo: DemoRun) -> None:
     assert len(clouds[-1]["Points3D:colors"]) == len(points)
 
 
-def test_map_grows(demo: DemoRun) -> None:
-    maps = [r for r in demo.entity(f"/{ROBOT}/map") if r.get("GridMap:data")]
-    assert len(maps) >= DEMO_SECONDS // 2
-    assert maps[0]["GridMap:cell_size"] == [pytest.approx(0.05)]
-    assert maps[0]["GridMap:translation"][0] == pytest.approx([-0.525, -0.525, 0.0])
-    known = []
-    for row in maps:
-        fmt = row["GridMap:format"][0]
-        cells = np.asarray(row["GridMap:data"][0], np.uint8)
-        assert len(cells) == fmt["width"] * fmt["height"]
-        assert set(np.unique(cells).tolist()) == {0, 100, 255}  # free, occupied, unknown
-        known.append(int(np.count_nonzero(cells != 255)))
-    assert known == sorted(known)
-    assert known[-1] > known[0]
+def test_no_map_from_the_robot_and_the_ground_truth_beside_its_drifting_odometry(
+    demo: DemoRun,
+) -> None:
+    assert not any(path.startswith(f"/{ROBOT}/map") for path in demo.rows)
+    (walls,) = [r for r in demo.entity(f"/{ROBOT}{GROUND_TRUTH_WALLS_TOPIC}/walls/0")
+                if r.get("LineStrips3D:strips")]
+    assert walls["Transform3D:parent_frame"] == [f"{ROBOT}/map"]
+    strips = np.asarray(walls["LineStrips3D:strips"], np.float64)
+    np.testing.assert_allclose(strips[:, :, :2], WALLS, atol=1e-6)
+    np.testing.assert_allclose(strips[:, :, 2], GROUND_TRUTH_WALLS_Z, atol=1e-6)
+
+    truth = _true_poses(demo)
+    assert len(truth) >= 15 * DEMO_SECONDS  # 30 Hz; the machine may drop some
+    assert {r["Transform3D:parent_frame"][0] for r in truth.values()} == {f"{ROBOT}/map"}
+    odom = {r["ros_time"]: r for r in demo.entity(f"/{ROBOT}/tf")
+            if r.get("Transform3D:child_frame") == [f"{ROBOT}/base_footprint"]}
+    assert {r["Transform3D:parent_frame"][0] for r in odom.values()} == {f"{ROBOT}/odom"}
+    # Both are odometry_track's, at the tick of their stamp; the odometry drifts away.
+    track = list(odometry_track(demo_bag_seconds(DEMO_SECONDS)))
+    tick_of = {tick_stamp_ns(tick): tick for tick in range(len(track))}
+    compared = 0
+    for stamp in sorted(truth.keys() & odom.keys()):
+        state, pose = track[tick_of[stamp]]
+        np.testing.assert_allclose(
+            truth[stamp]["Transform3D:translation"][0], (state.x, state.y, 0.0), atol=1e-6)
+        np.testing.assert_allclose(
+            odom[stamp]["Transform3D:translation"][0], (pose.x, pose.y, 0.0), atol=1e-6)
+        compared += 1
+    assert compared >= 15 * DEMO_SECONDS
+    last = max(truth.keys() & odom.keys())
+    apart = np.subtract(odom[last]["Transform3D:translation"][0][:2],
+                        truth[last]["Transform3D:translation"][0][:2])
+    assert np.hypot(*apart) > 0.1  # 0.1 m after 8 s of driving, 0.34 m after 20 s
+
+
+def test_the_host_maps_the_apartment_from_the_drifting_odometry(demo: DemoRun) -> None:
+    """--demo runs host-side SLAM: its map's walls stand on the true walls and its trajectory
+    on the true track, while the robot's own odometry drifts away from both."""
+    grid = demo.entity(f"/{ROBOT}/slam/map")[-1]
+    assert grid["CoordinateFrame:frame"] == [f"{ROBOT}/map"]
+    width, height = grid["GridMap:format"][0]["width"], grid["GridMap:format"][0]["height"]
+    cells = np.frombuffer(bytes(grid["GridMap:data"][0]), np.uint8).reshape(height, width)[::-1]
+    resolution = grid["GridMap:cell_size"][0]
+    x0, y0, _ = grid["GridMap:translation"][0]
+    rows, cols = np.nonzero((cells > 65) & (cells <= 100))
+    walls = np.column_stack([x0 + (cols + 0.5) * resolution, y0 + (rows + 0.5) * resolution])
+    assert len(walls) > 100
+    assert distance_to_walls(walls).max() < 0.1
+    tum = np.loadtxt(demo.directory / "maps" / ROBOT / "trajectory.tum")
+    track = list(odometry_track(demo_bag_seconds(DEMO_SECONDS)))
+    tick_of = {tick_stamp_ns(tick): tick for tick in range(len(track))}
+    ticks = [tick_of[round(stamp * 1e3) * 1_000_000] for stamp in tum[:, 0]]
+    truth = np.array([(track[i][0].x, track[i][0].y) for i in ticks])
+    odometry = np.array([(track[i][1].x, track[i][1].y) for i in ticks])
+    assert len(tum) >= DEMO_SECONDS * 4  # 5 Hz scans, a few left at the start
+    assert np.sqrt(np.mean(np.sum((tum[:, 1:3] - truth) ** 2, axis=1))) < 0.05
+    assert np.hypot(*(odometry[-1] - truth[-1])) > 0.2
 
 
 def test_robot_model_and_frames(demo: DemoRun) -> None:
@@ -177,11 +239,13 @@ def test_robot_model_and_frames(demo: DemoRun) -> None:
     (wheel,) = demo.entity(f"/{ROBOT}/robot_model/wheel_left_link/visual_0")
     assert wheel["Cylinders3D:radii"] == [pytest.approx(WHEEL_RADIUS)]
     statics = {p.rsplit("/", 1)[1] for p in demo.rows if p.startswith(f"/{ROBOT}/tf_static/")}
-    # /tf_static's own relations and the roots placed at the robot's root until /tf arrives (map,
-    # and the model's root base_footprint), so the 3D view reaches every frame from the first
-    # row; and the URDF's movable joints at zero (the wheels) when the model is converted before
-    # /tf first moves them: the demo's topics arrive in either order (the model on the robot's
-    # small-topic thread, as /tf), so those two rows may or may not be there.
+    # /tf_static's own relations and the roots placed at the robot's root (map, which only the
+    # ground truth names; odom, which no transform names as a child until the host's SLAM
+    # places it; the model's root base_footprint until /tf arrives), so the 3D view reaches
+    # every frame from the first row; and the URDF's movable joints at zero (the wheels) when
+    # the model is converted before /tf first moves them: the demo's topics arrive in either
+    # order (the model on the robot's small-topic thread, as /tf), so those two rows may or
+    # may not be there.
     wheels_at_zero = {"wheel_left_link", "wheel_right_link"}
     assert statics - wheels_at_zero == {
         "odom", "base_link", "caster_back_link", "imu_link", "base_scan", "camera_link",

@@ -4,11 +4,13 @@ first."""
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
+import pytest
 import zenoh
 
 from host_bridge.inputs.zenoh import bundle_run
@@ -163,3 +165,32 @@ def test_the_app_replays_a_bag_to_a_host_and_ends(tmp_path: Path) -> None:
     finally:
         subscriber.undeclare()
         host.close()
+
+
+@pytest.mark.parametrize("wait_for_host", [None, 3600.0], ids=["for-ever", "3600-s"])
+def test_a_replay_waiting_for_a_host_ends_when_stopped(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, wait_for_host: float | None
+) -> None:
+    """Issue 22: the wait for a host woke on nothing but a host, so a stop signal was ignored."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    observer = open_loopback("-l", endpoint)  # sees the relay's token, subscribes to nothing
+    options = app.RelayOptions(
+        robot=ROBOT, zenoh=ZenohOptions(connect=(endpoint,), multicast_scouting=False),
+        bag=chatter_bag(tmp_path / "bag"), rate=1.0, wait_for_host=wait_for_host,
+    )
+    stop = threading.Event()
+    codes: list[int] = []
+    relay = threading.Thread(target=lambda: codes.append(app.run(options, stop)), daemon=True)
+    caplog.set_level(logging.INFO, "swanky.relay")
+    relay.start()
+    try:
+        wait_until(lambda: robot_alive(observer))
+        stop.set()
+        stopped = time.monotonic()
+        relay.join(20.0)
+        took = time.monotonic() - stopped
+    finally:
+        observer.close()
+    assert codes == [0]
+    assert took < 2.0, took  # polled every STOP_POLL_S (0.05 s), then closed
+    assert f"robot {ROBOT}: stopped before a host subscribed; nothing replayed" in caplog.text

@@ -26,9 +26,9 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.cli import main as host_main
-from host_bridge.contract import ColumnsItem, LogItem
+from host_bridge.contract import WARNINGS_PATH, ColumnsItem, LogItem
 from host_bridge.converters import urdf
-from host_bridge.dispatch import WARNINGS_PATH, Dispatcher
+from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import ConvertError
 from host_bridge.resources import ResourceResolver
 from robot_relay.wire import RawMessage

@@ -38,11 +38,11 @@ from host_bridge.converters.video import (
     convert_compressed_video_run,
     video_codec,
 )
-from host_bridge.decode import base_typestore
 from host_bridge.destinations import SinkOptions
 from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import ConvertError
 from host_bridge.registry import default_registry
+from host_bridge.schemas import base_typestore
 from host_bridge.sink import RerunSink
 from host_bridge.state import TopicState
 from robot_relay.wire import RawMessage

@@ -1,5 +1,5 @@
 """Wall extraction: segments against drawn walls and how the wall mesh lines up with the GridMap
-of the same grid (the geometry's own rules are tests/host_bridge/test_segments.py)."""
+of the same grid (the geometry's own rules are tests/host_bridge/converters/test_segments.py)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ import yaml
 from host_bridge.contract import LogItem
 from host_bridge.converters import occupancy, walls
 from host_bridge.options import GridOptions
+from host_bridge.state import Grid
 from tests.host_bridge.converters.test_occupancy import grid_msg, shared_contexts, update_msg
 from tests.host_bridge.sensor_test_support import archetype, flat, log_item, make_ctx
 
@@ -55,7 +56,7 @@ def default_options() -> walls.WallOptions:
     return walls.WallOptions.from_options(GridOptions(), RES, "/map")
 
 
-def as_grid(cells: npt.NDArray[np.int8]) -> occupancy.Grid:
+def as_grid(cells: npt.NDArray[np.int8]) -> Grid:
     return occupancy.grid_from_msg(grid_msg(cells, resolution=RES), make_ctx("/map"))
 
 
@@ -317,7 +318,7 @@ Tile = tuple[tuple[int, int], tuple[int, int]]
 @pytest.fixture
 def searched(monkeypatch: pytest.MonkeyPatch) -> list[Tile]:
     """The (rows, cols) of every tile the wall search looks at, in order."""
-    from host_bridge import segments
+    from host_bridge.converters import segments
 
     found: list[Tile] = []
     search = segments._tile_findings
@@ -333,7 +334,7 @@ def searched(monkeypatch: pytest.MonkeyPatch) -> list[Tile]:
 def test_tile_cache_searches_again_only_changed_tiles_and_matches_a_full_search(
     searched: list[Tile],
 ) -> None:
-    from host_bridge import segments
+    from host_bridge.converters import segments
 
     options, cache = default_options(), segments.TileCache()
     cells = rooms(1100)  # 3 x 3 tiles of 512 cells
@@ -359,7 +360,7 @@ def test_tile_cache_searches_again_only_changed_tiles_and_matches_a_full_search(
 def test_a_grown_map_keeps_the_tiles_inside_the_old_one(searched: list[Tile]) -> None:
     # SLAM grows a map by whole cells and moves its origin: tiles stay on the same map cells,
     # so the tile that lay wholly inside the old map is not searched again.
-    from host_bridge import segments
+    from host_bridge.converters import segments
 
     options, cache = default_options(), segments.TileCache()
     cells = rooms(1100)

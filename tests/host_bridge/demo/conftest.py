@@ -7,11 +7,10 @@ import io
 import pytest
 import yourdfpy
 
-from host_bridge.demo import robot
-from tests.host_bridge.demo.support import SHORT_S, Messages, decode_run
+from host_bridge.demo import messages, robot
+from tests.host_bridge.demo.support import LAP_S, SHORT_S, Messages, decode_run
 
-LAP_S = 65.0  # one full lap of the loop takes about 62 s
-LAP_TOPICS = ("/tf_static", "/tf", "/odom", "/joint_states", "/scan")
+LAP_TOPICS = ("/tf_static", "/tf", "/odom", messages.GROUND_TRUTH_POSE_TOPIC, "/joint_states", "/scan")
 
 
 @pytest.fixture(scope="package")

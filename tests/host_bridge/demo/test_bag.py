@@ -3,6 +3,7 @@ the official MCAP reader."""
 
 from __future__ import annotations
 
+import threading
 from collections import Counter
 from pathlib import Path
 from typing import Any, Literal
@@ -16,7 +17,7 @@ from host_bridge.demo import bag, messages, robot
 from host_bridge.errors import InputError
 from tests.host_bridge.demo.support import stamp_ns
 
-LATCHED = {"/tf_static", "/robot_description", "/map"}
+LATCHED = {"/tf_static", "/robot_description", "/ground_truth/walls"}
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
@@ -84,3 +85,14 @@ def test_demo_mcap_decodes_with_the_official_mcap_reader(tmp_path: Path) -> None
                 compared += 1
     assert compared == 3
     assert topics == Counter(m.topic for m in messages.simulate(1.0))
+
+
+def test_a_stop_abandons_the_bag_unfinished(tmp_path: Path) -> None:
+    """The host stopping while the demo simulates: no more messages, and no metadata written
+    (rosbags takes a second for it), so nothing reads the bag as complete."""
+    stop = threading.Event()
+    stop.set()
+    path = bag.write_demo_bag(tmp_path / "demo", 60.0, stop=stop)
+    assert not (path / "metadata.yaml").exists()
+    with pytest.raises(FileNotFoundError, match="metadata"):
+        AnyReader([path]).open()

@@ -1,5 +1,6 @@
-"""The simulated topics: deterministic bytes, rates, time order and stamps, and frames that
-match what robot_state_publisher would compute from the URDF."""
+"""The simulated topics: deterministic bytes, rates, time order and stamps, frames that match
+what robot_state_publisher would compute from the URDF, no map of the robot's own, and the
+ground truth beside its odometry."""
 
 from __future__ import annotations
 
@@ -7,11 +8,12 @@ from collections import Counter
 from typing import Any
 
 import numpy as np
+import pytest
 import yourdfpy
 from numpy.typing import NDArray
 
-from host_bridge.demo import messages, robot
-from tests.host_bridge.demo.support import Messages, log_stamp_ns, stamp_ns
+from host_bridge.demo import messages, robot, world
+from tests.host_bridge.demo.support import SHORT_S, Messages, log_stamp_ns, stamp_ns, track
 
 
 def test_simulate_is_deterministic() -> None:
@@ -22,21 +24,24 @@ def test_simulate_is_deterministic() -> None:
     assert len({m.data for m in first if m.topic == "/scan"}) == 15  # the scans do change
     assert len({m.data for m in first if m.topic == "/camera/image_raw"}) == 15
     # a topic subset is the same bytes as the full run's messages of those topics
-    subset = list(messages.simulate(3.0, topics={"/map", "/odom"}))
-    assert subset == [m for m in first if m.topic in ("/map", "/odom")]
+    subset = list(messages.simulate(3.0, topics={messages.GROUND_TRUTH_WALLS_TOPIC, "/odom"}))
+    assert subset == [m for m in first if m.topic in (messages.GROUND_TRUTH_WALLS_TOPIC, "/odom")]
+    assert len(subset) == 1 + 3 * robot.TICK_HZ
 
 
 def test_rates_order_and_stamps() -> None:
     store = messages.typestore()
     msgs = list(messages.simulate(10.0, start_ns=5_000_000_000))
     counts = Counter(m.topic for m in msgs)
-    for topic in ("/tf", "/odom", "/joint_states", "/imu", messages.STEP_TIMER_TOPIC):
+    for topic in ("/tf", "/odom", "/joint_states", "/imu", messages.STEP_TIMER_TOPIC,
+                  messages.GROUND_TRUTH_POSE_TOPIC):
         assert counts[topic] == 300, topic
     for topic in ("/scan", "/camera/image_raw", "/camera/camera_info", "/camera/depth/image_raw",
                   "/camera/depth/points"):
         assert counts[topic] == 50, topic
-    assert counts["/map"] == counts["/battery_state"] == 10
+    assert counts["/battery_state"] == 10
     assert counts["/tf_static"] == counts["/robot_description"] == 1
+    assert counts[messages.GROUND_TRUTH_WALLS_TOPIC] == 1
     assert 2 <= counts["/rosout"] <= 6
     assert msgs[0].topic == "/tf_static"
     assert msgs[0].log_ns == 5_000_000_000
@@ -65,8 +70,7 @@ def test_static_and_wheel_frames_match_the_urdf(short: Messages, urdf: yourdfpy.
     ((_, static),) = short["/tf_static"]
     fixed = {j.child: j for j in urdf.robot.joints if j.type == "fixed"}
     got = {t.child_frame_id: t for t in static.transforms}
-    assert set(got) == {*fixed, "odom"}
-    assert got["odom"].header.frame_id == "map"
+    assert set(got) == set(fixed)  # no map -> odom: placing map is the host's SLAM's job
     for child, joint in fixed.items():
         t = got[child]
         assert t.header.frame_id == joint.parent
@@ -101,3 +105,50 @@ def _matrix(transform: Any) -> NDArray[np.float64]:
     ]
     m[:3, 3] = [p.x, p.y, p.z]
     return m
+
+
+def test_the_robot_publishes_no_map_and_no_map_frame(short: Messages) -> None:
+    """Like a robot that runs no SLAM: no grid, and no transform names ``map``; the ground
+    truth is the only thing in ``map``, the apartment's frame."""
+    types = {spec.topic: spec.msgtype for spec in messages.TOPICS}
+    assert "/map" not in types
+    assert not any("OccupancyGrid" in msgtype for msgtype in types.values())
+    frames = {
+        (t.header.frame_id, t.child_frame_id)
+        for topic in ("/tf", "/tf_static") for _, tf in short[topic] for t in tf.transforms
+    }
+    assert ("odom", "base_footprint") in frames
+    assert not any("map" in pair for pair in frames)
+    in_map = {topic for topic, run in short.items()
+              if any(getattr(getattr(m, "header", None), "frame_id", None) == "map" for _, m in run)}
+    assert in_map == {messages.GROUND_TRUTH_POSE_TOPIC, messages.GROUND_TRUTH_WALLS_TOPIC}
+
+
+def test_ground_truth_walls_are_the_world_walls(short: Messages) -> None:
+    ((log_ns, marker),) = short[messages.GROUND_TRUTH_WALLS_TOPIC]
+    assert log_ns == messages.DEFAULT_START_NS  # once, at the start, latched (see test_bag)
+    assert (marker.header.frame_id, marker.type, marker.action) == ("map", 5, 0)  # LINE_LIST, ADD
+    assert stamp_ns(marker.header) == log_ns
+    assert (marker.lifetime.sec, marker.lifetime.nanosec) == (0, 0)  # for ever
+    assert (marker.pose.position.x, marker.pose.position.y, marker.pose.position.z) == (0, 0, 0)
+    assert marker.pose.orientation.w == 1.0
+    assert marker.scale.x == messages.GROUND_TRUTH_WALLS_WIDTH
+    assert (marker.color.r, marker.color.g, marker.color.b, marker.color.a) == pytest.approx(
+        messages.GROUND_TRUTH_WALLS_RGBA)
+    points = np.array([(p.x, p.y, p.z) for p in marker.points])
+    assert points.shape == (2 * len(world.WALLS), 3)
+    np.testing.assert_array_equal(points[:, :2].reshape(-1, 2, 2), world.WALLS)
+    # above the walls the host raises on a map (GridOptions.wall_height, 0.5 m)
+    np.testing.assert_allclose(points[:, 2], 0.52, rtol=1e-12)
+
+
+def test_ground_truth_pose_is_the_true_track(short: Messages) -> None:
+    truth = list(robot.odometry_track(SHORT_S))
+    poses = short[messages.GROUND_TRUTH_POSE_TOPIC]
+    assert [log_ns for log_ns, _ in poses] == [
+        messages.tick_stamp_ns(tick) for tick in range(len(truth))]
+    assert {m.header.frame_id for _, m in poses} == {"map"}
+    assert all(stamp_ns(m.header) == log_ns for log_ns, m in poses)
+    expected = np.array([(state.x, state.y, state.yaw) for state, _ in truth])
+    np.testing.assert_allclose(track(short, messages.GROUND_TRUTH_POSE_TOPIC), expected, atol=1e-12)
+    assert {m.pose.position.z for _, m in poses} == {0.0}

@@ -1,24 +1,24 @@
 """Sensors that agree with the world geometry, the URDF and each other: scan, camera, depth,
-cloud, map, IMU, battery."""
+cloud, IMU, battery; all see the true pose (/ground_truth/pose), not the drifting odometry."""
 
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 import pytest
 from numpy.typing import NDArray
 
 from host_bridge.demo import robot, sensors, world
-from tests.host_bridge.demo.support import SHORT_S, Messages, pose_at, state_at, yaw_of
+from host_bridge.demo.messages import GROUND_TRUTH_POSE_TOPIC
+from tests.host_bridge.demo.support import Messages, state_at, track, true_state_at, yaw_of
 
 
 def test_every_scan_hit_lies_on_a_wall(lap: Messages) -> None:
     hits = []
     for log_ns, scan in lap["/scan"]:
-        state = pose_at(lap, log_ns)
-        origin = np.array(state.to_odom(robot.SCAN_XYZ))
+        state = true_state_at(lap, log_ns)
+        origin = np.array(state.to_world(robot.SCAN_XYZ))
         ranges = np.asarray(scan.ranges, dtype=np.float64)
         assert scan.range_min == pytest.approx(0.12)
         assert scan.range_max == pytest.approx(3.5)
@@ -70,7 +70,7 @@ def test_depth_is_the_distance_along_the_optical_axis() -> None:
     assert np.abs(patch - WALL_DEPTH * 1000.0).max() <= 1  # within 1 mm, everywhere on the wall
     # the other columns: cast_rays distance times cos(angle to the axis), exactly
     angles = -np.arctan(columns)
-    ranges = world.cast_rays(KNOWN.to_odom(robot.CAMERA_XYZ), 0.0, angles, world.WALLS, 50.0)
+    ranges = world.cast_rays(KNOWN.to_world(robot.CAMERA_XYZ), 0.0, angles, world.WALLS, 50.0)
     centre_row = int(np.argmin(np.abs(rows)))
     np.testing.assert_allclose(view.depth[centre_row], ranges * np.cos(angles), rtol=1e-12)
     # floor pixels below the wall's foot: camera height / row slope
@@ -112,12 +112,10 @@ def test_camera_info_projects_world_edges_onto_the_image(short: Messages) -> Non
 
 
 def test_published_images_are_the_render(short: Messages) -> None:
-    odom = dict(short["/odom"])
     for (log_ns, image), (_, depth) in zip(
         short["/camera/image_raw"][::7], short["/camera/depth/image_raw"][::7], strict=True
     ):
-        pose = odom[log_ns].pose.pose
-        view = sensors.render_camera(state_at(pose.position.x, pose.position.y, yaw_of(pose.orientation)))
+        view = sensors.render_camera(true_state_at(short, log_ns))
         rgb = np.frombuffer(bytes(image.data), np.uint8).reshape(image.height, image.width, 3)
         mm = np.frombuffer(bytes(depth.data), "<u2").reshape(depth.height, depth.width)
         np.testing.assert_array_equal(rgb, view.rgb)
@@ -154,9 +152,9 @@ def test_depth_cloud_is_the_depth_image_back_projected(short: Messages) -> None:
     np.testing.assert_array_equal(
         points["rgb"], (packed[..., 0] << 16) | (packed[..., 1] << 8) | packed[..., 2]
     )
-    # in the odom frame every point is inside the apartment, between floor and ceiling
-    state = pose_at(short, log_ns)
-    cam_x, cam_y = state.to_odom(robot.CAMERA_XYZ)
+    # at the true pose every point is inside the apartment, between floor and ceiling
+    state = true_state_at(short, log_ns)
+    cam_x, cam_y = state.to_world(robot.CAMERA_XYZ)
     c, s = math.cos(state.yaw), math.sin(state.yaw)
     x = cam_x + c * points["z"] + s * points["x"]
     y = cam_y + s * points["z"] - c * points["x"]
@@ -164,52 +162,6 @@ def test_depth_cloud_is_the_depth_image_back_projected(short: Messages) -> None:
     x0, y0, x1, y1 = world.BOUNDS
     assert np.all((x > x0 - 0.01) & (x < x1 + 0.01) & (y > y0 - 0.01) & (y < y1 + 0.01))
     assert np.all((height > -0.01) & (height < world.WALL_HEIGHT + 0.01))
-
-
-# -- the map -----------------------------------------------------------------------------------
-
-
-def test_map_grows_from_the_scans(short: Messages) -> None:
-    scans = dict(short["/scan"])
-    maps = short["/map"]
-    assert len(maps) == SHORT_S
-    known_before = 0
-    for log_ns, grid in maps:
-        info = grid.info
-        assert grid.header.frame_id == "map"
-        assert info.resolution == pytest.approx(0.05)
-        assert (info.origin.orientation.w, info.origin.position.z) == (1.0, 0.0)
-        cells = np.asarray(grid.data, np.int8).reshape(info.height, info.width)
-        assert set(np.unique(cells).tolist()) == {-1, 0, 100}
-        known = int(np.count_nonzero(cells >= 0))
-        assert known > known_before  # more seen every second
-        known_before = known
-
-        # The scan of the same instant: occupied where it hits, free half-way along each ray
-        # (away from walls, where another ray's hit may claim the cell).
-        state = pose_at(short, log_ns)
-        ranges = np.asarray(scans[log_ns].ranges, np.float64)
-        origin = np.array(state.to_odom(robot.SCAN_XYZ))
-        theta = state.yaw + np.arange(360) * (2 * math.pi / 360)
-        direction = np.stack([np.cos(theta), np.sin(theta)], -1)
-        hit = np.isfinite(ranges)
-
-        def cell_values(points: NDArray[np.float64], info: Any = info, cells: Any = cells) -> Any:
-            ox, oy = info.origin.position.x, info.origin.position.y
-            col = np.floor((points[:, 0] - ox) / info.resolution).astype(int)
-            row = np.floor((points[:, 1] - oy) / info.resolution).astype(int)
-            return cells[row, col]
-
-        assert np.all(cell_values(origin + ranges[hit, None] * direction[hit]) == 100)
-        middle = origin + (ranges[hit, None] / 2.0) * direction[hit]
-        clear = world.distance_to_walls(middle) > 0.08
-        assert clear.sum() > 100
-        assert np.all(cell_values(middle[clear]) == 0)
-    # the first map covers what the first scan saw; later ones grow in whole metres
-    first, last = maps[0][1].info, maps[-1][1].info
-    assert last.width * last.height >= first.width * first.height
-    assert (last.width % 20, last.height % 20) == (0, 0)
-    assert (last.origin.position.x, last.origin.position.y) == pytest.approx((-0.525, -0.525))
 
 
 # -- IMU and battery ---------------------------------------------------------------------------
@@ -220,7 +172,8 @@ def test_imu_feels_gravity_turns_and_speed_changes(short: Messages) -> None:
     imu = [m for _, m in short["/imu"]]
     assert len(imu) == len(odom)
     assert imu[0].header.frame_id == "imu_link"
-    v = np.array([o.twist.twist.linear.x for o in odom])
+    # the IMU feels the true motion: /odom's speed is read 5 % long, its turn rate is true
+    v = np.array([o.twist.twist.linear.x for o in odom]) / (1.0 + robot.ODOM_SCALE_ERROR)
     w = np.array([o.twist.twist.angular.z for o in odom])
     acc = np.array([[m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z]
                     for m in imu])
@@ -229,9 +182,9 @@ def test_imu_feels_gravity_turns_and_speed_changes(short: Messages) -> None:
     np.testing.assert_allclose(acc[1:, 0], np.diff(v) * robot.TICK_HZ, atol=1e-9)
     assert acc[1, 0] == pytest.approx(0.5)  # starting at MAX_ACCEL
     np.testing.assert_allclose([m.angular_velocity.z for m in imu], w)
+    # its orientation is the true heading, not the odometry's drifting one
     np.testing.assert_allclose(
-        [yaw_of(m.orientation) for m in imu], [yaw_of(o.pose.pose.orientation) for o in odom],
-        atol=1e-12,
+        [yaw_of(m.orientation) for m in imu], track(short, GROUND_TRUTH_POSE_TOPIC)[:, 2], atol=1e-12
     )
 
 

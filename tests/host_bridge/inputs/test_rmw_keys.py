@@ -12,9 +12,8 @@ from zenoh_ros2_sdk.entity import EndpointEntity, EntityKind, NodeEntity
 from zenoh_ros2_sdk.keyexpr import endpoint_liveliness_keyexpr, node_liveliness_keyexpr, topic_keyexpr
 from zenoh_ros2_sdk.qos import QosDurability, QosProfile, QosReliability
 
-from robot_relay.errors import GraphError
-from robot_relay.wire import QosProfile as WireQos
-from robot_relay.wire import (
+from host_bridge.errors import GraphError
+from host_bridge.inputs.rmw_keys import (
     RmwDataKey,
     parse_rmw_attachment,
     parse_rmw_data_key,
@@ -22,6 +21,7 @@ from robot_relay.wire import (
     parse_rmw_token,
     rmw_ros_type,
 )
+from robot_relay.wire import QosProfile as WireQos
 
 SCAN_HASH = get_typestore(Stores.ROS2_HUMBLE).hash_rihs01("sensor_msgs/msg/LaserScan")
 

@@ -9,14 +9,14 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from host_bridge.converters.walls import wall_segments
-from host_bridge.segments import (
+from host_bridge.converters.segments import (
     detect_segments,
     join_corners,
     merge_segments,
     occupied_mask,
     segments_to_mesh,
 )
+from host_bridge.converters.walls import wall_segments
 from tests.host_bridge.converters.test_walls import RES, as_grid, default_options, floor_plan
 
 Float64Array = npt.NDArray[np.float64]
