@@ -357,8 +357,8 @@ class SavedFile:
         self.stream = _stream(recording_id, batcher)
         self.stream.set_sinks(rr.FileSink(str(path)))
         self.files = 1
-        self.written = False
-        """Whether anything was logged since the file began (a file's time starts with its data)."""
+        self.first_data_at: float | None = None
+        """When (monotonic) this file's first data was logged: a file's time starts with its data."""
         self._lock = threading.Lock()
         self._statics: dict[str, dict[rr.ComponentDescriptor, Any]] = {}
         self._layout: Callable[[rr.RecordingStream], None] | None = None
@@ -416,13 +416,16 @@ class SavedFile:
         """Every LIVE_FILE_FLUSH_S (``split_s`` if shorter) hand the file what the batcher holds;
         go on in the next file once this one has ``split_s`` seconds of data (its time starts
         with its first data: a host waiting for robots makes no empty files)."""
-        split_at = time.monotonic() + split_s
         splitting = True
-        while not self._closing.wait(min(LIVE_FILE_FLUSH_S, split_s)):
-            if not self.written:
-                split_at = time.monotonic() + split_s
-            if not splitting or time.monotonic() < split_at:
-                self.stream.flush()
+        flush_s = min(LIVE_FILE_FLUSH_S, split_s)
+        flushed_at = time.monotonic()
+        # Woken ten times per split period: a file ends within a tenth of it of being due.
+        while not self._closing.wait(split_s / 10):
+            now, began = time.monotonic(), self.first_data_at
+            if not splitting or began is None or now < began + split_s:
+                if now >= flushed_at + flush_s:
+                    self.stream.flush()
+                    flushed_at = now
                 continue
             try:
                 self._next_file()
@@ -430,7 +433,7 @@ class SavedFile:
                 log.error("--save: cannot split the recording (%s); it goes on in %s, unsplit",
                           err, self._name(self.files - 1))
                 splitting = False
-            split_at = time.monotonic() + split_s
+            flushed_at = time.monotonic()
 
     def _next_file(self) -> None:
         with self._lock:
@@ -439,7 +442,7 @@ class SavedFile:
             # closes it before set_sinks returns.
             self.stream.set_sinks(rr.FileSink(str(following)))
             self.files += 1
-            self.written = False
+            self.first_data_at = None
             if self.files == 2 and self._numbered:
                 self.path.rename(done)
             for path, batches in self._statics.items():
@@ -645,8 +648,6 @@ class RerunSink:
     def log(self, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
         if self._pacer is not None and not self._pacer.caught_up.is_set():
             self._pacer.wait(self._give_up)
-        if self._file is not None:
-            self._file.written = True
         for entry in entries:
             if isinstance(entry, ColumnsItem):
                 columns = list(entry.columns)
@@ -665,6 +666,9 @@ class RerunSink:
                     self._set_times(times if entry.times is None else entry.times)
                     for stream in self.streams:
                         stream.log(entry.path, *entry.archetypes)
+        if self._file is not None and self._file.first_data_at is None:
+            # After the entries: the file splits no sooner than split_s after they are in it.
+            self._file.first_data_at = time.monotonic()
 
     def _log_static(self, path: str, archetypes: Sequence[rr.AsComponents]) -> None:
         if self._viewing is not None:
