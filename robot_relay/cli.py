@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import faulthandler
 import logging
 import os
 import signal
@@ -23,6 +24,11 @@ from robot_relay.config import RelayConfig, load_relay_config
 from robot_relay.errors import RelayError
 from robot_relay.session import add_zenoh_arguments, zenoh_options
 from robot_relay.wire import ROBOT_NAME_PATTERN
+
+STOP_DEADLINE_S = 15.0
+"""A relay still stopping this long after the signal prints every thread's stack and exits
+(the relay holds nothing a forced exit loses; a library call that never returns must not keep
+the robot's relay alive)."""
 
 log = logging.getLogger("swanky.relay")
 
@@ -114,6 +120,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                   file=sys.stderr, flush=True)
             os._exit(128 + signum)
         log.info("%s: stopping (again to force)", signal.Signals(signum).name)
+        faulthandler.dump_traceback_later(STOP_DEADLINE_S, exit=True)
         stop.set()
 
     signal.signal(signal.SIGINT, on_signal)
@@ -124,6 +131,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except RelayError as err:
         print(f"swanky-relay: error: {err}", file=sys.stderr)
         return 2
+    finally:  # stopped in time (a test calling main again must not be ended by the last one)
+        faulthandler.cancel_dump_traceback_later()
 
 
 def console_main() -> NoReturn:
