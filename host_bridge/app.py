@@ -249,7 +249,8 @@ def run(
     # Live robots serve the meshes this PC lacks (robot_relay/files.py).
     robot_files = None if options.bag is not None else RobotFiles()
     meshes = resolver(options.package_path, None if robot_files is None else robot_files.fetch)
-    sink = outputs.sink = RerunSink(options.sink, give_up=give_up, eager_batches=options.bag is not None)
+    live = options.bag is None
+    sink = outputs.sink = RerunSink(options.sink, give_up=give_up, eager_batches=not live, keep_up=live)
     if sink.web_url:
         print(f"Rerun web viewer: {sink.web_url}", flush=True)
         print(f"swanky-host: {sink.web_note}", file=sys.stderr)
@@ -268,11 +269,16 @@ def run(
         dispatcher.taps.append(recorder)
     viewer = sink.shared_viewer()
     # The converter process gets its end of a socket pair by file descriptor (POSIX).
-    if options.bag is None and viewer is not None and os.name == "posix":
+    if live and viewer is not None and os.name == "posix":
         from host_bridge.offload import HeavyProcess
 
         dispatcher.offload = outputs.offload = HeavyProcess(
             dispatcher, viewer, sink.recording_id, give_up)
+    if sink.viewer_lag is not None:
+        from host_bridge.thinning import ViewerThinning
+
+        dispatcher.offload = ViewerThinning(
+            dispatcher, sink, sink.viewer_lag, dispatcher.offload, stats=options.stats is not False)
     if options.urdf is not None:
         log_urdf_file(options.robot, options.urdf, dispatcher)
     progress = None
@@ -298,7 +304,6 @@ def run(
         )
         source.start(dispatcher.take)
         # A bag converts to its end; --duration is then how long --serve-web keeps serving it.
-        live = options.bag is None
         wait_for_end(source, stop, options.duration if live else None,
                      options.until_idle if live else None, None if live else bag_finished(source))
     source.ended()  # what went wrong while the last items were delivered

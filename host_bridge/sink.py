@@ -4,8 +4,10 @@ the only place that calls ``log`` / ``send_columns``.
 Nothing here may wait for a viewer without bound: a viewer that is missing, dies or stops
 reading is found out (an HTTP/2 probe, flushes waited on in short steps, a bounded close) and
 named, so the host neither hangs nor ignores Ctrl-C, and a ``--save`` file is still completed.
-A viewer slower than the data holds the host's robot workers back (:class:`_ViewerPacer`), so
-the host's memory stays bounded and their queues drop, and count, what it cannot take."""
+How far behind the viewers are is measured (viewer_lag.py); a viewer that falls behind is sent
+less (thinning.py decides what, :meth:`RerunSink.saved_only`), one that stops taking data is
+sent none but static data until it catches up (:data:`SUSPEND_S`): no thread waits for a viewer,
+and a ``--save`` file beside it gets everything."""
 
 from __future__ import annotations
 
@@ -20,7 +22,8 @@ import sys
 import sysconfig
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -36,6 +39,7 @@ import rerun_bindings
 from host_bridge.contract import ColumnsItem, LogEntry, LogItem, RowsColumn
 from host_bridge.destinations import LOOPBACK, SinkOptions
 from host_bridge.errors import SinkError
+from host_bridge.viewer_lag import BATCHER_TICK_S, LaggingViewer, ViewerLag
 
 log = logging.getLogger("swanky.host")
 
@@ -76,10 +80,11 @@ number, :class:`SavedFile`; the demo robot made 200 a second at the batcher's de
 any flush, so with images flushed by size every fraction of a second the rows of small topics
 piled up in the batcher until the file closed (the demo's host grew by 130 MB in 2 minutes). A
 host killed outright loses up to this much of its file."""
-PACE_PERIOD_S = 0.2
-"""How often the gRPC viewers are asked whether they have taken everything logged so far."""
-PACE_BEHIND_S = 0.5
-"""A viewer that has not taken what was logged within this long is behind: logging waits."""
+SUSPEND_S = 5.0
+"""A viewer this far behind gets nothing but static data until it has caught up: it stopped
+taking data (frozen, or its machine overloaded), and what it would be sent meanwhile would pile
+up in this process (Rerun's client holds up to 100 MiB, then blocks whoever logs, which would
+hold back the ``--save`` file and the other robots too)."""
 
 
 class Sink(Protocol):
@@ -200,81 +205,6 @@ def _check_port_free(host: str, port: int, flag: str) -> None:
 
 def _never() -> bool:
     return False
-
-
-class _ViewerPacer:
-    """Back-pressure from the gRPC viewers (--rerun-addr, --spawn).
-
-    Rerun's gRPC client buffers whatever it has not sent, without limit (rerun-sdk 0.41 has no
-    memory limit for it): logging 5.7 MB/s to a frozen viewer grew the host by exactly that
-    rate (112 -> 266 MB in 27 s). A flush returns once the client has sent everything logged
-    before it, and what it can send is bounded by the connection's HTTP/2 window and socket
-    buffers (a frozen viewer stopped it after ~3 MB). So a thread flushes every
-    PACE_PERIOD_S; while a flush is not done within PACE_BEHIND_S, :meth:`wait` holds whoever
-    logs (the robots' workers), whose bounded queues then keep the newest heavy messages and
-    count what they drop. A healthy viewer takes a flush in a few ms: nothing waits. A viewer
-    that went away (its flush fails at once) is not waited for: :meth:`RerunSink.close` names
-    it."""
-
-    def __init__(self, recording: rr.RecordingStream, names: str) -> None:
-        self._recording = recording
-        self._names = names
-        self.caught_up = threading.Event()
-        self.caught_up.set()
-        self.times_behind = 0
-        self._behind_since: float | None = None
-        self._seconds_behind = 0.0
-        self._stopping = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="rerun-pacer", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stopping.wait(PACE_PERIOD_S):
-            if self._flushed(PACE_BEHIND_S):
-                continue
-            self.caught_up.clear()
-            self._behind_since = time.monotonic()
-            if not self.times_behind:
-                log.warning(
-                    "the Rerun viewer %s takes the data slower than it comes: logging waits for it "
-                    "(live robots' queues keep their newest messages and count the drops)",
-                    self._names,
-                )
-            self.times_behind += 1
-            while not self._stopping.is_set() and not self._flushed(FLUSH_STEP_S):
-                pass
-            self._seconds_behind += time.monotonic() - self._behind_since
-            self._behind_since = None
-            self.caught_up.set()
-
-    def _flushed(self, timeout_s: float) -> bool:
-        """False if the viewers had not taken everything logged within ``timeout_s``."""
-        try:
-            self._recording.flush(timeout_sec=timeout_s)
-        except RuntimeError as err:
-            if "timed out" in str(err):  # Rerun's words for a viewer that is only slow
-                return False
-            self._stopping.set()  # gone: waiting for it would only lose the other sinks' data
-        return True
-
-    def wait(self, give_up: Callable[[], bool]) -> None:
-        """Until the viewers have caught up, or ``give_up()``."""
-        while not self.caught_up.wait(FLUSH_STEP_S):
-            if give_up():
-                return
-
-    def stop(self) -> None:
-        """Stop pacing. Not waiting for the thread's flush step: the close that follows waits
-        for the viewers anyway, and the host must not be held longer for a slow one."""
-        self._stopping.set()
-        self.caught_up.set()
-        if self.times_behind:
-            since = self._behind_since
-            seconds = self._seconds_behind + (0.0 if since is None else time.monotonic() - since)
-            log.info(
-                "the Rerun viewer %s fell behind %d time%s, %.1f s in all", self._names,
-                self.times_behind, "" if self.times_behind == 1 else "s", seconds,
-            )
 
 
 _Row = dict[rr.ComponentDescriptor, pa.Array]
@@ -481,15 +411,22 @@ class RerunSink:
 
     def __init__(
         self, options: SinkOptions, give_up: Callable[[], bool] = _never, *,
-        eager_batches: bool = False,
+        eager_batches: bool = False, keep_up: bool = False,
     ) -> None:
         """``give_up()`` true: stop waiting for a slow viewer (the user asked the host to stop).
 
         ``eager_batches``: hand every row batch of :data:`EAGER_FLUSH_BYTES` or more to Rerun's
         encoder at once (a bag conversion, where the encoder otherwise finishes long after the
-        host has logged everything)."""
+        host has logged everything).
+
+        ``keep_up`` (live robots): measure how far behind the viewers are (:attr:`viewer_lag`),
+        and send a viewer more than SUSPEND_S behind no data but static data until it caught up.
+        Without it (a bag) a slow viewer is waited for: Rerun's client holds up to 100 MiB, then
+        ``log`` blocks until the viewer takes more, and the bag is read no faster."""
         self._give_up = give_up
         self._batcher = rr.ChunkBatcherConfig(flush_num_bytes=EAGER_FLUSH_BYTES) if eager_batches else None
+        # Kept up with, the viewers get rows batched by ViewerLag's flushes.
+        self._viewers_batcher = rr.ChunkBatcherConfig(flush_tick=BATCHER_TICK_S) if keep_up else self._batcher
         self.web_url: str | None = None
         self.web_note: str | None = None
         self._viewers: list[ViewerAddress] = []
@@ -500,11 +437,13 @@ class RerunSink:
         saving = None if self._file is None else self._file.stream
         self.streams = tuple(stream for stream in (self._viewing, saving) if stream is not None)
         self._natives = [stream.to_native() for stream in self.streams]
-        self._pacer = (
-            None if self._viewing is None or not self._viewers
-            else _ViewerPacer(self._viewing, "; ".join(viewer.name for viewer in self._viewers))
-        )
-        # Rerun's time context is per thread (the dispatcher and the slow-converter worker).
+        self._saved_streams = () if saving is None else (saving,)
+        self._saved_natives = [stream.to_native() for stream in self._saved_streams]
+        self.viewer_lag = self._measure_lag(options) if keep_up else None
+        self._suspended_at: float | None = None
+        self._suspending = threading.Lock()
+        # Rerun's time context is per thread (the dispatcher and the slow-converter worker), and
+        # so is saved_only().
         self._local = threading.local()
 
     def _open(self, options: SinkOptions) -> tuple[rr.RecordingStream | None, SavedFile | None]:
@@ -515,7 +454,7 @@ class RerunSink:
         recording_id = options.recording_id
         viewing = None
         if options.connect is not None or options.spawn or options.serve_web:
-            viewing = _stream(recording_id, self._batcher)
+            viewing = _stream(recording_id, self._viewers_batcher)
             recording_id = str(viewing.get_recording_id())
             sinks: list[rr.sinks.LogSinkLike] = []
             if options.connect is not None:
@@ -624,6 +563,56 @@ class RerunSink:
                 f"on port {web_port} of every interface"
             )
 
+    def _measure_lag(self, options: SinkOptions) -> ViewerLag | None:
+        """How far behind the viewers are, when there are any (viewer_lag.py)."""
+        if self._viewing is None:
+            return None
+        viewers = [LaggingViewer(viewer.name, url)
+                   for viewer, url in zip(self._viewers, self._viewer_urls, strict=True)]
+        if options.serve_web:
+            viewers.append(LaggingViewer("the --serve-web server", None))
+        return ViewerLag(self._viewing, viewers)
+
+    @contextmanager
+    def saved_only(self) -> Iterator[None]:
+        """What this thread logs meanwhile goes to the ``--save`` file only, but static data
+        (a viewer must never miss it): a heavy message the viewers are not sent
+        (thinning.py)."""
+        self._local.saved_only = True
+        try:
+            yield
+        finally:
+            self._local.saved_only = False
+
+    def _destinations(self) -> tuple[Sequence[rr.RecordingStream], Sequence[Any]]:
+        """The streams (and their native handles) temporal data goes to now: the file's, and
+        the viewers' unless this thread is in :meth:`saved_only` or they stopped taking data."""
+        if getattr(self._local, "saved_only", False) or self._viewers_suspended():
+            return self._saved_streams, self._saved_natives
+        return self.streams, self._natives
+
+    def _viewers_suspended(self) -> bool:
+        """Whether the viewers are more than SUSPEND_S behind, or were and have not caught up
+        since; each start and end is told once."""
+        lag = self.viewer_lag
+        if lag is None:
+            return False
+        seconds = lag.seconds
+        if (seconds > SUSPEND_S) == (self._suspended_at is not None):
+            return self._suspended_at is not None
+        with self._suspending:
+            if seconds > SUSPEND_S and self._suspended_at is None:
+                self._suspended_at = time.monotonic()
+                log.warning(
+                    "the Rerun viewer %s is %.0f s behind: it gets no data but static data until it "
+                    "has caught up%s", lag.names, seconds,
+                    "" if self._file is None else " (the --save file gets everything)")
+            elif seconds <= SUSPEND_S and self._suspended_at is not None:
+                log.info("the Rerun viewer %s caught up: it was sent nothing for %.1f s",
+                         lag.names, time.monotonic() - self._suspended_at)
+                self._suspended_at = None
+            return self._suspended_at is not None
+
     def shared_viewer(self) -> str | None:
         """The URL of the one destination, when it is a gRPC viewer, where another process can
         log into this recording (offload.py); None when a destination is this process's own
@@ -631,6 +620,11 @@ class RerunSink:
         if self._own_destination or len(self._viewer_urls) != 1:
             return None
         return self._viewer_urls[0]
+
+    @property
+    def saving(self) -> bool:
+        """Whether a ``--save`` file gets what is logged."""
+        return self._file is not None
 
     @property
     def recording_id(self) -> str:
@@ -646,25 +640,24 @@ class RerunSink:
         self._local.times = times
 
     def log(self, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
-        if self._pacer is not None and not self._pacer.caught_up.is_set():
-            self._pacer.wait(self._give_up)
+        streams, natives = self._destinations()
         for entry in entries:
             if isinstance(entry, ColumnsItem):
                 columns = list(entry.columns)
-                if self._log_rows(entry.path, columns, entry.times):
+                if self._log_rows(natives, entry.path, columns, entry.times):
                     continue
                 indexes = [
                     rr.TimeColumn(name, timestamp=values.astype(np.int64, copy=False).view("datetime64[ns]"))
                     for name, values in entry.times.items()
                 ]
-                for stream in self.streams:
+                for stream in streams:
                     stream.send_columns(entry.path, indexes=indexes, columns=columns)
             elif isinstance(entry, LogItem):
                 if entry.static:
                     self._log_static(entry.path, entry.archetypes)
                 else:
                     self._set_times(times if entry.times is None else entry.times)
-                    for stream in self.streams:
+                    for stream in streams:
                         stream.log(entry.path, *entry.archetypes)
         if self._file is not None and self._file.first_data_at is None:
             # After the entries: the file splits no sooner than split_s after they are in it.
@@ -677,7 +670,8 @@ class RerunSink:
             self._file.log_static(path, archetypes)
 
     def _log_rows(
-        self, path: str, columns: Sequence[Any], times: Mapping[str, npt.NDArray[np.int64]]
+        self, natives: Sequence[Any], path: str, columns: Sequence[Any],
+        times: Mapping[str, npt.NDArray[np.int64]],
     ) -> bool:
         """Log the columns of up to FEW_ROWS rows row by row (a ``log`` each: the same rows in
         the recording); False for more. A live run is often one message, and a ``send_columns``
@@ -692,7 +686,7 @@ class RerunSink:
         # sixth of a live Imu's or TF's conversion and logging (Imu 515 -> 445-478 us, TF 450 -> 383).
         for row, components in enumerate(rows):
             self._set_times({name: int(values[row]) for name, values in times.items()})
-            for native in self._natives:
+            for native in natives:
                 rerun_bindings.log_arrow_msg(path, components=components, static_=False, recording=native)
         return True
 
@@ -758,8 +752,8 @@ class RerunSink:
         ``abandoned`` set: the process must then end with ``os._exit``, as Rerun's exit handler
         would wait for it too."""
         problem: SinkError | None = None
-        if self._pacer is not None:
-            self._pacer.stop()
+        if self.viewer_lag is not None:
+            self.viewer_lag.stop()
         try:
             self.flush()
         except SinkError as err:

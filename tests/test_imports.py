@@ -62,8 +62,8 @@ LAYERS: list[tuple[str, list[str]]] = [
     ("the type table and the configuration", ["host_bridge.registry", "host_bridge.config"]),
     ("inputs", ["host_bridge.inputs", "host_bridge.robot_files"]),
     ("outputs", ["host_bridge.sink", "host_bridge.blueprint", "host_bridge.recorder", "host_bridge.stats",
-                 "host_bridge.progress"]),
-    ("pipeline", ["host_bridge.dispatch", "host_bridge.offload"]),
+                 "host_bridge.progress", "host_bridge.viewer_lag"]),
+    ("pipeline", ["host_bridge.dispatch", "host_bridge.offload", "host_bridge.thinning"]),
     ("app", ["host_bridge", "host_bridge.app", "host_bridge.cli", "host_bridge.listing",
              "host_bridge.demo"]),
 ]
