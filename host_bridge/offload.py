@@ -326,8 +326,10 @@ def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool)
     giving_up = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: giving_up.set())
     try:
+        # keep_up: like the host's own sink, it stops sending to a viewer that stopped taking
+        # data rather than wait for it (the host thins what it sends here: thinning.py).
         sink = RerunSink(SinkOptions(connect=viewer, recording_id=recording_id),
-                         give_up=giving_up.is_set)
+                         give_up=giving_up.is_set, keep_up=True)
     except SinkError as err:
         connection.send(("failed", str(err)))
         return 1
