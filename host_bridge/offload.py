@@ -109,6 +109,9 @@ class Outcome:
     """Per robot."""
     error: str | None = None
     """An error that escaped the child's dispatcher (``--strict``, or a bug)."""
+    viewer_round_trip: float = 0.0
+    """How long the child's flushes take to reach the viewer (viewer_lag.py), as the run was
+    logged: the host thins heavy runs by it too (thinning.py)."""
 
 
 def _child_environment() -> dict[str, str]:
@@ -138,6 +141,8 @@ class HeavyProcess:
         self._problem: str | None = None
         """Why the child is gone; heavy runs are then converted here."""
         self._warned = False
+        self.viewer_round_trip = 0.0
+        """The child's round trip to the viewer, as of its last answer."""
         self._ready = False
         self._sent: set[tuple[str, str, str]] = set()
         """The (robot, topic, type)s whose settings the child has."""
@@ -174,6 +179,7 @@ class HeavyProcess:
         counters.dropped += outcome.dropped
         counters.warnings += outcome.warnings
         counters.convert_seconds += outcome.seconds
+        self.viewer_round_trip = outcome.viewer_round_trip
         self._note_frames(outcome)
         if outcome.error is not None:
             raise ConvertError(f"{first.topic}: {outcome.error}")
@@ -357,6 +363,8 @@ def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool)
             outcome.error = f"{type(err).__name__}: {err}"
         outcome.converted, outcome.dropped = counters.converted, counters.dropped
         outcome.warnings, outcome.seconds = counters.warnings, counters.convert_seconds
+        if sink.viewer_lag is not None:
+            outcome.viewer_round_trip = sink.viewer_lag.round_trip
         try:
             connection.send(notes.take(outcome))
         except OSError:
