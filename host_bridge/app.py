@@ -277,6 +277,9 @@ def run(
     if sink.viewer_lag is not None:
         from host_bridge.thinning import ViewerThinning
 
+        if outputs.offload is not None:
+            heavy = outputs.offload
+            sink.viewer_lag.others.append(lambda: heavy.viewer_round_trip)
         dispatcher.offload = ViewerThinning(
             dispatcher, sink, sink.viewer_lag, dispatcher.offload, stats=options.stats is not False)
     if options.urdf is not None:

@@ -89,6 +89,9 @@ class ViewerLag:
         """Seconds from one flush's start to the next (a flush still under way delays it)."""
         self._answering: dict[str, ViewerClient] = {}
         """The viewers whose viewer-control service answered, by name: asked every time."""
+        self.others: list[Callable[[], float]] = []
+        """The round trips of other streams into the same viewers (the converter process's:
+        offload.py), counted in :attr:`round_trip`."""
         self._started: float | None = None
         self._last = 0.0
         self._last_answers = 0.0
@@ -103,10 +106,10 @@ class ViewerLag:
     @property
     def round_trip(self) -> float:
         """Seconds from a flush's start to the viewers having taken in what it sent: the last
-        one's, or the age of the one under way if longer."""
+        one's, or the age of the one under way if longer; another stream's if longer still."""
         started = self._started
         pending = 0.0 if started is None else self._clock() - started
-        return max(self._last, pending)
+        return max(self._last, pending, *(other() for other in self.others))
 
     @property
     def answers(self) -> float:

@@ -9,6 +9,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -118,3 +119,31 @@ def headless_viewer() -> Iterator[tuple[str, int, subprocess.Popen[bytes]]]:
     finally:
         proc.kill()
         proc.wait(timeout=10)
+
+
+@contextmanager
+def rendering_viewer(startup_s: float = 60.0) -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
+    """Rerun's native viewer drawing offscreen (``rerun --headless``: software GL, Mesa's
+    lavapipe on a machine without a GPU; no display needed): its URL and process. Skips the test
+    when it cannot start (no Vulkan adapter: ``apt-get install mesa-vulkan-drivers``)."""
+    import pytest
+
+    port = free_port()
+    said = tempfile.TemporaryFile()  # noqa: SIM115 - closed below; a pipe left unread would block it
+    proc = subprocess.Popen(
+        [str(rerun_binary()), "--headless", "--port", str(port)], stdout=subprocess.DEVNULL, stderr=said,
+    )
+    try:
+        deadline = time.monotonic() + startup_s
+        while not listening(port):
+            if proc.poll() is not None:
+                said.seek(0)
+                pytest.skip(f"rerun --headless did not start (no Vulkan adapter? apt-get install "
+                            f"mesa-vulkan-drivers): {said.read().decode()[-300:]}")
+            assert time.monotonic() < deadline, f"rerun --headless did not listen within {startup_s} s"
+            time.sleep(0.1)
+        yield f"rerun+http://127.0.0.1:{port}/proxy", proc
+    finally:
+        proc.kill()
+        proc.wait(timeout=10)
+        said.close()
