@@ -249,6 +249,8 @@ class ViewerThinning:
         not sent."""
         self._stopping.set()
         self._thread.join()
+        self._most_behind = max(self._most_behind, self._lag.seconds)
+        self._log_stats()  # the last second's, so the series sums to the counts below
         if self._inner is not None:
             self._inner.close()
         thinned = self.thinned()
