@@ -149,6 +149,8 @@ def _plot_views(robot: str, topics: Sequence[_Placed], stats: bool) -> list[rrb.
         views.append(rrb.BarChartView(name=ARRAYS, origin=f"/{robot}", contents=arrays))
     if stats:
         views.append(rrb.TimeSeriesView(name="Stats", origin=f"{STATS_ROOT}/{robot}"))
+        # How far behind the viewer showing this is (thinning.py), beside each robot's stats.
+        views.append(rrb.TimeSeriesView(name="Viewer lag", origin=f"{STATS_ROOT}/host"))
     return views
 
 

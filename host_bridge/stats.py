@@ -23,6 +23,10 @@ Once per second of each robot's clock (the relay's receive time live; the bag's 
 - ``/_stats/<robot><topic>/ros_drops``: messages the relay saw lost between the ROS publisher
   and itself (publication sequence gaps) since its previous report, for topics with any.
 
+Not from this tap, on the host's wall clock (thinning.py): ``/_stats/host/viewer_lag_ms``, how far
+behind the viewers are, and ``/_stats/<robot><topic>/viewer_thinned``, the heavy messages they
+were not sent, each second.
+
 Latency compares two clocks: it is only meaningful when robot and PC are synchronised (chrony /
 NTP). An offset shows as a constant shift of every topic's latency (negative when the robot's
 clock is ahead); congestion shows as latency that grows with bandwidth, together with drops or

@@ -160,7 +160,8 @@ def test_stats_add_a_plot_of_the_robot_stats_root() -> None:
     found = by_name(views(build_blueprint(entries("tb3", {"/scan": "sensor_msgs/msg/LaserScan"}),
                                           stats=True)))
     assert found["Stats"].origin == "/_stats/tb3"
-    assert set(found) == {"tb3 3D", "Stats", "Log"}
+    assert found["Viewer lag"].origin == "/_stats/host"
+    assert set(found) == {"tb3 3D", "Stats", "Viewer lag", "Log"}
 
 
 def test_several_robots_get_a_shared_tab_then_one_tab_each() -> None:
