@@ -262,7 +262,7 @@ def run(
     if options.record_mcap is not None:
         recorder: RawOutput = McapRecorder(options.record_mcap, prefix_robot=may_hold_several_robots(
             bag=options.bag is not None,
-            demo=demo is not None and len(demo.robots) == 1,
+            demo_robots=None if demo is None else len(demo.robots),
             robots=options.robots))
         outputs.recorder = recorder
         dispatcher.taps.append(recorder)
