@@ -8,11 +8,19 @@ of them is all a viewer will ever get.
 
 Heavy topics (the type table's ``Lane.HEAVY`` rows: images, point clouds, maps) are converted
 on a thread of their own per robot, with the patches of such messages (``Lane.PATCH`` rows: grid
-updates, which must follow their grid), and go latest-only once that thread is behind: with
-more than :data:`HEAVY_BACKLOG` items waiting there, a heavy topic keeps only its newest message
-(or run), and a newer one of its type replaces it. (Latest-only as soon as one waits lost frames to every
-short stall of a loaded host, which a user asking for every frame, ``congestion: block``, does
-not expect.)
+updates, which must follow their grid), and go latest-only once the host is behind on them: with
+more than :data:`HEAVY_BACKLOG` heavy items waiting, all robots together, a heavy topic keeps
+only its newest message (or run), and a newer one of its type replaces it. (Latest-only as soon
+as one waits lost frames to every short stall of a loaded host, which a user asking for every
+frame, ``congestion: block``, does not expect.)
+
+A fleet shares the host fairly: the robots' heavy threads convert one at a time, taking turns in
+the order they asked (:class:`HeavyTurns`), so a host that cannot convert every robot's images
+and clouds thins them evenly, each robot converting the newest of its own at each turn, none
+starved, and never more than one heavy conversion competes with the small topics for the GIL
+(25 heavy threads converting side by side left the small topics a share of it that shrank with
+every robot). The first time the host thins heavy topics it says so once, naming the robots and
+topics thinned then; the small topics are never thinned.
 The small topics (IMU, TF, scans) never wait behind a heavy conversion: in the issue's mixed
 load a 300k-point cloud took its robot's one worker for 5-10 ms (more on a loaded host), and
 every scan, IMU and TF message that came meanwhile waited for it
@@ -95,8 +103,9 @@ heavy one would take it. The issue's mixed load, 3 runs each of benchmarks/live_
 priority, 8.74/10.08/7.46 at +10 (p50 unchanged, the heavy topics' own p99 too); at +19 the
 clouds' p99 grew from 17 to 45 ms."""
 HEAVY_BACKLOG = 32
-"""Items waiting on a robot's heavy thread beyond which it is behind and heavy topics go
-latest-only: more than arrive during a short stall (a second of 15 Hz images and 5 Hz clouds)."""
+"""Heavy items waiting, all robots' together, beyond which the host is behind on them and heavy
+topics go latest-only: more than arrive during a short stall (a second of one robot's 15 Hz
+images and 5 Hz clouds)."""
 
 ItemDeliver = Callable[[Sequence[InputItem]], None]
 """Where the workers put each robot's batches: live records and the MessageRuns of bundles (any
@@ -108,6 +117,11 @@ LaneOf = Callable[[RawMessage | MessageRun], Lane]
 class HostBehindError(HostError):
     """The host dropped messages of a topic: it converts the robot's messages slower than they
     arrive."""
+
+
+class HeavyTopicsThinnedError(HostBehindError):
+    """The host converts only the newest message of heavy topics: said once per host, naming the
+    robots and topics thinned when it began."""
 
 
 class TypeLanes:
@@ -151,9 +165,10 @@ class _Entry:
 class _Lane:
     """One worker thread's share of a robot's queue: its small topics, or its heavy ones."""
 
-    def __init__(self, lock: threading.Lock, thread_name: str, heavy: bool) -> None:
+    def __init__(self, lock: threading.Lock, thread_name: str, turns: HeavyTurns | None) -> None:
         self.thread_name = thread_name
-        self.heavy = heavy
+        self.turns = turns
+        """The host's heavy turns: set on a robot's heavy lane, None on its small one."""
         self.items: deque[_Entry] = deque()
         self.messages = 0
         # Heavy lane: the waiting non-latched entries per topic and type (one, but for the
@@ -162,21 +177,31 @@ class _Lane:
         self.ready = threading.Condition(lock)
         self.worker: threading.Thread | None = None
         self.dropped: dict[str, int] = {}
+        # Topics whose first drop from a full queue has been warned about.
+        self.warned: set[str] = set()
         # ``dropped`` as it was when the worker took its current batch.
         self.dropped_taken: dict[str, int] = {}
         self.dropped_since_taken = False
         # Each topic's first drop, to be warned about ahead of the waiting messages.
         self.warnings: list[InputProblem] = []
 
+    @property
+    def heavy(self) -> bool:
+        return self.turns is not None
+
     def append(self, entry: _Entry) -> None:
         self.items.append(entry)
         self.messages += entry.size
+        if self.turns is not None:
+            self.turns.waiting_items += 1
         if entry.replaceable is not None:
             self.replaceable[entry.replaceable] = self.replaceable.get(entry.replaceable, 0) + 1
 
     def forget(self, entry: _Entry) -> None:
         """``entry`` has left the queue (taken by the worker or dropped)."""
         self.messages -= entry.size
+        if self.turns is not None:
+            self.turns.waiting_items -= 1
         if entry.replaceable is not None:
             self.replaceable[entry.replaceable] -= 1
 
@@ -186,6 +211,31 @@ class _Lane:
             if not entry.latched and isinstance(entry.item, RawMessage | MessageRun):
                 return index
         return None
+
+
+class HeavyTurns:
+    """The robots' heavy threads take turns: one converts at a time, in the order they asked
+    (first come, first served), so each robot with heavy messages waiting converts once before
+    any converts twice. Also counts the heavy items waiting, all robots together. Used under the
+    queues' lock."""
+
+    def __init__(self, lock: threading.Lock) -> None:
+        self.waiting_items = 0
+        self._asked: deque[_Lane] = deque()
+        self._converting: _Lane | None = None
+        self._changed = threading.Condition(lock)
+
+    def take(self, lane: _Lane) -> None:
+        """Wait for ``lane``'s turn (the lock held, released while waiting)."""
+        self._asked.append(lane)
+        while self._converting is not None or self._asked[0] is not lane:
+            self._changed.wait()
+        self._asked.popleft()
+        self._converting = lane
+
+    def give_back(self) -> None:
+        self._converting = None
+        self._changed.notify_all()
 
 
 @dataclass(slots=True)
@@ -265,6 +315,8 @@ class RobotQueues:
         self.error: BaseException | None = None
         self._lock = threading.Lock()
         self._robots: dict[str, _Robot] = {}
+        self._heavy_turns = HeavyTurns(self._lock)
+        self._thinning_said = False
         self._handler: ItemDeliver | None = None
         self._closing = False
 
@@ -282,11 +334,11 @@ class RobotQueues:
             robot = self._robots.get(name)
             if robot is None:
                 robot = self._robots[name] = _Robot(
-                    _Lane(self._lock, f"robot-{name}", heavy=False),
-                    _Lane(self._lock, f"robot-{name}-heavy", heavy=True),
+                    _Lane(self._lock, f"robot-{name}", None),
+                    _Lane(self._lock, f"robot-{name}-heavy", self._heavy_turns),
                 )
             lane = robot.small if type_lane is Lane.SMALL else robot.heavy
-            if (replaceable is not None and len(lane.items) > self.heavy_backlog
+            if (replaceable is not None and self._heavy_turns.waiting_items > self.heavy_backlog
                     and lane.replaceable.get(replaceable)):
                 self._supersede(name, lane, replaceable)
             if not self._fits(robot, size) and not self._make_room(name, robot, size) and not latched:
@@ -335,19 +387,42 @@ class RobotQueues:
     def _count_drop(
         self, robot: str, lane: _Lane, topic: str, size: int, superseded: bool = False
     ) -> None:
-        if topic not in lane.dropped:
-            # The dispatcher warns (stderr and /_swanky/warnings) once per topic and kind.
+        # The dispatcher warns (stderr and /_swanky/warnings) once per topic and kind; thinned
+        # heavy topics are warned about once per host, however many robots and topics.
+        if superseded and not self._thinning_said:
+            self._thinning_said = True
+            lane.warnings.append(InputProblem(robot, topic, HeavyTopicsThinnedError(
+                self._thinning_text(robot, topic))))
+        elif not superseded and topic not in lane.warned:
+            lane.warned.add(topic)
             lane.warnings.append(InputProblem(robot, topic, HostBehindError(
-                "the host converts this robot's messages slower than they arrive; "
-                + ("converting only the newest message of this heavy topic" if superseded
-                   else "dropping its oldest ones")
-                + f" (counted in {STATS_ROOT}/{robot}{topic}/host_drops, other robots unaffected)"
+                "the host converts this robot's messages slower than they arrive; dropping its "
+                f"oldest ones (counted in {STATS_ROOT}/{robot}{topic}/host_drops, other robots "
+                "unaffected)"
             )))
         lane.dropped[topic] = lane.dropped.get(topic, 0) + size
         lane.dropped_since_taken = True
         if superseded:
             key = (robot, topic)
             self.superseded[key] = self.superseded.get(key, 0) + size
+
+    def _thinning_text(self, robot: str, topic: str) -> str:
+        """What the host says once when it first thins heavy topics: the robots and topics with
+        heavy messages waiting then, those it thins first."""
+        thinned = {robot: {topic}}
+        for name, state in self._robots.items():
+            for entry in state.heavy.items:
+                if entry.replaceable is not None:
+                    thinned.setdefault(name, set()).add(entry.topic)
+        topics = sorted(set().union(*thinned.values()))
+        robots = ", ".join(thinned)
+        return (
+            "the host converts heavy topics (images, clouds, maps) slower than they arrive: from "
+            "now on it converts only the newest message of each, robots taking turns, and every "
+            f"message of the small topics (drops counted in {STATS_ROOT}/<robot><topic>/host_drops "
+            f"and in the summary at the stop); thinning now {len(thinned)} "
+            f"robot{'s' if len(thinned) > 1 else ''} ({robots}): {', '.join(topics)}"
+        )
 
     @property
     def dropped(self) -> dict[tuple[str, str], int]:
@@ -397,6 +472,9 @@ class RobotQueues:
                     lane.ready.wait()
                 if not lane.items and not lane.warnings:
                     return
+                if lane.turns is not None:
+                    # Its batch is taken once its turn comes: the newest messages by then.
+                    lane.turns.take(lane)
                 batch: list[InputItem] = list(lane.warnings)  # a drop leaves items waiting
                 lane.warnings.clear()
                 taken = 0
@@ -410,10 +488,15 @@ class RobotQueues:
                     lane.dropped_since_taken = False
                     robot.dropped_when_taken = _summed(other.dropped_taken for other in robot.lanes)
             try:
-                handler(batch)
+                if batch:  # its items may have been dropped while it waited for its turn
+                    handler(batch)
             except BaseException as err:  # --strict: the main thread re-raises it
                 self.error = err
                 return
+            finally:
+                if lane.turns is not None:
+                    with self._lock:
+                        lane.turns.give_back()
 
     def close(self, timeout: float = 30.0) -> None:
         """Let the workers finish what is queued (a saved .rrd is then complete)."""
