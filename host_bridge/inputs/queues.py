@@ -1,8 +1,9 @@
 """Per-robot bounded queues between the Zenoh callbacks and the dispatcher.
 
 Each robot gets its own queue and, once :meth:`RobotQueues.serve` runs, its own worker threads,
-so a robot whose messages are slow to convert (or that floods the host) only delays itself:
-its queue fills and drops its own oldest messages while the other robots keep flowing. Latched
+so a robot whose messages are slow to convert (or that floods the host) delays the others by no
+more than its turn (below): its queue fills and drops its own oldest messages while the other
+robots keep flowing. Latched
 messages (``/tf_static``, ``/robot_description``, maps) are never the ones dropped: a late copy
 of them is all a viewer will ever get.
 
@@ -14,19 +15,23 @@ only its newest message (or run), and a newer one of its type replaces it. (Late
 as one waits lost frames to every short stall of a loaded host, which a user asking for every
 frame, ``congestion: block``, does not expect.)
 
-A fleet shares the host fairly: the robots' heavy threads convert one at a time, taking turns in
-the order they asked (:class:`HeavyTurns`), so a host that cannot convert every robot's images
-and clouds thins them evenly, each robot converting the newest of its own at each turn, none
-starved, and never more than one heavy conversion competes with the small topics for the GIL
-(25 heavy threads converting side by side left the small topics a share of it that shrank with
-every robot). The first time the host thins heavy topics it says so once, naming the robots and
-topics thinned then; the small topics are never thinned.
 The small topics (IMU, TF, scans) never wait behind a heavy conversion: in the issue's mixed
 load a 300k-point cloud took its robot's one worker for 5-10 ms (more on a loaded host), and
 every scan, IMU and TF message that came meanwhile waited for it
 (``benchmarks/live_capacity.py``). The heavy thread also runs at a lower priority
 (:data:`HEAVY_NICENESS`), so on a busy machine the small topics get a core first. A robot's
 small topics are dropped only when its whole queue is full.
+
+A fleet shares the host fairly: the robots' threads take turns (:class:`Turns`), in the order
+they asked, :data:`SMALL_TURNS` robots converting small topics at a time and one converting heavy
+ones. A robot waiting for its turn gathers what arrives meanwhile, so the busier the host, the
+longer the runs it converts in one call: a run costs its calls more than its length (one demo
+robot's odometry message converted alone took 2.2 ms of CPU, an IMU message 0.65 ms, in runs of
+ten 0.14 ms each), and a demo robot whose every message is converted alone costs about 0.3 of
+a core, so 25 of them converting on threads of their own would need 7 cores. A host that cannot
+convert every robot's images and clouds thins them evenly, each robot converting the newest of
+its own at each turn, none starved. The first time the host thins heavy topics it says so once,
+naming the robots and topics thinned then; the small topics are never thinned.
 
 Order: each topic's messages are handed over in order, on one thread (each message's type
 decides its thread, so a message of another type, garbage, changes nothing for the topic's
@@ -102,6 +107,12 @@ heavy one would take it. The issue's mixed load, 3 runs each of benchmarks/live_
 --only latency --seconds 10, alternated: small-topic p99 10.36/10.34/9.47 ms at the same
 priority, 8.74/10.08/7.46 at +10 (p50 unchanged, the heavy topics' own p99 too); at +19 the
 clouds' p99 grew from 17 to 45 ms."""
+SMALL_TURNS = 2
+"""Robots converting their small topics at once: more threads than this only share one GIL (two
+let Rerun's and numpy's work outside it overlap the next conversion)."""
+STALLED_TURN_S = 0.25
+"""A turn longer than this stops holding its slot: longer than the host's conversions of a robot's
+batch take when it keeps up (a few ms), short enough that a hung one costs the fleet a glimpse."""
 HEAVY_BACKLOG = 32
 """Heavy items waiting, all robots' together, beyond which the host is behind on them and heavy
 topics go latest-only: more than arrive during a short stall (a second of one robot's 15 Hz
@@ -165,10 +176,12 @@ class _Entry:
 class _Lane:
     """One worker thread's share of a robot's queue: its small topics, or its heavy ones."""
 
-    def __init__(self, lock: threading.Lock, thread_name: str, turns: HeavyTurns | None) -> None:
+    def __init__(self, lock: threading.Lock, thread_name: str, turns: Turns, *, heavy: bool) -> None:
         self.thread_name = thread_name
         self.turns = turns
-        """The host's heavy turns: set on a robot's heavy lane, None on its small one."""
+        """The robots' turns on this kind of lane (all their small lanes share one, all their
+        heavy lanes another)."""
+        self.heavy = heavy
         self.items: deque[_Entry] = deque()
         self.messages = 0
         # Heavy lane: the waiting non-latched entries per topic and type (one, but for the
@@ -185,23 +198,17 @@ class _Lane:
         # Each topic's first drop, to be warned about ahead of the waiting messages.
         self.warnings: list[InputProblem] = []
 
-    @property
-    def heavy(self) -> bool:
-        return self.turns is not None
-
     def append(self, entry: _Entry) -> None:
         self.items.append(entry)
         self.messages += entry.size
-        if self.turns is not None:
-            self.turns.waiting_items += 1
+        self.turns.waiting_items += 1
         if entry.replaceable is not None:
             self.replaceable[entry.replaceable] = self.replaceable.get(entry.replaceable, 0) + 1
 
     def forget(self, entry: _Entry) -> None:
         """``entry`` has left the queue (taken by the worker or dropped)."""
         self.messages -= entry.size
-        if self.turns is not None:
-            self.turns.waiting_items -= 1
+        self.turns.waiting_items -= 1
         if entry.replaceable is not None:
             self.replaceable[entry.replaceable] -= 1
 
@@ -213,29 +220,48 @@ class _Lane:
         return None
 
 
-class HeavyTurns:
-    """The robots' heavy threads take turns: one converts at a time, in the order they asked
-    (first come, first served), so each robot with heavy messages waiting converts once before
-    any converts twice. Also counts the heavy items waiting, all robots together. Used under the
-    queues' lock."""
+class Turns:
+    """Robots' lanes of one kind take turns: ``slots`` convert at a time, in the order they asked
+    (first come, first served), so each robot with messages waiting converts once before any
+    converts twice. A turn longer than :data:`STALLED_TURN_S` stops holding its slot, so a robot
+    whose conversion hangs (a mesh fetched from a robot that does not answer) delays the others by
+    that much only. Also counts the items waiting in those lanes, all robots together. Used under
+    the queues' lock; only the first in line is woken, never the whole fleet."""
 
-    def __init__(self, lock: threading.Lock) -> None:
+    def __init__(self, lock: threading.Lock, slots: int) -> None:
+        self.slots = slots
         self.waiting_items = 0
-        self._asked: deque[_Lane] = deque()
-        self._converting: _Lane | None = None
-        self._changed = threading.Condition(lock)
+        self._lock = lock
+        self._asked: deque[threading.Condition] = deque()
+        self._started: dict[_Lane, float] = {}
+        """The lanes converting, and when their turn began."""
 
     def take(self, lane: _Lane) -> None:
         """Wait for ``lane``'s turn (the lock held, released while waiting)."""
-        self._asked.append(lane)
-        while self._converting is not None or self._asked[0] is not lane:
-            self._changed.wait()
+        ticket = threading.Condition(self._lock)
+        self._asked.append(ticket)
+        while True:
+            if self._asked[0] is not ticket:
+                ticket.wait()
+                continue
+            now = time.monotonic()
+            holding = sorted(started for started in self._started.values()
+                             if now - started < STALLED_TURN_S)
+            if len(holding) < self.slots:
+                break
+            # Until enough turns count as stalled, unless one is given back first.
+            ticket.wait(holding[len(holding) - self.slots] + STALLED_TURN_S - now)
         self._asked.popleft()
-        self._converting = lane
+        self._started[lane] = time.monotonic()
+        self._wake_next()  # it may start too
 
-    def give_back(self) -> None:
-        self._converting = None
-        self._changed.notify_all()
+    def give_back(self, lane: _Lane) -> None:
+        del self._started[lane]
+        self._wake_next()
+
+    def _wake_next(self) -> None:
+        if self._asked:
+            self._asked[0].notify()
 
 
 @dataclass(slots=True)
@@ -302,6 +328,7 @@ class RobotQueues:
         max_items_per_robot: int = MAX_ITEMS_PER_ROBOT,
         lanes: LaneOf | None = None,
         heavy_backlog: int = HEAVY_BACKLOG,
+        small_turns: int = SMALL_TURNS,
     ) -> None:
         self.max_per_robot = max_per_robot
         self.max_items_per_robot = max_items_per_robot
@@ -315,7 +342,8 @@ class RobotQueues:
         self.error: BaseException | None = None
         self._lock = threading.Lock()
         self._robots: dict[str, _Robot] = {}
-        self._heavy_turns = HeavyTurns(self._lock)
+        self._small_turns = Turns(self._lock, small_turns)
+        self._heavy_turns = Turns(self._lock, 1)
         self._thinning_said = False
         self._handler: ItemDeliver | None = None
         self._closing = False
@@ -334,8 +362,8 @@ class RobotQueues:
             robot = self._robots.get(name)
             if robot is None:
                 robot = self._robots[name] = _Robot(
-                    _Lane(self._lock, f"robot-{name}", None),
-                    _Lane(self._lock, f"robot-{name}-heavy", self._heavy_turns),
+                    _Lane(self._lock, f"robot-{name}", self._small_turns, heavy=False),
+                    _Lane(self._lock, f"robot-{name}-heavy", self._heavy_turns, heavy=True),
                 )
             lane = robot.small if type_lane is Lane.SMALL else robot.heavy
             if (replaceable is not None and self._heavy_turns.waiting_items > self.heavy_backlog
@@ -472,9 +500,8 @@ class RobotQueues:
                     lane.ready.wait()
                 if not lane.items and not lane.warnings:
                     return
-                if lane.turns is not None:
-                    # Its batch is taken once its turn comes: the newest messages by then.
-                    lane.turns.take(lane)
+                # Its batch is taken once its turn comes: all that arrived by then.
+                lane.turns.take(lane)
                 batch: list[InputItem] = list(lane.warnings)  # a drop leaves items waiting
                 lane.warnings.clear()
                 taken = 0
@@ -494,9 +521,8 @@ class RobotQueues:
                 self.error = err
                 return
             finally:
-                if lane.turns is not None:
-                    with self._lock:
-                        lane.turns.give_back()
+                with self._lock:
+                    lane.turns.give_back(lane)
 
     def close(self, timeout: float = 30.0) -> None:
         """Let the workers finish what is queued (a saved .rrd is then complete)."""

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import host_bridge.inputs.queues as queues_module
 from host_bridge.contract import WARNINGS_PATH
 from host_bridge.destinations import SinkOptions
 from host_bridge.dispatch import Dispatcher
@@ -536,11 +537,14 @@ def test_heavy_topics_are_thinned_across_robots_and_the_host_says_so_once() -> N
     assert queues.superseded == {("r0", "/camera"): 1, ("r1", "/camera"): 1}
 
 
-def test_a_fleet_the_host_cannot_keep_up_with_keeps_its_small_topics_and_shares_the_heavy() -> None:
+def test_a_fleet_the_host_cannot_keep_up_with_keeps_its_small_topics_and_shares_the_heavy(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """Eight robots send images and clouds much faster than the host converts them (4 ms each,
     one at a time): every robot's every small message is converted, in order; the heavy threads
     convert one at a time, robots taking turns, so each converts some of its newest frames and
     none converts far more often than another."""
+    monkeypatch.setattr(queues_module, "STALLED_TURN_S", 30.0)  # a loaded machine's 4 ms sleep
     robots = [f"r{i}" for i in range(8)]
     rounds = 120
     queues = RobotQueues()
@@ -586,3 +590,37 @@ def test_a_fleet_the_host_cannot_keep_up_with_keeps_its_small_topics_and_shares_
     assert sum(queues.superseded.values()) > len(robots) * rounds
     assert sum(queues.dropped.values()) == sum(queues.superseded.values())
     assert [type(problem.error) for problem in thinned] == [HeavyTopicsThinnedError]
+
+
+def test_robots_take_turns_gathering_what_comes_meanwhile_and_a_hung_turn_ends(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """One small-topic turn at a time: robot b's messages wait while robot a converts, and b
+    converts them in one batch (one run: the busier the host, the longer its runs); a's turn
+    hangs, so after STALLED_TURN_S it stops holding the slot and b goes on without it."""
+    monkeypatch.setattr(queues_module, "STALLED_TURN_S", 0.2)
+    queues = RobotQueues(small_turns=1)
+    converting, release = threading.Event(), threading.Event()
+    batches: list[tuple[str, list[int]]] = []
+
+    def handle(batch: Sequence[InputItem]) -> None:
+        messages = [item for item in batch if isinstance(item, RawMessage)]
+        if messages[0].robot == "a":
+            converting.set()
+            release.wait(20)  # a mesh fetched from a robot that never answers
+        batches.append((messages[0].robot, [m.data[0] for m in messages]))
+
+    queues.serve(handle)
+    queues.put(typed("a", "/robot_description", "std_msgs/msg/String", 0))
+    assert converting.wait(20)
+    started = time.monotonic()
+    for n in range(5):
+        queues.put(typed("b", "/imu", IMU, n))
+    deadline = started + 20
+    while not batches and time.monotonic() < deadline:
+        time.sleep(0.01)
+    waited = time.monotonic() - started
+    release.set()
+    queues.close(timeout=10)
+    assert batches == [("b", [0, 1, 2, 3, 4]), ("a", [0])]
+    assert waited >= 0.2
