@@ -76,6 +76,10 @@ number, :class:`SavedFile`; the demo robot made 200 a second at the batcher's de
 any flush, so with images flushed by size every fraction of a second the rows of small topics
 piled up in the batcher until the file closed (the demo's host grew by 130 MB in 2 minutes). A
 host killed outright loses up to this much of its file."""
+FIRST_FILE_FLUSH_S = 0.5
+"""A live file's first flush after its first data; each next one waits twice as long, up to
+LIVE_FILE_FLUSH_S: the robots' latched topics (model, map, /tf_static), which arrive first, are
+on disk within a second, for four more chunks per entity and file."""
 PACE_PERIOD_S = 0.2
 """How often the gRPC viewers are asked whether they have taken everything logged so far."""
 PACE_BEHIND_S = 0.5
@@ -413,19 +417,25 @@ class SavedFile:
             self._layout = send
 
     def _flush_and_split(self, split_s: float) -> None:
-        """Every LIVE_FILE_FLUSH_S (``split_s`` if shorter) hand the file what the batcher holds;
-        go on in the next file once this one has ``split_s`` seconds of data (its time starts
-        with its first data: a host waiting for robots makes no empty files)."""
+        """Hand the file what the batcher holds every LIVE_FILE_FLUSH_S (``split_s`` if shorter),
+        FIRST_FILE_FLUSH_S after a file's first data, then twice as long each time; go on in the
+        next file once this one has ``split_s`` seconds of data (its time starts with its first
+        data: a host waiting for robots makes no empty files)."""
         splitting = True
-        flush_s = min(LIVE_FILE_FLUSH_S, split_s)
+        longest_flush_s = min(LIVE_FILE_FLUSH_S, split_s)
+        flush_s = min(FIRST_FILE_FLUSH_S, longest_flush_s)
         flushed_at = time.monotonic()
-        # Woken ten times per split period: a file ends within a tenth of it of being due.
-        while not self._closing.wait(split_s / 10):
+        # Woken ten times per split period (and for the first flushes): a file ends within a
+        # tenth of it of being due.
+        while not self._closing.wait(min(split_s / 10, FIRST_FILE_FLUSH_S)):
             now, began = time.monotonic(), self.first_data_at
             if not splitting or began is None or now < began + split_s:
-                if now >= flushed_at + flush_s:
+                if began is None:  # nothing to hand over: each file's first rows come soon
+                    flush_s = min(FIRST_FILE_FLUSH_S, longest_flush_s)
+                elif now >= flushed_at + flush_s:
                     self.stream.flush()
                     flushed_at = now
+                    flush_s = min(2 * flush_s, longest_flush_s)
                 continue
             try:
                 self._next_file()
