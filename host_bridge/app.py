@@ -118,7 +118,7 @@ def log_urdf_file(robot: str, urdf: Path, dispatcher: Dispatcher) -> None:
     """The --urdf model of robot --robot, logged once (static) before any data; the robot's
     /robot_description is then not drawn."""
     from host_bridge.contract import ConvertContext
-    from host_bridge.converters.urdf import model_items_from_file
+    from host_bridge.converters.urdf.description import model_items_from_file
 
     ctx = ConvertContext(
         robot=robot, topic="/robot_description", entity_path=f"/{robot}/robot_model",

@@ -31,11 +31,11 @@ import numpy.typing as npt
 import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
-import rerun_bindings
 
 from host_bridge.contract import ColumnsItem, LogEntry, LogItem, RowsColumn
 from host_bridge.destinations import LOOPBACK, SinkOptions
 from host_bridge.errors import SinkError
+from host_bridge.rerun_private import column_values, log_row, native, set_times
 
 log = logging.getLogger("swanky.host")
 
@@ -298,11 +298,11 @@ def _rows(columns: Sequence[Any], count: int) -> list[_Row] | None:
             at = None
         else:
             break
-        cells = column.component_batch.as_arrow_array()
+        cells = column_values(column)
         at = [0, len(cells)] if at is None else at
         if len(at) != count + 1:
             break
-        spans.append((cells, at, column.descriptor))
+        spans.append((cells, at, column.component_descriptor()))
     else:
         return [{descriptor: cells.slice(at[row], at[row + 1] - at[row])
                  for cells, at, descriptor in spans} for row in range(count)]
@@ -509,7 +509,7 @@ class RerunSink:
         self._viewing, self._file = self._open(options)
         saving = None if self._file is None else self._file.stream
         self.streams = tuple(stream for stream in (self._viewing, saving) if stream is not None)
-        self._natives = [stream.to_native() for stream in self.streams]
+        self._natives = [native(stream) for stream in self.streams]
         self._pacer = (
             None if self._viewing is None or not self._viewers
             else _ViewerPacer(self._viewing, "; ".join(viewer.name for viewer in self._viewers))
@@ -649,10 +649,8 @@ class RerunSink:
     def _set_times(self, times: Mapping[str, int]) -> None:
         if times == getattr(self._local, "times", None):
             return
-        for native in self._natives:
-            rerun_bindings.reset_time(native)
-            for name, ns in times.items():
-                rerun_bindings.set_time_timestamp_nanos_since_epoch(name, ns, native)
+        for handle in self._natives:
+            set_times(handle, times)
         self._local.times = times
 
     def log(self, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
@@ -702,8 +700,8 @@ class RerunSink:
         # sixth of a live Imu's or TF's conversion and logging (Imu 515 -> 445-478 us, TF 450 -> 383).
         for row, components in enumerate(rows):
             self._set_times({name: int(values[row]) for name, values in times.items()})
-            for native in self._natives:
-                rerun_bindings.log_arrow_msg(path, components=components, static_=False, recording=native)
+            for handle in self._natives:
+                log_row(handle, path, components)
         return True
 
     def send_blueprint(self, blueprint: rrb.Blueprint) -> None:

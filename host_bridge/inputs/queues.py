@@ -189,7 +189,9 @@ class _Lane:
 
 
 @dataclass(slots=True)
-class _Robot:
+class _RobotLanes:
+    """One robot's two lanes (its small topics and its heavy ones) and their counts."""
+
     small: _Lane
     heavy: _Lane
     arrivals: int = 0
@@ -264,7 +266,7 @@ class RobotQueues:
         self.last_activity = time.monotonic()
         self.error: BaseException | None = None
         self._lock = threading.Lock()
-        self._robots: dict[str, _Robot] = {}
+        self._robots: dict[str, _RobotLanes] = {}
         self._handler: ItemDeliver | None = None
         self._closing = False
 
@@ -281,7 +283,7 @@ class RobotQueues:
         with self._lock:
             robot = self._robots.get(name)
             if robot is None:
-                robot = self._robots[name] = _Robot(
+                robot = self._robots[name] = _RobotLanes(
                     _Lane(self._lock, f"robot-{name}", heavy=False),
                     _Lane(self._lock, f"robot-{name}-heavy", heavy=True),
                 )
@@ -310,12 +312,12 @@ class RobotQueues:
                 kept.append(entry)
         lane.items = kept
 
-    def _fits(self, robot: _Robot, size: int) -> bool:
+    def _fits(self, robot: _RobotLanes, size: int) -> bool:
         """Whether one more item of ``size`` messages fits in ``robot``'s queue."""
         return (robot.messages + size <= self.max_per_robot
                 and robot.items < self.max_items_per_robot)
 
-    def _make_room(self, name: str, robot: _Robot, size: int) -> bool:
+    def _make_room(self, name: str, robot: _RobotLanes, size: int) -> bool:
         """Drop the oldest non-latched messages of a full queue until one more item of ``size``
         messages fits; False if it does not (all that waits is latched), unless the queue is
         empty."""
@@ -379,7 +381,7 @@ class RobotQueues:
                     if lane.items or lane.warnings:
                         self._start_worker(robot, lane)
 
-    def _start_worker(self, robot: _Robot, lane: _Lane) -> None:
+    def _start_worker(self, robot: _RobotLanes, lane: _Lane) -> None:
         if self._handler is None or lane.worker is not None:
             return
         lane.worker = threading.Thread(
@@ -388,7 +390,7 @@ class RobotQueues:
         )
         lane.worker.start()
 
-    def _work(self, robot: _Robot, lane: _Lane, handler: ItemDeliver) -> None:
+    def _work(self, robot: _RobotLanes, lane: _Lane, handler: ItemDeliver) -> None:
         if lane.heavy:
             _run_nicer(HEAVY_NICENESS)
         while True:

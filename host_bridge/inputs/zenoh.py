@@ -126,7 +126,10 @@ def _defined(item: RawMessage | MessageRun, info: TopicInfo) -> RawMessage | Mes
     )
 
 
-class _Robot:
+class _RobotCatalog:
+    """What the input knows of one robot's catalog: its topics, the samples waiting for it, the
+    fetch under way."""
+
     def __init__(self) -> None:
         self.topics: dict[str, TopicInfo] | None = None
         # Samples waiting for the robot's catalog: its first, or a newer one when a sample's
@@ -153,7 +156,7 @@ class ZenohInput:
         self.refused: dict[tuple[str, str], int] = {}
         """Messages per (robot, topic) refused because they claimed another type than the
         robot's catalog announces for the topic."""
-        self._robots: dict[str, _Robot] = {}
+        self._robots: dict[str, _RobotCatalog] = {}
         self._lock = threading.Lock()
         self._closed = threading.Event()
         self._subscriber = ext.declare_advanced_subscriber(
@@ -174,7 +177,7 @@ class ZenohInput:
         self.queues.put(RobotEvent(robot, joined, "swanky relay"))
         if joined:
             with self._lock:
-                state = self._robots.setdefault(robot, _Robot())
+                state = self._robots.setdefault(robot, _RobotCatalog())
                 # A restarted relay may bring other topics or definitions: its samples wait
                 # for the new catalog. (Not on leaving: its last samples may still arrive.)
                 state.topics = None
@@ -223,7 +226,7 @@ class ZenohInput:
     def _route(self, raw: RawMessage | MessageRun) -> None:
         fetch_after: float | None = None
         with self._lock:
-            state = self._robots.setdefault(raw.robot, _Robot())
+            state = self._robots.setdefault(raw.robot, _RobotCatalog())
             if state.topics is None:
                 self._hold(state, raw)
                 if not state.fetching:
@@ -246,7 +249,7 @@ class ZenohInput:
         if fetch_after is not None:
             self._fetch_catalog(raw.robot, fetch_after)
 
-    def _hold(self, state: _Robot, raw: RawMessage | MessageRun) -> None:
+    def _hold(self, state: _RobotCatalog, raw: RawMessage | MessageRun) -> None:
         """Keep ``raw`` until its robot's catalog comes (lock held); counted in ``dropped``
         past :data:`MAX_PENDING_PER_ROBOT`."""
         if len(state.pending) < MAX_PENDING_PER_ROBOT:
@@ -281,7 +284,7 @@ class ZenohInput:
         """Ask ``robot``'s relay for its catalog in ``after`` seconds, unless a fetch is under
         way."""
         with self._lock:
-            state = self._robots.setdefault(robot, _Robot())
+            state = self._robots.setdefault(robot, _RobotCatalog())
             if state.fetching:
                 return
             state.fetching = True
