@@ -434,25 +434,31 @@ class StatsTap:
         host_ns = self._clock()
         with self._lock:
             closed = self.tracker.observe_batch(batch, host_ns)
-            items = topic_stats_items(closed, self.tracker.period_ns)
-            while self._reports:
-                items += self._rates.items(self._reports.popleft())
-            while self._estimates:
-                items += clock_items(*self._estimates.popleft())
+            items = topic_stats_items(closed, self.tracker.period_ns) + self._received_items()
         if items:
             self.sink.log(items, {})
 
+    def _received_items(self) -> list[LogItem]:
+        """What came from the relays meanwhile, their reports and clocks (lock held)."""
+        items: list[LogItem] = []
+        while self._reports:
+            items += self._rates.items(self._reports.popleft())
+        while self._estimates:
+            items += clock_items(*self._estimates.popleft())
+        return items
+
     def close(self) -> None:
-        """Stop taking the relays' reports; log the host drops of the periods still open (the
-        input is closed first, so its queues are drained)."""
+        """Stop taking the relays' reports; log those still waiting, the clock estimates since
+        the last run, and the host drops of the periods still open (the input is closed first,
+        so its queues are drained)."""
         if self._subscriber is not None:
             self._subscriber.undeclare()
             self._subscriber = None
         with self._lock:
-            last = self.tracker.host_drops_at_stop()
-        if last:
-            self.sink.log([
+            items = self._received_items() + [
                 LogItem(f"{STATS_ROOT}/{d.robot}{d.topic}/host_drops",
                         (rr.Scalars(float(d.count)),), times={d.timeline: d.end_ns})
-                for d in last
-            ], {})
+                for d in self.tracker.host_drops_at_stop()
+            ]
+        if items:
+            self.sink.log(items, {})

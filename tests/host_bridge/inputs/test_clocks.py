@@ -11,15 +11,24 @@ from collections.abc import Callable, Iterator
 import pytest
 import zenoh
 
-from host_bridge.errors import ClockOffsetError
+from host_bridge.errors import ClockOffsetError, NoClockError
 from host_bridge.inputs.base import InputProblem
 from host_bridge.inputs.clocks import QUERY_PERIOD_S, ClockEstimate
 from host_bridge.inputs.queues import RobotQueues
 from host_bridge.inputs.zenoh import ZenohInput
 from robot_relay.relay import Relay
-from robot_relay.wire import Catalog, MessageDefinition, RawMessage, TopicInfo, clock_key
+from robot_relay.wire import (
+    Attachment,
+    Catalog,
+    MessageDefinition,
+    RawMessage,
+    TopicInfo,
+    alive_key,
+    cdr_encoding,
+    clock_key,
+)
 from tests.host_bridge.inputs.received import TIMEOUT_S, Received
-from tests.host_bridge.inputs.test_zenoh import messages, string_cdr
+from tests.host_bridge.inputs.test_zenoh import messages, publisher, serve_catalog, string_cdr
 
 STRING = "std_msgs/msg/String"
 CHAT = TopicInfo("/chat", STRING, MessageDefinition("ros2msg", "string data"))
@@ -137,3 +146,36 @@ def test_a_step_of_the_relays_clock_is_followed_at_its_next_sample(
     later = messages(items)[-1]
     assert later.receive_ns is not None
     assert before <= later.receive_ns <= after
+
+
+def test_a_relay_that_does_not_answer_the_clock_query_is_said_once_and_left_uncorrected(
+    sessions: tuple[zenoh.Session, zenoh.Session], queues: RobotQueues
+) -> None:
+    """A relay older than the clock query: its samples come at once, their receive times as
+    the relay sent them."""
+    host, robot = sessions
+    received = Received()
+    queues.serve(received.take)
+    queryable = serve_catalog(robot, host, "old")
+    token = robot.liveliness().declare_token(alive_key("old"))
+    source = ZenohInput(host, queues=queues)
+    try:
+        chat = publisher(robot, "old", "/chat")
+        for sequence in range(3):
+            chat.put(string_cdr("hi"), encoding=cdr_encoding(STRING),
+                     attachment=Attachment(sequence, 1_000 + sequence).pack())
+        items = received.wait_for(lambda items: len(messages(items)) >= 3)
+        offset = source.clocks.offset_ns("old")
+    finally:
+        source.close()
+        token.undeclare()
+        queryable.undeclare()
+    assert [m.receive_ns for m in messages(items)] == [1_000, 1_001, 1_002]
+    assert offset == 0
+    (problem,) = [item for item in items if isinstance(item, InputProblem)]
+    assert (problem.robot, problem.topic) == ("old", clock_key("old"))
+    assert isinstance(problem.error, NoClockError)
+    assert str(problem.error) == (
+        "robot old's relay does not answer the clock query (swanky/old/clock; a relay older than "
+        "this host?): its receive_time and latency_ms stay on its own clock, uncorrected"
+    )
