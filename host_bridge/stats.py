@@ -1,8 +1,9 @@
 """Link and pipeline health as Rerun data, so a plot shows whether the Wi-Fi or the PC is the
 bottleneck.
 
-Once per second of each robot's clock (the relay's receive time live; the bag's log time when
-``--stats`` is asked for an offline conversion), for every topic of that robot:
+Once per second of each robot's receive time (live: the relay's, on the PC's clock, see
+inputs/clocks.py; the bag's log time when ``--stats`` is asked for an offline conversion), for
+every topic of that robot:
 
 - ``/_stats/<robot><topic>/rate_hz``: messages that reached the host, per second;
 - ``.../bandwidth_kbps``: their CDR bytes (after wire decompression), kbit/s;
