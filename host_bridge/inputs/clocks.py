@@ -104,20 +104,23 @@ class ClockEstimate:
     jumped: bool = False
 
 
+def bound_ns(sample: ClockSample, now_ns: int) -> int:
+    """How far the truth may be from ``sample``'s offset at ``now_ns``: half its round trip,
+    plus what :data:`MAX_DRIFT` may have added since."""
+    half_round_trip = (sample.round_trip_ns + 1) // 2  # up: the offset was rounded down
+    return half_round_trip + round(MAX_DRIFT * (now_ns - sample.answered_ns))
+
+
 class ClockEstimator:
     """The offset of one relay's clock from samples (the module's doc); pure."""
 
-    def __init__(self, window: int = WINDOW, max_drift: float = MAX_DRIFT) -> None:
-        self._samples: collections.deque[ClockSample] = collections.deque(maxlen=window)
-        self._max_drift = max_drift
+    def __init__(self) -> None:
+        self._samples: collections.deque[ClockSample] = collections.deque(maxlen=WINDOW)
         self.estimate: ClockEstimate | None = None
 
-    def _bound(self, sample: ClockSample, now_ns: int) -> int:
-        return sample.round_trip_ns // 2 + round(self._max_drift * (now_ns - sample.answered_ns))
-
     def _best(self, now_ns: int) -> tuple[ClockSample, int]:
-        best = min(self._samples, key=lambda sample: self._bound(sample, now_ns))
-        return best, self._bound(best, now_ns)
+        best = min(self._samples, key=lambda sample: bound_ns(sample, now_ns))
+        return best, bound_ns(best, now_ns)
 
     def add(self, sample: ClockSample) -> ClockEstimate | None:
         """The estimate with ``sample``; None (the sample ignored) when its round trip is
@@ -129,7 +132,7 @@ class ClockEstimator:
         if self._samples:
             best, bound = self._best(now)
             jumped = (abs(sample.offset_ns - best.offset_ns)
-                      > sample.round_trip_ns // 2 + bound + JUMP_MARGIN_NS)
+                      > bound_ns(sample, now) + bound + JUMP_MARGIN_NS)
             if jumped:
                 self._samples.clear()
         self._samples.append(sample)
@@ -259,6 +262,7 @@ class RelayClocks:
         queries = BURST
         answered = False
         while not follower.stop.is_set():
+            follower.wake.clear()  # before asking: a prompt that comes meanwhile asks again
             sample = self._ask(follower)
             estimate = None if sample is None else follower.estimator.add(sample)
             if estimate is not None:
@@ -278,7 +282,6 @@ class RelayClocks:
             if follower.ready.is_set() and current is not None and abs(current.offset_ns) > FAR_OFF_NS:
                 self._say(follower.robot, far_off(follower.robot, current))
             follower.wake.wait(BURST_SPACING_S if queries > 0 else QUERY_PERIOD_S)
-            follower.wake.clear()
 
     def _ask(self, follower: _Follower) -> ClockSample | None:
         """One round trip; None when unanswered (a reply that is no clock reading is said once,
