@@ -176,7 +176,7 @@ def open_input(
     if options.stats is not False:
         stats: RawOutput = StatsTap(
             dispatcher.sink, dispatcher.counters, session=session, robots=robots,
-            host_dropped=live.queues.dropped_when_taken,
+            host_dropped=live.queues.dropped_when_taken, clocks=live.clocks,
         )
         dispatcher.taps.append(stats)
         closing.callback(stats.close)  # after the input's: its queues' last drops are counted
