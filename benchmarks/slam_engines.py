@@ -161,9 +161,11 @@ class Inputs:
     """The odometry's motion since the previous scan (None for the first, or without odometry)."""
     max_range: float
     """What the engines are told of the laser's reach (ours: its ``max_range`` setting too)."""
+    kiss_voxel: float | None = None
+    """KISS-ICP's voxel in metres (None: its own rule, max_range / 100)."""
 
 
-def inputs_of(data: LaserData) -> Inputs:
+def inputs_of(data: LaserData, kiss_voxel: float | None = None) -> Inputs:
     from host_bridge.slam.pose import between, to_matrix
     from host_bridge.slam.scan import scan_from_ranges
     from host_bridge.slam.settings import SlamSettings
@@ -177,7 +179,7 @@ def inputs_of(data: LaserData) -> Inputs:
     steps: list[FloatArray | None] = [None] * len(scans)
     if data.odom is not None:
         steps[1:] = [between(a, b) for a, b in itertools.pairwise(data.odom)]
-    return Inputs(data, scans, points, steps, max_range)
+    return Inputs(data, scans, points, steps, max_range, kiss_voxel)
 
 
 @dataclass(frozen=True, slots=True)
@@ -222,14 +224,16 @@ def ours(odometry: bool, loops: bool) -> Callable[[Inputs], Runner]:
 
 
 def kiss_odometry_config(inputs: Inputs) -> dict[str, Any]:
-    """KISS-ICP's defaults for this laser: its voxel is max_range / 100 (``load_config``); no
+    """KISS-ICP's defaults for this laser: its voxel is max_range / 100 (``load_config``; or
+    ``--kiss-voxel``); no
     minimum range (its default, 0, kept: a 5 m one is the suggestion for cars); no deskewing (the
     scans carry no per-point times); one thread."""
     config = importlib.import_module("kiss_icp.config.config")
     return {
         "data": config.DataConfig(max_range=inputs.max_range, min_range=0.0, deskew=False),
         "registration": config.RegistrationConfig(max_num_threads=1),
-        "mapping": config.MappingConfig(voxel_size=inputs.max_range / 100.0),
+        "mapping": config.MappingConfig(
+            voxel_size=inputs.max_range / 100.0 if inputs.kiss_voxel is None else inputs.kiss_voxel),
     }
 
 
@@ -333,10 +337,10 @@ def status_mb(key: str) -> float:
     raise RuntimeError(msg)
 
 
-def run_case(data_path: Path, engine_name: str) -> dict[str, Any]:
+def run_case(data_path: Path, engine_name: str, kiss_voxel: float | None) -> dict[str, Any]:
     """One engine on one log, in a process of its own (so its peak RSS is its own)."""
     engine = next(e for e in ENGINES if e.name == engine_name)
-    inputs = inputs_of(LaserData.load(data_path))
+    inputs = inputs_of(LaserData.load(data_path), kiss_voxel)
     before = status_mb("VmRSS")
     run = engine.setup(inputs)
     started = time.process_time()
@@ -347,14 +351,17 @@ def run_case(data_path: Path, engine_name: str) -> dict[str, Any]:
             "rss_growth_mb": peak - before}
 
 
-def measured(data_path: Path, engine: Engine) -> dict[str, Any] | str:
+def measured(data_path: Path, engine: Engine, kiss_voxel: float | None) -> dict[str, Any] | str:
     """The case's figures, or why there are none."""
     with tempfile.TemporaryDirectory(prefix="slam-engine-") as tmp:
         out = Path(tmp) / "case.json"
+        command = [sys.executable, str(Path(__file__).resolve()), "--case", str(data_path), engine.name,
+                   str(out)]
+        if kiss_voxel is not None:
+            command += ["--kiss-voxel", str(kiss_voxel)]
         try:
-            done = subprocess.run(
-                [sys.executable, str(Path(__file__).resolve()), "--case", str(data_path), engine.name,
-                 str(out)], cwd=ROOT, capture_output=True, text=True, timeout=CASE_TIMEOUT_S, check=False)
+            done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True,
+                                  timeout=CASE_TIMEOUT_S, check=False)
         except subprocess.TimeoutExpired:
             return f"stopped after {CASE_TIMEOUT_S:.0f} s"
         if done.returncode != 0 or not out.exists():
@@ -560,24 +567,24 @@ def main() -> None:
     parser.add_argument("--case", nargs=3, metavar=("DATA", "ENGINE", "OUT"), help=argparse.SUPPRESS)
     parser.add_argument("--logs", nargs="*", default=[log.name for log in LOGS],
                         choices=[log.name for log in LOGS], help="the logs to map (default: all)")
+    parser.add_argument("--kiss-voxel", type=float, default=None, metavar="METRES",
+                        help="KISS-ICP's and KISS-SLAM's voxel (default: theirs, max range / 100)")
     args = parser.parse_args()
     if args.case:
         data, name, out = args.case
-        Path(out).write_text(json.dumps(run_case(Path(data), name)))
+        Path(out).write_text(json.dumps(run_case(Path(data), name, args.kiss_voxel)))
         return
     print(f"load average (1, 5, 15 min) at the start: {' '.join(f'{v:.2f}' for v in os.getloadavg())}",
           flush=True)
-    print("installed size, MB (with every dependency; in brackets what [host] does not install already):")
-    for engine in ENGINES:
-        weight = install_weight(engine.distributions)
+    print("installed size, MB, with every dependency (in brackets: what [host] does not install already)")
+    for distributions in dict.fromkeys(e.distributions for e in ENGINES if e.distributions):
+        weight = install_weight(distributions)
         shown = "not installed" if weight is None else f"{weight[0]:7.1f} ({weight[1]:6.1f})"
-        listed = " + ".join(engine.distributions) or "nothing"
-        if engine.distributions or engine.name == "odometry alone":
-            print(f"  {engine.name:<17} {listed:<20} {shown}")
-    for engine in ENGINES:
-        if absent := missing(engine):
-            print(f"  {engine.name}: skipped, {', '.join(absent)} not installed "
-                  f"(pip install {' '.join(engine.distributions)})")
+        print(f"  {' + '.join(distributions):<20} {shown}")
+        users = [e for e in ENGINES if e.distributions == distributions]
+        if absent := sorted({m for e in users for m in missing(e)}):
+            print(f"    skipped: {', '.join(e.name for e in users)} ({', '.join(absent)} not importable; "
+                  f"pip install {' '.join(distributions)})")
     with tempfile.TemporaryDirectory(prefix="slam-engines-") as tmp:
         for log in LOGS:
             if log.name not in args.logs:
@@ -588,7 +595,7 @@ def main() -> None:
             data = log.make()
             path = Path(tmp) / f"{log.name}.npz"
             data.save(path)
-            inputs = inputs_of(data)
+            inputs = inputs_of(data, args.kiss_voxel)
             truly = ("" if data.truth is None else
                      f", ending {np.hypot(*(data.truth[-1, :2] - data.truth[0, :2])):.2f} m from its start")
             print(f"{log.name}: {log.describe}; {len(data.ranges)} scans{truly}", flush=True)
@@ -598,7 +605,7 @@ def main() -> None:
             for engine in ENGINES:
                 if missing(engine) or (engine.odometry and data.odom is None):
                     continue
-                found = measured(path, engine)
+                found = measured(path, engine, args.kiss_voxel)
                 if isinstance(found, str):
                     rows.append((engine, found))
                 else:
