@@ -205,6 +205,7 @@ def ours(odometry: bool, loops: bool) -> Callable[[Inputs], Runner]:
         from host_bridge.slam.engine import Slam
         from host_bridge.slam.settings import SlamSettings
 
+        # Loaded here, not in the first scan's add: the import counts in RSS, not in CPU.
         importlib.import_module("gtsam")
         importlib.import_module("small_gicp")
         settings = SlamSettings(enabled=True)
@@ -225,9 +226,8 @@ def ours(odometry: bool, loops: bool) -> Callable[[Inputs], Runner]:
 
 def kiss_odometry_config(inputs: Inputs) -> dict[str, Any]:
     """KISS-ICP's defaults for this laser: its voxel is max_range / 100 (``load_config``; or
-    ``--kiss-voxel``); no
-    minimum range (its default, 0, kept: a 5 m one is the suggestion for cars); no deskewing (the
-    scans carry no per-point times); one thread."""
+    ``--kiss-voxel``); no minimum range (its default, 0, kept: a 5 m one is the suggestion for
+    cars); no deskewing (the scans carry no per-point times); one thread."""
     config = importlib.import_module("kiss_icp.config.config")
     return {
         "data": config.DataConfig(max_range=inputs.max_range, min_range=0.0, deskew=False),
@@ -311,16 +311,16 @@ class Engine:
     """What to install: named when missing, and weighed."""
 
 
-OURS_DISTRIBUTIONS = ("small-gicp", "gtsam")
+def our_engine(name: str, odometry: bool, loops: bool) -> Engine:
+    return Engine(name, ours(odometry, loops), odometry, ("small_gicp", "gtsam"), ("small-gicp", "gtsam"))
+
+
 ENGINES = (
     Engine("odometry alone", odometry_alone, False),
-    Engine("ours", ours(odometry=True, loops=True), True, ("small_gicp", "gtsam"), OURS_DISTRIBUTIONS),
-    Engine("ours, no loops", ours(odometry=True, loops=False), True, ("small_gicp", "gtsam"),
-           OURS_DISTRIBUTIONS),
-    Engine("ours, scan only", ours(odometry=False, loops=True), False, ("small_gicp", "gtsam"),
-           OURS_DISTRIBUTIONS),
-    Engine("ours, scan, no loops", ours(odometry=False, loops=False), False, ("small_gicp", "gtsam"),
-           OURS_DISTRIBUTIONS),
+    our_engine("ours", odometry=True, loops=True),
+    our_engine("ours, no loops", odometry=True, loops=False),
+    our_engine("ours, scan only", odometry=False, loops=True),
+    our_engine("ours, scan, no loops", odometry=False, loops=False),
     Engine("kiss-icp + odom", kiss_icp(odometry=True), True, ("kiss_icp",), ("kiss-icp",)),
     Engine("kiss-icp", kiss_icp(odometry=False), False, ("kiss_icp",), ("kiss-icp",)),
     Engine("kiss-slam", kiss_slam, False, ("kiss_slam", "map_closures", "open3d"), ("kiss-slam",)),
