@@ -265,7 +265,9 @@ class Turns:
 
 
 @dataclass(slots=True)
-class _Robot:
+class _RobotLanes:
+    """One robot's two lanes (its small topics and its heavy ones) and their counts."""
+
     small: _Lane
     heavy: _Lane
     arrivals: int = 0
@@ -341,7 +343,7 @@ class RobotQueues:
         self.last_activity = time.monotonic()
         self.error: BaseException | None = None
         self._lock = threading.Lock()
-        self._robots: dict[str, _Robot] = {}
+        self._robots: dict[str, _RobotLanes] = {}
         self._small_turns = Turns(self._lock, small_turns)
         self._heavy_turns = Turns(self._lock, 1)
         self._thinning_said = False
@@ -361,7 +363,7 @@ class RobotQueues:
         with self._lock:
             robot = self._robots.get(name)
             if robot is None:
-                robot = self._robots[name] = _Robot(
+                robot = self._robots[name] = _RobotLanes(
                     _Lane(self._lock, f"robot-{name}", self._small_turns, heavy=False),
                     _Lane(self._lock, f"robot-{name}-heavy", self._heavy_turns, heavy=True),
                 )
@@ -390,12 +392,12 @@ class RobotQueues:
                 kept.append(entry)
         lane.items = kept
 
-    def _fits(self, robot: _Robot, size: int) -> bool:
+    def _fits(self, robot: _RobotLanes, size: int) -> bool:
         """Whether one more item of ``size`` messages fits in ``robot``'s queue."""
         return (robot.messages + size <= self.max_per_robot
                 and robot.items < self.max_items_per_robot)
 
-    def _make_room(self, name: str, robot: _Robot, size: int) -> bool:
+    def _make_room(self, name: str, robot: _RobotLanes, size: int) -> bool:
         """Drop the oldest non-latched messages of a full queue until one more item of ``size``
         messages fits; False if it does not (all that waits is latched), unless the queue is
         empty."""
@@ -482,7 +484,7 @@ class RobotQueues:
                     if lane.items or lane.warnings:
                         self._start_worker(robot, lane)
 
-    def _start_worker(self, robot: _Robot, lane: _Lane) -> None:
+    def _start_worker(self, robot: _RobotLanes, lane: _Lane) -> None:
         if self._handler is None or lane.worker is not None:
             return
         lane.worker = threading.Thread(
@@ -491,7 +493,7 @@ class RobotQueues:
         )
         lane.worker.start()
 
-    def _work(self, robot: _Robot, lane: _Lane, handler: ItemDeliver) -> None:
+    def _work(self, robot: _RobotLanes, lane: _Lane, handler: ItemDeliver) -> None:
         if lane.heavy:
             _run_nicer(HEAVY_NICENESS)
         while True:
