@@ -348,6 +348,7 @@ def check_fleet_recording(mcap: Path, robots: tuple[str, ...], imported: Path) -
     with mcap.open("rb") as f:
         summary = make_reader(f).get_summary()
     assert summary is not None
+    assert summary.statistics is not None
     channels = {(c.metadata["swanky.robot"], c.metadata["swanky.topic"]): c.topic
                 for c in summary.channels.values()}
     assert channels == {(robot, spec.topic): f"/{robot}{spec.topic}"
