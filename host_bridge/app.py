@@ -118,7 +118,7 @@ def log_urdf_file(robot: str, urdf: Path, dispatcher: Dispatcher) -> None:
     """The --urdf model of robot --robot, logged once (static) before any data; the robot's
     /robot_description is then not drawn."""
     from host_bridge.contract import ConvertContext
-    from host_bridge.converters.urdf import model_items_from_file
+    from host_bridge.converters.urdf.description import model_items_from_file
 
     ctx = ConvertContext(
         robot=robot, topic="/robot_description", entity_path=f"/{robot}/robot_model",
@@ -176,7 +176,7 @@ def open_input(
     if options.stats is not False:
         stats: RawOutput = StatsTap(
             dispatcher.sink, dispatcher.counters, session=session, robots=robots,
-            host_dropped=live.queues.dropped_when_taken,
+            host_dropped=live.queues.dropped_when_taken, clocks=live.clocks,
         )
         dispatcher.taps.append(stats)
         closing.callback(stats.close)  # after the input's: its queues' last drops are counted
@@ -263,7 +263,7 @@ def run(
     if options.record_mcap is not None:
         recorder: RawOutput = McapRecorder(options.record_mcap, prefix_robot=may_hold_several_robots(
             bag=options.bag is not None,
-            demo=demo is not None and len(demo.robots) == 1,
+            demo_robots=None if demo is None else len(demo.robots),
             robots=options.robots))
         outputs.recorder = recorder
         dispatcher.taps.append(recorder)

@@ -62,8 +62,9 @@ _WILDCARDS = re.compile(r"[*?\[]")
 
 
 @dataclass(frozen=True, slots=True)
-class TopicSettings:
-    """What the dispatcher does with one topic of one robot.
+class TopicConfig:
+    """What the host configuration says of one topic of one robot (of one type), every entry
+    that applies merged: what the dispatcher does with it.
 
     ``options`` are what the converter reads (``ctx.options``); the ``converter`` choice is in
     them as ``mode``, the option the converters with alternatives already read. ``problems``
@@ -179,7 +180,7 @@ class HostConfig:
         self._topic_keys: list[_TopicKey] = []
         self._rules: dict[str, _TypeRules] = {}
         self._slam: Mapping[str, Any] = data.get("slam", {})
-        self._cache: dict[tuple[str, str, str], TopicSettings] = {}
+        self._cache: dict[tuple[str, str, str], TopicConfig] = {}
         self._reported: set[str] = set()
         self._check()
 
@@ -334,7 +335,7 @@ class HostConfig:
         ))
         return [self._defaults, *types, *(self._topic_layers[key.key] for key in matching)]
 
-    def resolve(self, robot: str, topic: str, msgtype: str) -> TopicSettings:
+    def resolve(self, robot: str, topic: str, msgtype: str) -> TopicConfig:
         """The settings of one topic, merged from every applying entry (cached)."""
         key = (robot, topic, msgtype)
         settings = self._cache.get(key)
@@ -342,7 +343,7 @@ class HostConfig:
             settings = self._cache[key] = self._resolve(robot, topic, msgtype)
         return settings
 
-    def _resolve(self, robot: str, topic: str, msgtype: str) -> TopicSettings:
+    def _resolve(self, robot: str, topic: str, msgtype: str) -> TopicConfig:
         merged: dict[str, Any] = {}
         options: dict[str, Any] = {}
         problems: list[str] = []
@@ -356,7 +357,7 @@ class HostConfig:
         converter = merged.get("converter")
         if converter is not None:
             options["mode"] = converter
-        return TopicSettings(
+        return TopicConfig(
             entity_path=merged.get("entity_path", DEFAULT_ENTITY_PATH).format(robot=robot, topic=topic),
             enabled=merged.get("enabled", True),
             converter=converter,

@@ -65,15 +65,16 @@ class Offload(Protocol):
     """Converts some topics' runs elsewhere, counting them in their counters (offload.py)."""
 
     def takes(self, raw: RawMessage) -> bool: ...
-    def convert(self, run: Sequence[RawMessage], topic: TopicSettings, counters: TopicCounters) -> None: ...
+    def convert(self, run: Sequence[RawMessage], topic: TopicBinding, counters: TopicCounters) -> None: ...
     def close(self) -> None: ...
 
 
 @dataclass(frozen=True, slots=True)
-class TopicSettings:
-    """How a topic's messages of one type are converted, from the host configuration: where
-    they are logged, their options' state, whether they are converted at all, and whether
-    ros_time is their arrival time."""
+class TopicBinding:
+    """A topic bound to one type of message (see ``Dispatcher._bind``): how its messages of that
+    type are converted, from the host configuration (``config.TopicConfig``): where they are
+    logged, their options' state, whether they are converted at all, and whether ros_time is
+    their arrival time."""
 
     msgtype: str
     entity_path: str
@@ -93,14 +94,14 @@ made-up type names costs no memory."""
 class _TopicTypes:
     """A topic's settings per type of message it came with."""
 
-    current: TopicSettings
+    current: TopicBinding
     """The type of its last message."""
-    earlier: dict[str, TopicSettings] = field(default_factory=dict)
+    earlier: dict[str, TopicBinding] = field(default_factory=dict)
     """Its other types, least recently used first."""
 
 
 @dataclass(frozen=True, slots=True)
-class _Robot:
+class _RobotConversion:
     """What the host keeps per robot: the state its converters share, and its frame tree."""
 
     state: RobotState
@@ -172,20 +173,20 @@ class Dispatcher:
         self._retyping = threading.Lock()
         # Finds mesh files for every robot (each robot's own relay for what is missing here).
         self._resolver = resolver or ResourceResolver.from_env()
-        self._robots: dict[str, _Robot] = {}
+        self._robots: dict[str, _RobotConversion] = {}
         self._robots_lock = threading.Lock()
         self._warned: set[tuple[str, str, str]] = set()
         self._slow = _SlowWorker(self, self.registry.slow_converters())
         self.offload: Offload | None = None
         """Where heavy topics are converted when not here (offload.py's process)."""
 
-    def _robot(self, robot: str) -> _Robot:
+    def _robot(self, robot: str) -> _RobotConversion:
         # The slow converters' thread logs for robots too.
         with self._robots_lock:
             found = self._robots.get(robot)
             if found is None:
                 state = RobotState(resolver=self._resolver.for_robot(robot))
-                found = self._robots[robot] = _Robot(state, RobotFrames(robot))
+                found = self._robots[robot] = _RobotConversion(state, RobotFrames(robot))
             return found
 
     def robot_state(self, robot: str) -> RobotState:
@@ -223,14 +224,14 @@ class Dispatcher:
             if updates:
                 self.sink.log(updates, {})
 
-    def _topic(self, robot: str, name: str, msgtype: str) -> TopicSettings:
+    def _topic(self, robot: str, name: str, msgtype: str) -> TopicBinding:
         """The settings ``robot``'s topic ``name`` converts a message of ``msgtype`` with."""
         found = self._topics.get((robot, name))
         if found is not None and found.current.msgtype == msgtype:
             return found.current
         return self._bind(robot, name, msgtype)
 
-    def _bind(self, robot: str, name: str, msgtype: str) -> TopicSettings:
+    def _bind(self, robot: str, name: str, msgtype: str) -> TopicBinding:
         """Bind a topic to ``msgtype``: its first message, or one of another type than its last
         (a node moved from Twist to TwistStamped; a sender of garbage). Settings belong to the
         type, so a message of one type never has a later one of another converted with its
@@ -246,7 +247,7 @@ class Dispatcher:
             topic = None if found is None else found.earlier.pop(msgtype, None)
             if topic is None:
                 created = self.config.resolve(robot, name, msgtype)
-                topic = TopicSettings(msgtype, created.entity_path, TopicState(created.options),
+                topic = TopicBinding(msgtype, created.entity_path, TopicState(created.options),
                                       created.enabled, created.restamp)
             if found is None:
                 self._topics[key] = _TopicTypes(topic)
@@ -371,7 +372,7 @@ class Dispatcher:
             return
         self.convert_run(run, topic, counters)
 
-    def convert_run(self, run: Sequence[RawMessage], topic: TopicSettings, counters: TopicCounters) -> None:
+    def convert_run(self, run: Sequence[RawMessage], topic: TopicBinding, counters: TopicCounters) -> None:
         """Decode, convert and log a run of one enabled topic, counted in ``counters``."""
         first = run[0]
         spec = self.registry.get(first.msgtype, first.topic)
@@ -402,7 +403,7 @@ class Dispatcher:
             self._convert(decoded)
 
     def _convert_columns(
-        self, run: Sequence[RawMessage], topic: TopicSettings, spec: ConverterSpec, counters: TopicCounters
+        self, run: Sequence[RawMessage], topic: TopicBinding, spec: ConverterSpec, counters: TopicCounters
     ) -> bool:
         """Convert the run through its columns, no Python per message; False when the run needs
         the message path: columns refuse it (a payload rosbags would refuse: that path names it

@@ -62,6 +62,16 @@ class GraphError(HostError):
     """An rmw_zenoh key, liveliness token or attachment is not in a form rmw_zenoh produces."""
 
 
+class NoClockError(HostError):
+    """A relay does not answer the clock query (older than the host, or its answer is not a
+    clock reading): its receive times stay on its own clock."""
+
+
+class ClockOffsetError(HostError):
+    """A relay's clock is more than a second off the PC's (a Raspberry Pi without a real-time
+    clock or NTP); its receive times are corrected, its header stamps are not."""
+
+
 class RegistryError(HostError):
     """The converter registry was assembled wrongly (a type registered twice)."""
 

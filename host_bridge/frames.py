@@ -35,6 +35,7 @@ import pyarrow as pa
 import rerun as rr
 
 from host_bridge.contract import ColumnsItem, LogEntry, LogItem
+from host_bridge.rerun_private import column_values
 from host_bridge.state import RobotModel, RobotState, static_transform_path
 
 log = logging.getLogger("swanky.host")
@@ -75,8 +76,8 @@ def _column_values(columns: Iterable[Any]) -> dict[str, pa.Array]:
         name = column.component_descriptor().component
         if name in (_PARENT, _CHILD, _FRAME):
             # A ComponentColumn's rows span its whole batch: the batch is the values.
-            batch = column.component_batch if isinstance(column, rr.ComponentColumn) else None
-            found[name] = _flat(column.as_arrow_array()) if batch is None else batch.as_arrow_array()
+            found[name] = (column_values(column) if isinstance(column, rr.ComponentColumn)
+                           else _flat(column.as_arrow_array()))
     return found
 
 

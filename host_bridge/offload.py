@@ -63,7 +63,7 @@ from robot_relay.wire import MessageDefinition, RawMessage
 if TYPE_CHECKING:
     from host_bridge.contract import LogEntry
     from host_bridge.counters import TopicCounters
-    from host_bridge.dispatch import Dispatcher, TopicSettings
+    from host_bridge.dispatch import Dispatcher, TopicBinding
 
 log = logging.getLogger("swanky.host")
 
@@ -162,7 +162,7 @@ class HeavyProcess:
         """Whether ``raw``'s topic is converted in the child (while the child works)."""
         return self._problem is None and self._lanes(raw) is not Lane.SMALL
 
-    def convert(self, run: Sequence[RawMessage], topic: TopicSettings, counters: TopicCounters) -> None:
+    def convert(self, run: Sequence[RawMessage], topic: TopicBinding, counters: TopicCounters) -> None:
         """Convert ``run`` in the child, or here once the child is gone."""
         first = run[0]
         with self._lock:
@@ -184,7 +184,7 @@ class HeavyProcess:
         if outcome.error is not None:
             raise ConvertError(f"{first.topic}: {outcome.error}")
 
-    def _exchange(self, run: Sequence[RawMessage], topic: TopicSettings) -> Outcome | None:
+    def _exchange(self, run: Sequence[RawMessage], topic: TopicBinding) -> Outcome | None:
         """The child's outcome of ``run``; None (and ``_problem`` set) when it is gone."""
         first = run[0]
         key = (first.robot, first.topic, first.msgtype)
@@ -314,7 +314,7 @@ class _FrameNotes:
 def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool) -> int:
     from host_bridge.counters import TopicCounters
     from host_bridge.destinations import SinkOptions
-    from host_bridge.dispatch import Dispatcher, TopicSettings
+    from host_bridge.dispatch import Dispatcher, TopicBinding
     from host_bridge.errors import SinkError
     from host_bridge.sink import RerunSink
     from host_bridge.state import TopicState
@@ -340,7 +340,7 @@ def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool)
         connection.send(("failed", str(err)))
         return 1
     converter = Converter(sink, strict=strict)
-    topics: dict[tuple[str, str, str], TopicSettings] = {}
+    topics: dict[tuple[str, str, str], TopicBinding] = {}
     connection.send(("ready", None))
     while True:
         try:
@@ -354,7 +354,7 @@ def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool)
         key = (head.robot, head.topic, head.msgtype)
         if head.settings is not None:
             entity_path, options, restamp = head.settings
-            topics[key] = TopicSettings(head.msgtype, entity_path, TopicState(options), True, restamp)
+            topics[key] = TopicBinding(head.msgtype, entity_path, TopicState(options), True, restamp)
         counters = converter.counters[(head.robot, head.topic)] = TopicCounters(head.msgtype)
         outcome = Outcome()
         try:

@@ -11,10 +11,12 @@ indexes, CRCs): rosbags' writer would produce a rosbag2 directory (metadata.yaml
 wants every type registered in a typestore, while a bare MCAP only needs the definition text
 the catalog already carries.
 
-Topic names: when the recording may hold several robots (live input), each channel is named
-``/<robot><topic>`` (``/tb3/scan``), which is also the robot's Rerun entity path; a recording of
-one robot by construction (``--bag``, or ``--robots`` naming a single robot) keeps the ROS names.
-Every channel carries ``swanky.robot`` and ``swanky.topic`` metadata either way.
+Topic names: when the recording may hold several robots (live input whose ``--robots`` is not
+one name, a ``--demo`` of several robots), each channel is named ``/<robot><topic>``
+(``/tb3/scan``), which is also the robot's Rerun entity path: ``ros2 bag play`` and ``rerun mcap
+convert`` read channels by name, and would merge two robots' ``/scan``. A recording of one robot
+by construction (``--bag``, ``--robots`` naming a single robot, a one-robot ``--demo``) keeps the
+ROS names. Every channel carries ``swanky.robot`` and ``swanky.topic`` metadata either way.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO, Protocol
 
 from host_bridge.errors import RecorderError
-from robot_relay.wire import MessageDefinition, RawMessage
+from robot_relay.wire import ROBOT_NAME_PATTERN, MessageDefinition, RawMessage
 
 if TYPE_CHECKING:
     from rosbags.typesys.store import Typestore
@@ -46,9 +48,15 @@ class RawOutput(Protocol):
     def close(self) -> None: ...
 
 
-def may_hold_several_robots(*, bag: bool, demo: bool, robots: str) -> bool:
-    """Live input with a key expression that can match more than one robot."""
-    return not (bag or demo or robots.replace("-", "").replace("_", "").isalnum())
+def may_hold_several_robots(*, bag: bool, demo_robots: int | None, robots: str) -> bool:
+    """Whether the input may bring more than one robot: a demo of ``demo_robots`` (None: no
+    demo) when it has several, live input when its ``robots`` key chunk is not a single name.
+    With a demo, ``robots`` is the robot count, not a name, and is not read here."""
+    if bag:
+        return False
+    if demo_robots is not None:
+        return demo_robots > 1
+    return ROBOT_NAME_PATTERN.match(robots) is None
 
 
 def channel_topic(robot: str, topic: str, prefix_robot: bool) -> str:

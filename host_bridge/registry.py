@@ -175,11 +175,11 @@ def default_registry() -> Registry:
         scalars,
         services,
         tf,
-        urdf,
         video,
         vision,
         walls,
     )
+    from host_bridge.converters.urdf import description
     from host_bridge.options import (
         CostmapUpdateOptions,
         GenericOptions,
@@ -245,7 +245,7 @@ def default_registry() -> Registry:
         Row("visualization_msgs/msg/Marker", markers.MARKER, View.SPATIAL),
         Row("visualization_msgs/msg/MarkerArray", markers.MARKER_ARRAY, View.SPATIAL),
         # The robot: its model moves with the joints, which are also plotted.
-        Row("std_msgs/msg/String", urdf.SPEC, View.SPATIAL, topics=urdf.is_robot_description),
+        Row("std_msgs/msg/String", description.SPEC, View.SPATIAL, topics=description.is_robot_description),
         Row("sensor_msgs/msg/JointState", combine(joints.JOINT_STATE, scalars.JOINT_STATE),
             View.JOINTS),
         Row("trajectory_msgs/msg/JointTrajectory", joints.JOINT_TRAJECTORY, View.SPATIAL),

@@ -34,11 +34,11 @@ import numpy.typing as npt
 import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
-import rerun_bindings
 
 from host_bridge.contract import ColumnsItem, LogEntry, LogItem, RowsColumn
 from host_bridge.destinations import LOOPBACK, SinkOptions
 from host_bridge.errors import SinkError
+from host_bridge.rerun_private import NativeStream, column_values, log_row, native, set_times
 from host_bridge.viewer_lag import BATCHER_TICK_S, LaggingViewer, ViewerLag
 
 log = logging.getLogger("swanky.host")
@@ -85,6 +85,10 @@ SUSPEND_S = 5.0
 taking data (frozen, or its machine overloaded), and what it would be sent meanwhile would pile
 up in this process (Rerun's client holds up to 100 MiB, then blocks whoever logs, which would
 hold back the ``--save`` file and the other robots too)."""
+FIRST_FILE_FLUSH_S = 0.5
+"""A live file's first flush after its first data; each next one waits twice as long, up to
+LIVE_FILE_FLUSH_S: the robots' latched topics (model, map, /tf_static), which arrive first, are
+on disk within a second, for four more chunks per entity and file."""
 
 
 class Sink(Protocol):
@@ -224,11 +228,11 @@ def _rows(columns: Sequence[Any], count: int) -> list[_Row] | None:
             at = None
         else:
             break
-        cells = column.component_batch.as_arrow_array()
+        cells = column_values(column)
         at = [0, len(cells)] if at is None else at
         if len(at) != count + 1:
             break
-        spans.append((cells, at, column.descriptor))
+        spans.append((cells, at, column.component_descriptor()))
     else:
         return [{descriptor: cells.slice(at[row], at[row + 1] - at[row])
                  for cells, at, descriptor in spans} for row in range(count)]
@@ -343,19 +347,25 @@ class SavedFile:
             self._layout = send
 
     def _flush_and_split(self, split_s: float) -> None:
-        """Every LIVE_FILE_FLUSH_S (``split_s`` if shorter) hand the file what the batcher holds;
-        go on in the next file once this one has ``split_s`` seconds of data (its time starts
-        with its first data: a host waiting for robots makes no empty files)."""
+        """Hand the file what the batcher holds every LIVE_FILE_FLUSH_S (``split_s`` if shorter),
+        FIRST_FILE_FLUSH_S after a file's first data, then twice as long each time; go on in the
+        next file once this one has ``split_s`` seconds of data (its time starts with its first
+        data: a host waiting for robots makes no empty files)."""
         splitting = True
-        flush_s = min(LIVE_FILE_FLUSH_S, split_s)
+        longest_flush_s = min(LIVE_FILE_FLUSH_S, split_s)
+        flush_s = min(FIRST_FILE_FLUSH_S, longest_flush_s)
         flushed_at = time.monotonic()
-        # Woken ten times per split period: a file ends within a tenth of it of being due.
-        while not self._closing.wait(split_s / 10):
+        # Woken ten times per split period (and for the first flushes): a file ends within a
+        # tenth of it of being due.
+        while not self._closing.wait(min(split_s / 10, FIRST_FILE_FLUSH_S)):
             now, began = time.monotonic(), self.first_data_at
             if not splitting or began is None or now < began + split_s:
-                if now >= flushed_at + flush_s:
+                if began is None:  # nothing to hand over: each file's first rows come soon
+                    flush_s = min(FIRST_FILE_FLUSH_S, longest_flush_s)
+                elif now >= flushed_at + flush_s:
                     self.stream.flush()
                     flushed_at = now
+                    flush_s = min(2 * flush_s, longest_flush_s)
                 continue
             try:
                 self._next_file()
@@ -436,9 +446,9 @@ class RerunSink:
         self._viewing, self._file = self._open(options)
         saving = None if self._file is None else self._file.stream
         self.streams = tuple(stream for stream in (self._viewing, saving) if stream is not None)
-        self._natives = [stream.to_native() for stream in self.streams]
+        self._natives = [native(stream) for stream in self.streams]
         self._saved_streams = () if saving is None else (saving,)
-        self._saved_natives = [stream.to_native() for stream in self._saved_streams]
+        self._saved_natives = [native(stream) for stream in self._saved_streams]
         self.viewer_lag = self._measure_lag(options) if keep_up else None
         self._suspended_at: float | None = None
         self._suspending = threading.Lock()
@@ -584,7 +594,7 @@ class RerunSink:
         finally:
             self._local.saved_only = False
 
-    def _destinations(self) -> tuple[Sequence[rr.RecordingStream], Sequence[Any]]:
+    def _destinations(self) -> tuple[Sequence[rr.RecordingStream], Sequence[NativeStream]]:
         """The streams (and their native handles) temporal data goes to now: the file's, and
         the viewers' unless this thread is in :meth:`saved_only` or they stopped taking data."""
         if getattr(self._local, "saved_only", False) or self._viewers_suspended():
@@ -633,10 +643,8 @@ class RerunSink:
     def _set_times(self, times: Mapping[str, int]) -> None:
         if times == getattr(self._local, "times", None):
             return
-        for native in self._natives:
-            rerun_bindings.reset_time(native)
-            for name, ns in times.items():
-                rerun_bindings.set_time_timestamp_nanos_since_epoch(name, ns, native)
+        for handle in self._natives:
+            set_times(handle, times)
         self._local.times = times
 
     def log(self, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
@@ -670,7 +678,7 @@ class RerunSink:
             self._file.log_static(path, archetypes)
 
     def _log_rows(
-        self, natives: Sequence[Any], path: str, columns: Sequence[Any],
+        self, natives: Sequence[NativeStream], path: str, columns: Sequence[Any],
         times: Mapping[str, npt.NDArray[np.int64]],
     ) -> bool:
         """Log the columns of up to FEW_ROWS rows row by row (a ``log`` each: the same rows in
@@ -686,8 +694,8 @@ class RerunSink:
         # sixth of a live Imu's or TF's conversion and logging (Imu 515 -> 445-478 us, TF 450 -> 383).
         for row, components in enumerate(rows):
             self._set_times({name: int(values[row]) for name, values in times.items()})
-            for native in natives:
-                rerun_bindings.log_arrow_msg(path, components=components, static_=False, recording=native)
+            for handle in natives:
+                log_row(handle, path, components)
         return True
 
     def send_blueprint(self, blueprint: rrb.Blueprint) -> None:

@@ -1,8 +1,9 @@
 """Link and pipeline health as Rerun data, so a plot shows whether the Wi-Fi or the PC is the
 bottleneck.
 
-Once per second of each robot's clock (the relay's receive time live; the bag's log time when
-``--stats`` is asked for an offline conversion), for every topic of that robot:
+Once per second of each robot's receive time (live: the relay's, on the PC's clock, see
+inputs/clocks.py; the bag's log time when ``--stats`` is asked for an offline conversion), for
+every topic of that robot:
 
 - ``/_stats/<robot><topic>/rate_hz``: messages that reached the host, per second;
 - ``.../bandwidth_kbps``: their CDR bytes (after wire decompression), kbit/s;
@@ -21,22 +22,28 @@ Once per second of each robot's clock (the relay's receive time live; the bag's 
 - ``/_stats/<robot>/relay/cpu_percent`` (% of one core), ``sent_hz``, ``sent_kbps``: the
   relay's own report (``swanky/<robot>/stats``), to compare what was sent with what arrived;
 - ``/_stats/<robot><topic>/ros_drops``: messages the relay saw lost between the ROS publisher
-  and itself (publication sequence gaps) since its previous report, for topics with any.
+  and itself (publication sequence gaps) since its previous report, for topics with any;
+- ``/_stats/<robot>/clock/offset_ms``, ``uncertainty_ms`` (live): the relay's clock minus the
+  PC's, and how far the truth may lie from it, at each measurement (inputs/clocks.py).
 
 Not from this tap, on the host's wall clock (thinning.py): ``/_stats/host/viewer_lag_ms``, how far
 behind the viewers are, and ``/_stats/<robot><topic>/viewer_thinned``, the heavy messages they
 were not sent, each second.
 
-Latency compares two clocks: it is only meaningful when robot and PC are synchronised (chrony /
-NTP). An offset shows as a constant shift of every topic's latency (negative when the robot's
-clock is ahead); congestion shows as latency that grows with bandwidth, together with drops or
-``sent_hz`` above ``rate_hz``. A saturated PC shows as ``convert_load_percent`` near 100 instead.
+Latency compares two clocks: the relay's receive times come corrected by the measured offset
+(inputs/zenoh.py), so latency is right within the offset's uncertainty whether or not robot and
+PC are synchronised; a relay that does not answer the clock query is not corrected, and its
+clock's offset shows as a constant shift of every topic's latency (negative when the robot's
+clock is ahead). The relay's reports are put on the PC's clock the same way. Congestion shows
+as latency that grows with bandwidth, together with drops or ``sent_hz`` above ``rate_hz``. A
+saturated PC shows as ``convert_load_percent`` near 100 instead.
 Latency includes the time a sample waited in the host's input queue.
 """
 
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import threading
 import time
@@ -52,6 +59,7 @@ from host_bridge.columns import PackedPayloads
 from host_bridge.contract import STATS_ROOT, TIMELINE_LOG, TIMELINE_RECEIVE, LogItem
 from host_bridge.counters import TopicCounters, sequence_gap, sequence_gaps
 from host_bridge.inputs.base import MessageRun
+from host_bridge.inputs.clocks import ClockEstimate, RelayClocks
 from robot_relay.errors import WireError
 from robot_relay.wire import RawMessage, RelayReport, parse_robot_key, stats_selector
 
@@ -338,6 +346,16 @@ def topic_stats_items(stats: Sequence[TopicStats], period_ns: int = PERIOD_NS) -
     return items
 
 
+def clock_items(robot: str, estimate: ClockEstimate) -> list[LogItem]:
+    """A relay clock's measured offset and its uncertainty, at the PC's time of measurement."""
+    root = f"{STATS_ROOT}/{robot}/clock"
+    times = {TIMELINE_RECEIVE: estimate.at_ns}
+    return [
+        LogItem(f"{root}/offset_ms", (rr.Scalars(estimate.offset_ns / 1e6),), times=times),
+        LogItem(f"{root}/uncertainty_ms", (rr.Scalars(estimate.uncertainty_ns / 1e6),), times=times),
+    ]
+
+
 class RelayRates:
     """Turns a relay's cumulative reports into rates between consecutive reports."""
 
@@ -367,7 +385,8 @@ class RelayRates:
 
 
 class StatsTap:
-    """Dispatcher tap logging ``/_stats``; with a Zenoh session it also logs the relays' reports."""
+    """Dispatcher tap logging ``/_stats``; with a Zenoh session it also logs the relays' reports,
+    with ``clocks`` their clocks' offsets (and puts the reports' times on the PC's clock)."""
 
     def __init__(
         self,
@@ -378,6 +397,7 @@ class StatsTap:
         robots: str = "*",
         host_dropped: HostDropped | None = None,
         clock: Callable[[], int] = time.time_ns,
+        clocks: RelayClocks | None = None,
     ) -> None:
         self.sink = sink
         self.tracker = StatsTracker(convert_totals=self._convert_totals, host_dropped=host_dropped)
@@ -385,6 +405,10 @@ class StatsTap:
         self._clock = clock
         self._rates = RelayRates()
         self._reports: collections.deque[RelayReport] = collections.deque(maxlen=1000)
+        self._clocks = clocks
+        self._estimates: collections.deque[tuple[str, ClockEstimate]] = collections.deque(maxlen=1000)
+        if clocks is not None:
+            clocks.watch(lambda robot, estimate: self._estimates.append((robot, estimate)))
         # Live robots are dispatched from one thread each; windows and rates are shared state.
         self._lock = threading.Lock()
         self._subscriber = (
@@ -406,29 +430,40 @@ class StatsTap:
         except WireError as err:
             log.debug("%s", err)
             return
+        if self._clocks is not None:
+            offset = self._clocks.offset_ns(report.robot)
+            report = dataclasses.replace(report, time_ns=report.time_ns - offset)
         self._reports.append(report)  # zenoh's thread; logged on the host's thread
 
     def __call__(self, batch: Sequence[RawMessage]) -> None:
         host_ns = self._clock()
         with self._lock:
             closed = self.tracker.observe_batch(batch, host_ns)
-            items = topic_stats_items(closed, self.tracker.period_ns)
-            while self._reports:
-                items += self._rates.items(self._reports.popleft())
+            items = topic_stats_items(closed, self.tracker.period_ns) + self._received_items()
         if items:
             self.sink.log(items, {})
 
+    def _received_items(self) -> list[LogItem]:
+        """What came from the relays meanwhile, their reports and clocks (lock held)."""
+        items: list[LogItem] = []
+        while self._reports:
+            items += self._rates.items(self._reports.popleft())
+        while self._estimates:
+            items += clock_items(*self._estimates.popleft())
+        return items
+
     def close(self) -> None:
-        """Stop taking the relays' reports; log the host drops of the periods still open (the
-        input is closed first, so its queues are drained)."""
+        """Stop taking the relays' reports; log those still waiting, the clock estimates since
+        the last run, and the host drops of the periods still open (the input is closed first,
+        so its queues are drained)."""
         if self._subscriber is not None:
             self._subscriber.undeclare()
             self._subscriber = None
         with self._lock:
-            last = self.tracker.host_drops_at_stop()
-        if last:
-            self.sink.log([
+            items = self._received_items() + [
                 LogItem(f"{STATS_ROOT}/{d.robot}{d.topic}/host_drops",
                         (rr.Scalars(float(d.count)),), times={d.timeline: d.end_ns})
-                for d in last
-            ], {})
+                for d in self.tracker.host_drops_at_stop()
+            ]
+        if items:
+            self.sink.log(items, {})

@@ -50,7 +50,7 @@ from host_bridge.viewer_lag import LONGEST_PERIOD_S, SHORTEST_PERIOD_S
 
 if TYPE_CHECKING:
     from host_bridge.counters import TopicCounters
-    from host_bridge.dispatch import Dispatcher, Offload, TopicSettings
+    from host_bridge.dispatch import Dispatcher, Offload, TopicBinding
     from host_bridge.sink import RerunSink
     from host_bridge.viewer_lag import ViewerLag
     from robot_relay.wire import RawMessage
@@ -149,7 +149,7 @@ class ViewerThinning:
     def takes(self, raw: RawMessage) -> bool:
         return self._lanes(raw) is Lane.HEAVY or (self._inner is not None and self._inner.takes(raw))
 
-    def convert(self, run: Sequence[RawMessage], topic: TopicSettings, counters: TopicCounters) -> None:
+    def convert(self, run: Sequence[RawMessage], topic: TopicBinding, counters: TopicCounters) -> None:
         first = run[0]
         if self._lanes(first) is Lane.HEAVY and not self._admits(first.robot, first.topic, len(run)):
             if self._sink.saving:

@@ -9,6 +9,11 @@ when the first host starts and the last one stops listening, so the rclpy source
 subscription only while someone listens. Latched topics are always wanted: their cache must be
 warm before a late host asks.
 
+Clock: every wall-clock time the relay sends (a message's receive time, its stats report's time,
+its answers to clock queries) comes from one function, ``clock`` (``time.time_ns`` unless a test
+gives another), so a host that measures the relay's clock over the clock query (schemas/wire.md,
+Clock) measures the clock of its receive times, and a test can shift it.
+
 Policy (robot_relay.policy) sets each publisher's Zenoh priority and congestion control, the
 optional lz4/zstd compression of its payloads and a keep-latest rate cap. A capped message that
 arrives inside its period waits in the topic's limiter and one flusher thread sends it when the
@@ -39,12 +44,14 @@ from robot_relay.wire import (
     FLAG_BUNDLE,
     Attachment,
     Catalog,
+    ClockReading,
     RawMessage,
     TopicInfo,
     alive_key,
     catalog_key,
     cdr_encoding,
     check_robot_name,
+    clock_key,
     compressor,
     data_key,
     pack_bundle,
@@ -303,19 +310,23 @@ class _Flusher:
 
 
 class Relay:
-    """Publishes RawMessages of one robot; answers its catalog; holds its liveliness token.
+    """Publishes RawMessages of one robot; answers its catalog and clock queries; holds its
+    liveliness token.
 
     ``demand`` (a live source) hears when a host starts or stops listening to each topic;
     ``source_drops`` gives the messages per topic the source saw lost before the relay, for
-    the stats report.
+    the stats report; ``clock`` is the relay's wall clock (ns since the Unix epoch).
     """
 
     def __init__(
         self, session: zenoh.Session, catalog: Catalog, policies: PolicyTable | None = None,
         demand: DemandListener | None = None,
         source_drops: Callable[[], Mapping[str, int]] | None = None,
+        *,
+        clock: Callable[[], int] = time.time_ns,
     ) -> None:
         self.session = session
+        self.clock = clock
         self.robot = check_robot_name(catalog.robot)
         self.catalog = catalog
         self.policies = policies or PolicyTable()
@@ -334,9 +345,11 @@ class Relay:
         for info in catalog.topics:
             self._add(info)
         self._queryable = session.declare_queryable(catalog_key(self.robot), self._answer_catalog)
+        self._clock_queryable = session.declare_queryable(clock_key(self.robot), self._answer_clock)
         self._token = session.liveliness().declare_token(alive_key(self.robot))
         self._stats = RelayStatsPublisher(
-            session, self.robot, lambda: (self.published, self.published_bytes), source_drops
+            session, self.robot, lambda: (self.published, self.published_bytes), source_drops,
+            clock=clock,
         )
 
     def _count_sent(self, messages: int, size: int) -> None:
@@ -369,6 +382,13 @@ class Relay:
         with self._lock:
             payload = self._catalog_json
         query.reply(catalog_key(self.robot), payload, encoding=zenoh.Encoding.APPLICATION_JSON)
+
+    def _answer_clock(self, query: zenoh.Query) -> None:
+        received_ns = self.clock()
+        # The reply's time is read last: the host takes what happened in between as the relay's.
+        reading = ClockReading(received_ns, self.clock())
+        query.reply(clock_key(self.robot), reading.pack(),
+                    encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM)
 
     def _still_fits(self, publisher: _TopicPublisher, info: TopicInfo | None) -> bool:
         """Whether ``publisher`` can go on publishing ``info``: same type, latched or not, same
@@ -435,7 +455,7 @@ class Relay:
         publisher = self._publishers.get(raw.topic)
         if publisher is None:  # the topic vanished from the live graph meanwhile
             return
-        self._flusher.schedule(publisher, publisher.offer(raw, time.time_ns(), time.monotonic()))
+        self._flusher.schedule(publisher, publisher.offer(raw, self.clock(), time.monotonic()))
 
     def publish_run(self, topic: str, payloads: Sequence[bytes | memoryview], log_ns: Sequence[int]) -> None:
         """Publish a run of ``topic``'s messages that are all due now (a replay that is behind,
@@ -444,7 +464,7 @@ class Relay:
         publisher = self._publishers.get(topic)
         if publisher is None:
             return
-        due = publisher.offer_run(payloads, log_ns, time.time_ns(), time.monotonic())
+        due = publisher.offer_run(payloads, log_ns, self.clock(), time.monotonic())
         self._flusher.schedule(publisher, due)
 
     def publish_all(self, messages: Iterable[RawMessage], stop: threading.Event) -> None:
@@ -459,4 +479,5 @@ class Relay:
         for publisher in self._publishers.values():
             publisher.undeclare()
         self._queryable.undeclare()
+        self._clock_queryable.undeclare()
         self._token.undeclare()

@@ -50,7 +50,7 @@ class CpuMeter:
 
 class RelayStatsPublisher:
     """A thread putting one RelayReport per period; ``counts`` gives (messages, bytes) sent,
-    ``drops`` the source's cumulative drops per topic."""
+    ``drops`` the source's cumulative drops per topic, ``clock`` the relay's wall clock (ns)."""
 
     def __init__(
         self,
@@ -59,8 +59,11 @@ class RelayStatsPublisher:
         counts: Callable[[], tuple[int, int]],
         drops: Callable[[], Mapping[str, int]] | None = None,
         period_s: float = REPORT_PERIOD_S,
+        *,
+        clock: Callable[[], int] = time.time_ns,
     ) -> None:
         self.robot = robot
+        self._clock = clock
         self._counts = counts
         self._drops = drops or dict
         self._period_s = period_s
@@ -75,7 +78,7 @@ class RelayStatsPublisher:
     def report(self) -> RelayReport:
         messages, sent = self._counts()
         return RelayReport(
-            self.robot, time.time_ns(), self._meter.percent(), messages, sent, self._drops()
+            self.robot, self._clock(), self._meter.percent(), messages, sent, self._drops()
         )
 
     def _run(self) -> None:

@@ -23,6 +23,7 @@ ATTACHMENT_VERSION = 2
 SINGLE_MESSAGE_VERSION = 1
 CATALOG_VERSION = 1
 STATS_VERSION = 1
+CLOCK_VERSION = 1
 CDR_ENCODING = "application/cdr"
 ROBOT_NAME_PATTERN = re.compile(r"^[A-Za-z0-9_-]+$")
 
@@ -38,6 +39,10 @@ ATTACHMENT_SIZE = _ATTACHMENT.size
 _BUNDLE_HEAD = struct.Struct("<II")
 BUNDLE_HEAD_SIZE = _BUNDLE_HEAD.size
 BUNDLE_ENTRY_SIZE = 8 + 4
+
+# A clock reading: u8 version, 7 reserved bytes, i64 when the query reached the relay, i64 when
+# it replied (both ns since the Unix epoch on the relay's clock).
+_CLOCK_READING = struct.Struct("<B7xqq")
 
 # The most a compressed payload may inflate to. Zeros compress a thousandfold, so without a bound
 # a 300 KB sample would hold 300 MB of the host's memory; no ROS message a robot sends over its
@@ -74,6 +79,10 @@ def data_selector(robots: str = "*") -> str:
 
 def catalog_key(robot: str) -> str:
     return f"{PREFIX}/{robot}/catalog"
+
+
+def clock_key(robot: str) -> str:
+    return f"{PREFIX}/{robot}/clock"
 
 
 def alive_key(robot: str) -> str:
@@ -493,6 +502,30 @@ class RelayReport:
                 drops={str(topic): int(count) for topic, count in doc.get("drops", {}).items()},
             ),
         )
+
+
+@dataclass(frozen=True, slots=True)
+class ClockReading:
+    """A relay's answer to a clock query (schemas/wire.md, Clock): its wall clock, the clock of
+    every receive time it sends, when the query reached it and when it replied."""
+
+    received_ns: int
+    replied_ns: int
+
+    def pack(self) -> bytes:
+        return _CLOCK_READING.pack(CLOCK_VERSION, self.received_ns, self.replied_ns)
+
+    @classmethod
+    def unpack(cls, data: bytes, key: str) -> ClockReading:
+        if len(data) != _CLOCK_READING.size or data[0] != CLOCK_VERSION:
+            msg = (
+                f"clock reading on {key!r}: {len(data)} bytes, version "
+                f"{data[0] if data else 'missing'}; expected {_CLOCK_READING.size} bytes of version "
+                f"{CLOCK_VERSION}: relay and host speak different wire versions"
+            )
+            raise WireError(msg)
+        _, received_ns, replied_ns = _CLOCK_READING.unpack(data)
+        return cls(received_ns, replied_ns)
 
 
 @dataclass(frozen=True, slots=True)

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Generator, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 import zenoh
@@ -12,7 +14,11 @@ from robot_relay.session import close_session
 from tests import reliability as reliability_table
 from tests.integration.procs import free_port, open_loopback
 
+if TYPE_CHECKING:
+    from tests.integration.test_readme_commands import QuickStartRun
+
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+README_MODULE = "tests/integration/test_readme_commands.py"
 
 
 @pytest.fixture(scope="session")
@@ -20,6 +26,23 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared test data not found at {SHARED_DATA} (clone ../shared beside the repo)")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session", autouse=True)
+def readme_commands(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[QuickStartRun | None]:
+    """The README's Quick start commands, started with the session when its tests are selected:
+    minutes of installing that the other tests need not wait for (test_readme_commands.py)."""
+    selected = any(item.nodeid.startswith(README_MODULE) for item in request.session.items)
+    if not selected or os.environ.get("SWANKY_README_TEST"):
+        yield None
+        return
+    from tests.integration.test_readme_commands import QuickStartRun
+
+    commands = QuickStartRun(tmp_path_factory.mktemp("readme"))
+    yield commands
+    commands.cancel()
 
 
 @pytest.fixture

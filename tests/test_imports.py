@@ -10,6 +10,7 @@
   its reason.
 - The type table's module imports no converter at module level: the command line imports it
   and must start without them.
+- Only ``host_bridge/rerun_private.py`` uses Rerun's private API (:data:`RERUN_PRIVATE_NAMES`).
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ LAYERS: list[tuple[str, list[str]]] = [
         "host_bridge.options", "host_bridge.resources", "host_bridge.schemas", "host_bridge.decode",
         "host_bridge.columns", "host_bridge.state", "host_bridge.contract", "host_bridge.counters",
         "host_bridge.colormap", "host_bridge.rvl", "host_bridge.destinations",
-        "host_bridge.frames",
+        "host_bridge.frames", "host_bridge.rerun_private",
     ]),
     ("converters", ["host_bridge.converters"]),
     ("slam", ["host_bridge.slam"]),
@@ -269,3 +270,62 @@ def test_host_imports_only_the_robot_modules_it_is_allowed() -> None:
 def test_the_type_table_imports_no_converter_at_module_level() -> None:
     table = [i for i in ALL_IMPORTS if i.importer == "host_bridge.registry" and i.module_level]
     assert [where(i) for i in table if in_package(i.imported, "host_bridge.converters")] == []
+
+
+# Rerun's private API: its native module, its private modules (``rerun._log``), and the private or
+# undocumented attributes Swanky has used. Only RERUN_PRIVATE may use them (its docstring says why
+# each, and tests/host_bridge/test_rerun_private.py checks them on the installed Rerun).
+RERUN_PRIVATE = "host_bridge.rerun_private"
+RERUN_PRIVATE_NAMES = frozenset({"to_native", "component_batch", "_offsets"})
+CHECKED_FOR_RERUN = ("host_bridge", "robot_relay", "benchmarks", "scripts", "tests")
+
+
+def rerun_private_uses(path: Path) -> list[str]:
+    """Where ``path`` imports ``rerun_bindings`` or a private module of ``rerun``, reads an
+    attribute of :data:`RERUN_PRIVATE_NAMES` or a private one of ``rr``/``rerun``."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        names: list[str] = []
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and not node.level:
+            names = [node.module or ""]
+        private_import = any(
+            name.split(".")[0] == "rerun_bindings"
+            or (name.split(".")[0] == "rerun" and any(part.startswith("_") for part in name.split(".")))
+            for name in names
+        )
+        private_attribute = isinstance(node, ast.Attribute) and (
+            node.attr in RERUN_PRIVATE_NAMES
+            or (node.attr.startswith("_") and not node.attr.endswith("__")
+                and isinstance(node.value, ast.Name) and node.value.id in {"rr", "rerun"})
+        )
+        by_name = (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+                   and node.func.id in {"getattr", "setattr", "hasattr"}
+                   and any(isinstance(arg, ast.Constant) and arg.value in RERUN_PRIVATE_NAMES
+                           for arg in node.args))
+        if private_import or private_attribute or by_name:
+            where = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
+            found.append(f"{where}:{getattr(node, 'lineno', 0)}: {ast.unparse(node)[:80]}")
+    return found
+
+
+def test_only_rerun_private_uses_rerun_private_api() -> None:
+    allowed = ROOT.joinpath(*RERUN_PRIVATE.split(".")).with_suffix(".py")
+    uses = {path: rerun_private_uses(path) for folder in CHECKED_FOR_RERUN
+            for path in sorted((ROOT / folder).rglob("*.py"))}
+    assert uses.pop(allowed), "the scan no longer sees rerun_private.py's own private calls"
+    assert [use for found in uses.values() for use in found] == []
+
+
+def test_the_rerun_scan_sees_each_kind_of_private_use(tmp_path: Path) -> None:
+    path = tmp_path / "probe.py"
+    path.write_text(
+        "import rerun_bindings\nfrom rerun._log import log\nimport rerun as rr\n"
+        "a = stream.to_native()\nb = column.component_batch\nc = rr._send_columns\n"
+        "d = getattr(column, '_offsets')\ne = rr.log\nf = rr.ComponentColumn\ng = rr.__version__\n"
+    )
+    assert sorted(use.split(": ", 1)[1] for use in rerun_private_uses(path)) == [
+        "column.component_batch", "from rerun._log import log", "getattr(column, '_offsets')",
+        "import rerun_bindings", "rr._send_columns", "stream.to_native",
+    ]

@@ -1,14 +1,16 @@
 """JointState and JointTrajectory -> the link transforms of the robot model.
 
 The kinematic table (:class:`RobotModel`) is put into ``ctx.robot_state.model`` by the URDF
-converter; without it joint values mean nothing and messages are dropped with a ConvertError.
+converter (:mod:`host_bridge.converters.urdf`, whose ``kinematics.py`` holds the joint motion
+used here); without it joint values mean nothing and messages are dropped with a ConvertError.
 Each movable joint (revolute, continuous, prismatic) becomes one ``Transform3D(parent_frame=
 <robot>/<parent link>, child_frame=<robot>/<child link>)`` at ``/<robot>/robot_model/joints/
 <joint>``: joint origin times joint motion, the same relation robot_state_publisher would put on
 /tf. Mimic joints follow their driver (``multiplier * driver + offset``) whenever the driver is in
 the message, as robot_state_publisher does, even if the mimic joint is published too.
 
-Until a joint state arrives the model stands at :func:`zero_positions`, logged by the URDF
+Until a joint state arrives the model stands at
+:func:`~host_bridge.converters.urdf.kinematics.zero_positions`, logged by the URDF
 converter as static rows on the /tf_static entity of each child link. Rerun resolves a frame
 relation from one static entity and one temporal entity together (the static row holds until
 the first temporal one, as /tf_static and /tf do), so the temporal rows logged here move the
@@ -48,63 +50,14 @@ from host_bridge.contract import (
     per_message,
 )
 from host_bridge.converters._common import stamps_ns
+from host_bridge.converters.urdf.kinematics import (
+    MOVABLE_TYPES,
+    FloatArray,
+    follow_drivers,
+    joint_motion,
+)
 from host_bridge.errors import ConvertError, PartialConvertError
 from host_bridge.state import JointModel, RobotModel
-
-MOVABLE_TYPES = frozenset({"revolute", "continuous", "prismatic"})
-
-FloatArray = npt.NDArray[np.float64]
-
-
-def pose_of_matrix(matrix: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Translation and unit quaternion (x, y, z, w) of a 4x4 rigid transform."""
-    r = matrix[:3, :3]
-    # Shepperd: take the square root of the largest of 4w², 4x², 4y², 4z² for stability.
-    diagonal = np.array([np.trace(r), r[0, 0], r[1, 1], r[2, 2]])
-    k = int(np.argmax(diagonal))
-    if k == 0:
-        w = 0.5 * np.sqrt(1.0 + diagonal[0])
-        q = [
-            (r[2, 1] - r[1, 2]) / (4 * w),
-            (r[0, 2] - r[2, 0]) / (4 * w),
-            (r[1, 0] - r[0, 1]) / (4 * w),
-            w,
-        ]
-    else:
-        i, j, m = k - 1, k % 3, (k + 1) % 3
-        v = 0.5 * np.sqrt(1.0 + r[i, i] - r[j, j] - r[m, m])
-        q = [0.0, 0.0, 0.0, (r[m, j] - r[j, m]) / (4 * v)]
-        q[i] = v
-        q[j] = (r[j, i] + r[i, j]) / (4 * v)
-        q[m] = (r[m, i] + r[i, m]) / (4 * v)
-    quaternion = np.asarray(q, dtype=np.float64)
-    return np.asarray(matrix[:3, 3], dtype=np.float64), quaternion / np.linalg.norm(quaternion)
-
-
-def robot_model(name: str, joints: Iterable[JointModel], root: str | None = None) -> RobotModel:
-    table = {joint.name: joint for joint in joints}
-    return RobotModel(name=name, joints=table, mimic_order=_mimic_order(table), root=root)
-
-
-def _mimic_order(joints: Mapping[str, JointModel]) -> tuple[str, ...]:
-    """Mimic joints with each driver before the joints that follow it (mimic chains). A loop
-    is followed once round. Iterative: a chain of thousands of mimic joints listed followers
-    first exceeded Python's recursion limit and lost the whole model."""
-    order: list[str] = []
-    placed: set[str] = set()
-    for start in joints:
-        chain: dict[str, None] = {}  # ordered: ``start`` and the mimic drivers it follows
-        name = start
-        while name in joints and name not in placed and name not in chain:
-            mimic = joints[name].mimic
-            if mimic is None:
-                break
-            chain[name] = None
-            name = mimic.joint
-        for follower in reversed(chain):
-            placed.add(follower)
-            order.append(follower)
-    return tuple(order)
 
 
 def joint_entity_path(robot: str, joint: str) -> str:
@@ -124,34 +77,6 @@ def tf_carries(ctx: TopicContext, link: str) -> bool:
     return link in children or ctx.frame(link) in children
 
 
-def joint_motion(joint: JointModel, values: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Translations (n, 3) and quaternions (n, 4, xyzw) of parent -> child at ``values``."""
-    count = len(values)
-    translations = np.tile(joint.translation, (count, 1))
-    quaternions = np.tile(joint.quaternion, (count, 1))
-    if joint.type == "prismatic":
-        translations += values[:, None] * (joint.rotation @ joint.axis)
-    elif joint.type in ("revolute", "continuous"):
-        half = values / 2.0
-        motion = np.column_stack([np.outer(np.sin(half), joint.axis), np.cos(half)])
-        quaternions = _quaternion_product(quaternions, motion)
-    return translations, quaternions
-
-
-def _quaternion_product(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Row-wise Hamilton product of (n, 4) xyzw quaternions."""
-    ax, ay, az, aw = a.T
-    bx, by, bz, bw = b.T
-    return np.column_stack(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ]
-    )
-
-
 def joint_transform(ctx: TopicContext, joint: JointModel, value: float) -> rr.Transform3D:
     translations, quaternions = joint_motion(joint, np.array([value]))
     return rr.Transform3D(
@@ -160,22 +85,6 @@ def joint_transform(ctx: TopicContext, joint: JointModel, value: float) -> rr.Tr
         parent_frame=link_frame(ctx, joint.parent),
         child_frame=link_frame(ctx, joint.child),
     )
-
-
-def _follow_drivers(model: RobotModel, values: dict[str, float]) -> None:
-    """Set each mimic joint whose driver is in ``values`` to ``multiplier * driver + offset``."""
-    for name in model.mimic_order:
-        mimic = model.joints[name].mimic
-        if mimic is not None and mimic.joint in values:
-            values[name] = mimic.multiplier * values[mimic.joint] + mimic.offset
-
-
-def zero_positions(model: RobotModel) -> dict[str, float]:
-    """Every joint at 0 and mimic joints where a driver at 0 puts them (their offset): the pose
-    RViz and Rerun's URDF loader show until the first joint state."""
-    values = dict.fromkeys(model.joints, 0.0)
-    _follow_drivers(model, values)
-    return values
 
 
 def _require_model(ctx: TopicContext) -> RobotModel:
@@ -208,7 +117,7 @@ def _joint_values(
         if name in model.joints and np.isfinite(value)
     }
     unknown = [name for name in names if name not in model.joints]
-    _follow_drivers(model, values)
+    follow_drivers(model, values)
     published = {
         name: value
         for name, value in values.items()

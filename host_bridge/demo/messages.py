@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
-from host_bridge.converters.joints import joint_motion
+from host_bridge.converters.urdf.kinematics import joint_motion
 from host_bridge.demo.driver import LOGGER_NAME, Driver, Step
 from host_bridge.demo.robot import (
     BASE_FOOTPRINT_FRAME,

@@ -1,8 +1,9 @@
 """swanky_bot, a TurtleBot3-burger-sized differential drive: its model and how it drives.
 
 The model is the project's own URDF (``swanky_bot.urdf`` beside this module, primitives only),
-read with the host's URDF parser (:func:`host_bridge.converters.urdf.robot_kinematics`), so the
-frames the demo publishes and the ones the host draws come from one reading of one file.
+read with the host's URDF parser
+(:func:`host_bridge.converters.urdf.kinematics.robot_kinematics`), so the frames the demo
+publishes and the ones the host draws come from one reading of one file.
 
 The robot follows the apartment's closed loop with pure pursuit; its motion is a pure function
 of time and start position. Like a real robot that runs no SLAM, it has only wheel odometry,
@@ -23,7 +24,7 @@ from importlib import resources
 
 import numpy as np
 
-from host_bridge.converters.urdf import robot_kinematics
+from host_bridge.converters.urdf.kinematics import robot_kinematics
 from host_bridge.demo.world import WAYPOINTS, FloatArray
 from host_bridge.state import JointModel
 

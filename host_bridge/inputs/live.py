@@ -40,6 +40,9 @@ class LiveInput:
     ) -> None:
         self.queues = RobotQueues()
         self._relays = ZenohInput(session, robots=robots, queues=self.queues)
+        self.clocks = self._relays.clocks
+        """The relays' clocks against the PC's (rmw_zenoh robots have no relay to ask: their
+        receive times are the host's own)."""
         self._receivers: list[ZenohInput | RmwZenohInput] = [self._relays]
         if rmw_zenoh:
             self._receivers.append(RmwZenohInput(session, domain, robots, root_robot, self.queues))

@@ -1,24 +1,36 @@
 """Per-robot bounded queues between the Zenoh callbacks and the dispatcher.
 
 Each robot gets its own queue and, once :meth:`RobotQueues.serve` runs, its own worker threads,
-so a robot whose messages are slow to convert (or that floods the host) only delays itself:
-its queue fills and drops its own oldest messages while the other robots keep flowing. Latched
-messages (``/tf_static``, ``/robot_description``, maps) are never the ones dropped: a late copy
-of them is all a viewer will ever get.
+so a robot whose messages are slow to convert (or that floods the host) delays the others by no
+more than its turn (below): its queue fills and drops its own oldest messages while the other
+robots keep flowing. Latched messages (``/tf_static``, ``/robot_description``, maps) are never
+the ones dropped: a late copy of them is all a viewer will ever get.
 
 Heavy topics (the type table's ``Lane.HEAVY`` rows: images, point clouds, maps) are converted
 on a thread of their own per robot, with the patches of such messages (``Lane.PATCH`` rows: grid
-updates, which must follow their grid), and go latest-only once that thread is behind: with
-more than :data:`HEAVY_BACKLOG` items waiting there, a heavy topic keeps only its newest message
-(or run), and a newer one of its type replaces it. (Latest-only as soon as one waits lost frames to every
-short stall of a loaded host, which a user asking for every frame, ``congestion: block``, does
-not expect.)
+updates, which must follow their grid), and go latest-only once the host is behind on them: with
+more than :data:`HEAVY_BACKLOG` heavy items waiting, all robots together, a heavy topic keeps
+only its newest message (or run), and a newer one of its type replaces it. (Latest-only as soon
+as one waits lost frames to every short stall of a loaded host, which a user asking for every
+frame, ``congestion: block``, does not expect.)
+
 The small topics (IMU, TF, scans) never wait behind a heavy conversion: in the issue's mixed
 load a 300k-point cloud took its robot's one worker for 5-10 ms (more on a loaded host), and
 every scan, IMU and TF message that came meanwhile waited for it
 (``benchmarks/live_capacity.py``). The heavy thread also runs at a lower priority
 (:data:`HEAVY_NICENESS`), so on a busy machine the small topics get a core first. A robot's
 small topics are dropped only when its whole queue is full.
+
+A fleet shares the host fairly: the robots' threads take turns (:class:`Turns`), in the order
+they asked, :data:`SMALL_TURNS` robots converting small topics at a time and one converting heavy
+ones. A robot waiting for its turn gathers what arrives meanwhile, so the busier the host, the
+longer the runs it converts in one call: a run costs its calls more than its length (one demo
+robot's odometry message converted alone took 2.2 ms of CPU, an IMU message 0.65 ms, in runs of
+ten 0.14 ms each), and a demo robot whose every message is converted alone costs about 0.3 of
+a core, so 25 of them converting on threads of their own would need 7 cores. A host that cannot
+convert every robot's images and clouds thins them evenly, each robot converting the newest of
+its own at each turn, none starved. The first time the host thins heavy topics it says so once,
+naming the robots and topics thinned then; the small topics are never thinned.
 
 Order: each topic's messages are handed over in order, on one thread (each message's type
 decides its thread, so a message of another type, garbage, changes nothing for the topic's
@@ -94,9 +106,19 @@ heavy one would take it. The issue's mixed load, 3 runs each of benchmarks/live_
 --only latency --seconds 10, alternated: small-topic p99 10.36/10.34/9.47 ms at the same
 priority, 8.74/10.08/7.46 at +10 (p50 unchanged, the heavy topics' own p99 too); at +19 the
 clouds' p99 grew from 17 to 45 ms."""
+SMALL_TURNS = 2
+"""Robots converting their small topics at once. Two: one robot's calls into Rerun and numpy,
+which let the GIL go, leave room for another's Python; more threads only share the one GIL.
+Against no turns (25 demo robots, benchmarks/fleet.py's fleet phase, two runs each, alternated,
+on the shared 2-core machine at load 10-15): 0.38 and 0.49 ms of host CPU per message converted,
+against 0.44 and 0.57."""
+STALLED_TURN_S = 0.25
+"""A turn longer than this stops holding its slot: longer than the host's conversions of a robot's
+batch take when it keeps up (a few ms), short enough that a hung one costs the fleet a glimpse."""
 HEAVY_BACKLOG = 32
-"""Items waiting on a robot's heavy thread beyond which it is behind and heavy topics go
-latest-only: more than arrive during a short stall (a second of 15 Hz images and 5 Hz clouds)."""
+"""Heavy items waiting, all robots' together, beyond which the host is behind on them and heavy
+topics go latest-only: more than arrive during a short stall (a second of one robot's 15 Hz
+images and 5 Hz clouds)."""
 
 ItemDeliver = Callable[[Sequence[InputItem]], None]
 """Where the workers put each robot's batches: live records and the MessageRuns of bundles (any
@@ -108,6 +130,11 @@ LaneOf = Callable[[RawMessage | MessageRun], Lane]
 class HostBehindError(HostError):
     """The host dropped messages of a topic: it converts the robot's messages slower than they
     arrive."""
+
+
+class HeavyTopicsThinnedError(HostBehindError):
+    """The host converts only the newest message of heavy topics: said once per host, naming the
+    robots and topics thinned when it began."""
 
 
 class TypeLanes:
@@ -151,8 +178,11 @@ class _Entry:
 class _Lane:
     """One worker thread's share of a robot's queue: its small topics, or its heavy ones."""
 
-    def __init__(self, lock: threading.Lock, thread_name: str, heavy: bool) -> None:
+    def __init__(self, lock: threading.Lock, thread_name: str, turns: Turns, *, heavy: bool) -> None:
         self.thread_name = thread_name
+        self.turns = turns
+        """The robots' turns on this kind of lane (all their small lanes share one, all their
+        heavy lanes another)."""
         self.heavy = heavy
         self.items: deque[_Entry] = deque()
         self.messages = 0
@@ -162,6 +192,8 @@ class _Lane:
         self.ready = threading.Condition(lock)
         self.worker: threading.Thread | None = None
         self.dropped: dict[str, int] = {}
+        # Topics whose first drop from a full queue has been warned about.
+        self.warned: set[str] = set()
         # ``dropped`` as it was when the worker took its current batch.
         self.dropped_taken: dict[str, int] = {}
         self.dropped_since_taken = False
@@ -171,12 +203,14 @@ class _Lane:
     def append(self, entry: _Entry) -> None:
         self.items.append(entry)
         self.messages += entry.size
+        self.turns.waiting_items += 1
         if entry.replaceable is not None:
             self.replaceable[entry.replaceable] = self.replaceable.get(entry.replaceable, 0) + 1
 
     def forget(self, entry: _Entry) -> None:
         """``entry`` has left the queue (taken by the worker or dropped)."""
         self.messages -= entry.size
+        self.turns.waiting_items -= 1
         if entry.replaceable is not None:
             self.replaceable[entry.replaceable] -= 1
 
@@ -188,8 +222,54 @@ class _Lane:
         return None
 
 
+class Turns:
+    """Robots' lanes of one kind take turns: ``slots`` convert at a time, in the order they asked
+    (first come, first served), so each robot with messages waiting converts once before any
+    converts twice. A turn longer than :data:`STALLED_TURN_S` stops holding its slot, so a robot
+    whose conversion hangs (a mesh fetched from a robot that does not answer) delays the others by
+    that much only. Also counts the items waiting in those lanes, all robots together. Used under
+    the queues' lock; only the first in line is woken, never the whole fleet."""
+
+    def __init__(self, lock: threading.Lock, slots: int) -> None:
+        self.slots = slots
+        self.waiting_items = 0
+        self._lock = lock
+        self._asked: deque[threading.Condition] = deque()
+        self._started: dict[_Lane, float] = {}
+        """The lanes converting, and when their turn began."""
+
+    def take(self, lane: _Lane) -> None:
+        """Wait for ``lane``'s turn (the lock held, released while waiting)."""
+        ticket = threading.Condition(self._lock)
+        self._asked.append(ticket)
+        while True:
+            if self._asked[0] is not ticket:
+                ticket.wait()
+                continue
+            now = time.monotonic()
+            holding = sorted(started for started in self._started.values()
+                             if now - started < STALLED_TURN_S)
+            if len(holding) < self.slots:
+                break
+            # Until enough turns count as stalled, unless one is given back first.
+            ticket.wait(holding[len(holding) - self.slots] + STALLED_TURN_S - now)
+        self._asked.popleft()
+        self._started[lane] = time.monotonic()
+        self._wake_next()  # it may start too
+
+    def give_back(self, lane: _Lane) -> None:
+        del self._started[lane]
+        self._wake_next()
+
+    def _wake_next(self) -> None:
+        if self._asked:
+            self._asked[0].notify()
+
+
 @dataclass(slots=True)
-class _Robot:
+class _RobotLanes:
+    """One robot's two lanes (its small topics and its heavy ones) and their counts."""
+
     small: _Lane
     heavy: _Lane
     arrivals: int = 0
@@ -252,6 +332,7 @@ class RobotQueues:
         max_items_per_robot: int = MAX_ITEMS_PER_ROBOT,
         lanes: LaneOf | None = None,
         heavy_backlog: int = HEAVY_BACKLOG,
+        small_turns: int = SMALL_TURNS,
     ) -> None:
         self.max_per_robot = max_per_robot
         self.max_items_per_robot = max_items_per_robot
@@ -264,7 +345,10 @@ class RobotQueues:
         self.last_activity = time.monotonic()
         self.error: BaseException | None = None
         self._lock = threading.Lock()
-        self._robots: dict[str, _Robot] = {}
+        self._robots: dict[str, _RobotLanes] = {}
+        self._small_turns = Turns(self._lock, small_turns)
+        self._heavy_turns = Turns(self._lock, 1)
+        self._thinning_said = False
         self._handler: ItemDeliver | None = None
         self._closing = False
 
@@ -281,12 +365,12 @@ class RobotQueues:
         with self._lock:
             robot = self._robots.get(name)
             if robot is None:
-                robot = self._robots[name] = _Robot(
-                    _Lane(self._lock, f"robot-{name}", heavy=False),
-                    _Lane(self._lock, f"robot-{name}-heavy", heavy=True),
+                robot = self._robots[name] = _RobotLanes(
+                    _Lane(self._lock, f"robot-{name}", self._small_turns, heavy=False),
+                    _Lane(self._lock, f"robot-{name}-heavy", self._heavy_turns, heavy=True),
                 )
             lane = robot.small if type_lane is Lane.SMALL else robot.heavy
-            if (replaceable is not None and len(lane.items) > self.heavy_backlog
+            if (replaceable is not None and self._heavy_turns.waiting_items > self.heavy_backlog
                     and lane.replaceable.get(replaceable)):
                 self._supersede(name, lane, replaceable)
             if not self._fits(robot, size) and not self._make_room(name, robot, size) and not latched:
@@ -310,12 +394,12 @@ class RobotQueues:
                 kept.append(entry)
         lane.items = kept
 
-    def _fits(self, robot: _Robot, size: int) -> bool:
+    def _fits(self, robot: _RobotLanes, size: int) -> bool:
         """Whether one more item of ``size`` messages fits in ``robot``'s queue."""
         return (robot.messages + size <= self.max_per_robot
                 and robot.items < self.max_items_per_robot)
 
-    def _make_room(self, name: str, robot: _Robot, size: int) -> bool:
+    def _make_room(self, name: str, robot: _RobotLanes, size: int) -> bool:
         """Drop the oldest non-latched messages of a full queue until one more item of ``size``
         messages fits; False if it does not (all that waits is latched), unless the queue is
         empty."""
@@ -335,19 +419,42 @@ class RobotQueues:
     def _count_drop(
         self, robot: str, lane: _Lane, topic: str, size: int, superseded: bool = False
     ) -> None:
-        if topic not in lane.dropped:
-            # The dispatcher warns (stderr and /_swanky/warnings) once per topic and kind.
+        # The dispatcher warns (stderr and /_swanky/warnings) once per topic and kind; thinned
+        # heavy topics are warned about once per host, however many robots and topics.
+        if superseded and not self._thinning_said:
+            self._thinning_said = True
+            lane.warnings.append(InputProblem(robot, topic, HeavyTopicsThinnedError(
+                self._thinning_text(robot, topic))))
+        elif not superseded and topic not in lane.warned:
+            lane.warned.add(topic)
             lane.warnings.append(InputProblem(robot, topic, HostBehindError(
-                "the host converts this robot's messages slower than they arrive; "
-                + ("converting only the newest message of this heavy topic" if superseded
-                   else "dropping its oldest ones")
-                + f" (counted in {STATS_ROOT}/{robot}{topic}/host_drops, other robots unaffected)"
+                "the host converts this robot's messages slower than they arrive; dropping its "
+                f"oldest ones (counted in {STATS_ROOT}/{robot}{topic}/host_drops, other robots "
+                "unaffected)"
             )))
         lane.dropped[topic] = lane.dropped.get(topic, 0) + size
         lane.dropped_since_taken = True
         if superseded:
             key = (robot, topic)
             self.superseded[key] = self.superseded.get(key, 0) + size
+
+    def _thinning_text(self, robot: str, topic: str) -> str:
+        """What the host says once when it first thins heavy topics: the robots and topics with
+        heavy messages waiting then, those it thins first."""
+        thinned = {robot: {topic}}
+        for name, state in self._robots.items():
+            for entry in state.heavy.items:
+                if entry.replaceable is not None:
+                    thinned.setdefault(name, set()).add(entry.topic)
+        topics = sorted(set().union(*thinned.values()))
+        robots = ", ".join(thinned)
+        return (
+            "the host converts heavy topics (images, clouds, maps) slower than they arrive: from "
+            "now on it converts only the newest message of each, robots taking turns, and every "
+            f"message of the small topics (drops counted in {STATS_ROOT}/<robot><topic>/host_drops "
+            f"and in the summary at the stop); thinning now {len(thinned)} "
+            f"robot{'s' if len(thinned) > 1 else ''} ({robots}): {', '.join(topics)}"
+        )
 
     @property
     def dropped(self) -> dict[tuple[str, str], int]:
@@ -379,7 +486,7 @@ class RobotQueues:
                     if lane.items or lane.warnings:
                         self._start_worker(robot, lane)
 
-    def _start_worker(self, robot: _Robot, lane: _Lane) -> None:
+    def _start_worker(self, robot: _RobotLanes, lane: _Lane) -> None:
         if self._handler is None or lane.worker is not None:
             return
         lane.worker = threading.Thread(
@@ -388,7 +495,7 @@ class RobotQueues:
         )
         lane.worker.start()
 
-    def _work(self, robot: _Robot, lane: _Lane, handler: ItemDeliver) -> None:
+    def _work(self, robot: _RobotLanes, lane: _Lane, handler: ItemDeliver) -> None:
         if lane.heavy:
             _run_nicer(HEAVY_NICENESS)
         while True:
@@ -397,6 +504,8 @@ class RobotQueues:
                     lane.ready.wait()
                 if not lane.items and not lane.warnings:
                     return
+                # Its batch is taken once its turn comes: all that arrived by then.
+                lane.turns.take(lane)
                 batch: list[InputItem] = list(lane.warnings)  # a drop leaves items waiting
                 lane.warnings.clear()
                 taken = 0
@@ -410,10 +519,14 @@ class RobotQueues:
                     lane.dropped_since_taken = False
                     robot.dropped_when_taken = _summed(other.dropped_taken for other in robot.lanes)
             try:
-                handler(batch)
+                if batch:  # its items may have been dropped while it waited for its turn
+                    handler(batch)
             except BaseException as err:  # --strict: the main thread re-raises it
                 self.error = err
                 return
+            finally:
+                with self._lock:
+                    lane.turns.give_back(lane)
 
     def close(self, timeout: float = 30.0) -> None:
         """Let the workers finish what is queued (a saved .rrd is then complete)."""

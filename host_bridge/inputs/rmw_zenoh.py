@@ -10,6 +10,11 @@ ROS process its own session, and the scan's frames would then never meet the TF 
 Definitions come from the host's bundled typestore; a Jazzy type hash picks the Jazzy
 definition where it differs from Humble (``sensor_msgs/msg/Range``; see
 ``schemas.BundledDefinitions``).
+
+Times: with no relay there is no clock to measure (inputs/clocks.py). ``receive_time`` is the
+host's own arrival time, on the PC's clock like every corrected relay's; ``latency_ms`` is then
+only the host's queue wait, not the link's; ``log_time`` (the publisher's source timestamp) and
+``ros_time`` (header stamps) stay on the robot's clock.
 """
 
 from __future__ import annotations
@@ -172,6 +177,10 @@ class RmwZenohInput:
             flush = list(self._waiting)
         if event is not None and robot_matches(event.robot, self._robots):
             self.queues.put(event)
+            if event.joined:
+                log.info("robot %s (rmw_zenoh) has no relay whose clock the host can measure: its "
+                         "receive_time is this PC's arrival time, its latency_ms the host's own "
+                         "wait only; ros_time and log_time stay on the robot's clock", event.robot)
         for waiting_key in flush:
             self._flush(waiting_key, final=False)
 

@@ -10,6 +10,10 @@ A relay's topic is of the type its catalog announces (the relay publishes nothin
 claiming another type waits for the relay's catalog as it is now (a live robot's node may have
 retyped the topic) and is refused, counted and warned about if that does not announce its type
 either, so a sender of garbage on a robot's keys cannot change how its topics are converted.
+
+Receive times are the relay's clock; each robot's is measured against the PC's (clocks.py) and
+its samples are delivered with their receive times on the PC's clock. A joining relay's samples
+wait for that measurement too, bounded, as they wait for its catalog.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from zenoh import ext
 from host_bridge.columns import PackedPayloads
 from host_bridge.errors import ConfigError, TypeMismatchError
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun, RobotEvent
+from host_bridge.inputs.clocks import RelayClocks
 from host_bridge.inputs.queues import RobotQueues
 from robot_relay.errors import WireError
 from robot_relay.wire import (
@@ -114,19 +119,29 @@ def bundle_run(
     )
 
 
-def _defined(item: RawMessage | MessageRun, info: TopicInfo) -> RawMessage | MessageRun:
-    """``item`` with the definition its relay's catalog gives; a RawMessage built directly, as
-    this runs per sample on Zenoh's thread (2 us against dataclasses.replace's 3)."""
+def _delivered(
+    item: RawMessage | MessageRun, info: TopicInfo | None, offset_ns: int
+) -> RawMessage | MessageRun:
+    """``item`` with the definition its relay's catalog gives (``info``), if any, and its
+    receive times on the PC's clock (``offset_ns``: the relay's clock minus the PC's); a
+    RawMessage built directly, as this runs per sample on Zenoh's thread (2 us against
+    dataclasses.replace's 3)."""
+    definition = item.definition if info is None else info.definition
     if isinstance(item, MessageRun):
-        return dataclasses.replace(item, definition=info.definition)
+        receive_ns = None if item.receive_ns is None else item.receive_ns - offset_ns
+        return dataclasses.replace(item, definition=definition, receive_ns=receive_ns)
     return RawMessage(
         robot=item.robot, topic=item.topic, msgtype=item.msgtype, data=item.data,
-        definition=info.definition, receive_ns=item.receive_ns, log_ns=item.log_ns,
-        sequence=item.sequence,
+        definition=definition,
+        receive_ns=None if item.receive_ns is None else item.receive_ns - offset_ns,
+        log_ns=item.log_ns, sequence=item.sequence,
     )
 
 
-class _Robot:
+class _RobotCatalog:
+    """What the input knows of one robot's catalog: its topics, the samples waiting for it, the
+    fetch under way."""
+
     def __init__(self) -> None:
         self.topics: dict[str, TopicInfo] | None = None
         # Samples waiting for the robot's catalog: its first, or a newer one when a sample's
@@ -153,9 +168,10 @@ class ZenohInput:
         self.refused: dict[tuple[str, str], int] = {}
         """Messages per (robot, topic) refused because they claimed another type than the
         robot's catalog announces for the topic."""
-        self._robots: dict[str, _Robot] = {}
+        self._robots: dict[str, _RobotCatalog] = {}
         self._lock = threading.Lock()
         self._closed = threading.Event()
+        self.clocks = RelayClocks(session, self._put)
         self._subscriber = ext.declare_advanced_subscriber(
             session,
             data_selector(robots),
@@ -172,9 +188,12 @@ class ZenohInput:
         robot = parse_robot_key(str(sample.key_expr))
         joined = sample.kind == zenoh.SampleKind.PUT
         self.queues.put(RobotEvent(robot, joined, "swanky relay"))
-        if joined:
+        if not joined:
+            self.clocks.unfollow(robot)
+        else:
+            self.clocks.follow(robot)
             with self._lock:
-                state = self._robots.setdefault(robot, _Robot())
+                state = self._robots.setdefault(robot, _RobotCatalog())
                 # A restarted relay may bring other topics or definitions: its samples wait
                 # for the new catalog. (Not on leaving: its last samples may still arrive.)
                 state.topics = None
@@ -199,6 +218,7 @@ class ZenohInput:
         except WireError as err:
             self._put(InputProblem(robot, topic, err))
             return
+        self.clocks.check_arrival(robot, attachment.receive_ns)
         item: RawMessage | MessageRun
         if attachment.bundle:
             try:
@@ -223,7 +243,7 @@ class ZenohInput:
     def _route(self, raw: RawMessage | MessageRun) -> None:
         fetch_after: float | None = None
         with self._lock:
-            state = self._robots.setdefault(raw.robot, _Robot())
+            state = self._robots.setdefault(raw.robot, _RobotCatalog())
             if state.topics is None:
                 self._hold(state, raw)
                 if not state.fetching:
@@ -246,7 +266,7 @@ class ZenohInput:
         if fetch_after is not None:
             self._fetch_catalog(raw.robot, fetch_after)
 
-    def _hold(self, state: _Robot, raw: RawMessage | MessageRun) -> None:
+    def _hold(self, state: _RobotCatalog, raw: RawMessage | MessageRun) -> None:
         """Keep ``raw`` until its robot's catalog comes (lock held); counted in ``dropped``
         past :data:`MAX_PENDING_PER_ROBOT`."""
         if len(state.pending) < MAX_PENDING_PER_ROBOT:
@@ -255,15 +275,15 @@ class ZenohInput:
             self.dropped += 1
 
     def _deliver(self, raw: RawMessage | MessageRun, info: TopicInfo | None) -> None:
-        """Queue ``raw`` with the definition its robot's catalog gives its topic (lock held); a
-        topic the catalog leaves out is decoded with the bundled types. The catalog's type is
+        """Queue ``raw`` with the definition its robot's catalog gives its topic (lock held) and
+        its receive time on the PC's clock; a topic the catalog leaves out is decoded with the
+        bundled types. The catalog's type is
         what the topic is: a sample claiming another type is refused, counted in ``refused``,
         and warned about (once per topic), so it cannot change how the topic's real messages
         are converted."""
-        if info is None:
-            self._put(raw)
-        elif info.msgtype == raw.msgtype:
-            self._put(_defined(raw, info), info.latched)
+        if info is None or info.msgtype == raw.msgtype:
+            offset = self.clocks.offset_ns(raw.robot)
+            self._put(_delivered(raw, info, offset), info is not None and info.latched)
         else:
             key = (raw.robot, raw.topic)
             refused = self.refused.get(key, 0)
@@ -281,7 +301,7 @@ class ZenohInput:
         """Ask ``robot``'s relay for its catalog in ``after`` seconds, unless a fetch is under
         way."""
         with self._lock:
-            state = self._robots.setdefault(robot, _Robot())
+            state = self._robots.setdefault(robot, _RobotCatalog())
             if state.fetching:
                 return
             state.fetching = True
@@ -311,6 +331,7 @@ class ZenohInput:
                 f"robot {robot} did not answer its catalog ({key}) within {CATALOG_TIMEOUT_S} s; "
                 "decoding its topics with the bundled ROS 2 Humble types"
             )
+        self.clocks.wait_ready(robot)
         with self._lock:
             state = self._robots[robot]
             state.fetching = False
@@ -334,3 +355,4 @@ class ZenohInput:
         self._closed.set()
         self._subscriber.undeclare()
         self._liveliness.undeclare()
+        self.clocks.close()

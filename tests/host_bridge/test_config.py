@@ -15,7 +15,7 @@ import yaml
 from rosbags.typesys import Stores, get_typestore
 
 from host_bridge import cli
-from host_bridge.config import HostConfig, TopicSettings
+from host_bridge.config import HostConfig, TopicConfig
 from host_bridge.contract import WARNINGS_PATH, LogEntry, LogItem
 from host_bridge.destinations import SinkOptions
 from host_bridge.dispatch import Dispatcher
@@ -82,7 +82,7 @@ topics:
 def test_exact_topic_beats_glob_beats_type_key_by_key(tmp_path: Path) -> None:
     config = load(tmp_path, PRECEDENCE)
     front = config.resolve("tb3", "/scan_front", SCAN)
-    assert front == TopicSettings(
+    assert front == TopicConfig(
         entity_path="/tb3/lidars/scan_front",  # from the glob /scan*: the exact entry has none
         converter="points",  # exact topic > /scan* > type
         # built-in color_by range < /* intensity; type radius 0.05 < /s* 0.5; colormap: the
@@ -104,11 +104,11 @@ def test_exact_topic_beats_glob_beats_type_key_by_key(tmp_path: Path) -> None:
 
 def test_no_file_gives_the_built_in_defaults(tmp_path: Path) -> None:
     config = HostConfig.builtin(REGISTRY)
-    assert config.resolve("tb3", "/scan", SCAN) == TopicSettings(
+    assert config.resolve("tb3", "/scan", SCAN) == TopicConfig(
         entity_path="/tb3/scan", converter="points",
         options={"color_by": "range", "colormap": "turbo", "radius": 0.02, "mode": "points"},
     )
-    assert config.resolve("tb3", "/speed", "std_msgs/msg/Float64") == TopicSettings("/tb3/speed")
+    assert config.resolve("tb3", "/speed", "std_msgs/msg/Float64") == TopicConfig("/tb3/speed")
 
 
 # --- mistakes: each names file:line: key ---------------------------------------------------------
@@ -208,7 +208,7 @@ def test_a_glob_that_misfits_a_type_is_reported_once_and_only_that_key_dropped(t
         "sensor_msgs/msg/Image",
     ]
     image = config.resolve("tb3", "/front/image", IMAGE)
-    assert image == TopicSettings("/tb3/front/front/image", converter="auto", options={"mode": "auto"},
+    assert image == TopicConfig("/tb3/front/front/image", converter="auto", options={"mode": "auto"},
                                   problems=tuple(problem))
     assert config.resolve("tb3", "/front/other", IMAGE).problems == ()
     scan = config.resolve("tb3", "/front/scan", SCAN)

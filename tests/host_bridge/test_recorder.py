@@ -159,11 +159,14 @@ def test_several_robots_are_prefixed_and_live_times_kept(tmp_path: Path) -> None
 
 
 def test_topic_prefix_only_when_several_robots_may_arrive() -> None:
-    assert may_hold_several_robots(bag=False, demo=False, robots="*")
-    assert may_hold_several_robots(bag=False, demo=False, robots="tb*")
-    assert not may_hold_several_robots(bag=False, demo=False, robots="tb3_left-1")
-    assert not may_hold_several_robots(bag=True, demo=False, robots="*")
-    assert not may_hold_several_robots(bag=False, demo=True, robots="*")
+    assert may_hold_several_robots(bag=False, demo_robots=None, robots="*")
+    assert may_hold_several_robots(bag=False, demo_robots=None, robots="east-$*")
+    assert not may_hold_several_robots(bag=False, demo_robots=None, robots="tb3_left-1")
+    assert not may_hold_several_robots(bag=True, demo_robots=None, robots="*")
+    # --demo: --robots is the count (a live filter of "2" would name one robot called 2).
+    assert not may_hold_several_robots(bag=False, demo_robots=1, robots="*")
+    assert not may_hold_several_robots(bag=False, demo_robots=1, robots="1")
+    assert may_hold_several_robots(bag=False, demo_robots=2, robots="2")
 
 
 def test_unwritable_path_is_named(tmp_path: Path) -> None:

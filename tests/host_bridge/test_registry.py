@@ -17,11 +17,11 @@ from host_bridge.converters import (
     occupancy,
     pointcloud,
     services,
-    urdf,
     video,
     vision,
     walls,
 )
+from host_bridge.converters.urdf import description
 from host_bridge.errors import RegistryError
 from host_bridge.options import GenericOptions
 from host_bridge.registry import CATCH_ALL, Lane, Registry, Row, View, default_registry
@@ -62,8 +62,8 @@ def test_each_type_gets_its_converter(msgtype: str, spec: ConverterSpec) -> None
 
 def test_special_cases_are_plain_rows() -> None:
     # std_msgs/String: a robot model on /robot_description (namespaced too), text elsewhere.
-    assert TABLE.get("std_msgs/msg/String", "/robot_description") is urdf.SPEC
-    assert TABLE.get("std_msgs/msg/String", "/tb1/robot_description") is urdf.SPEC
+    assert TABLE.get("std_msgs/msg/String", "/robot_description") is description.SPEC
+    assert TABLE.get("std_msgs/msg/String", "/tb1/robot_description") is description.SPEC
     assert TABLE.get("std_msgs/msg/String", "/chatter") is logs.STRING
     assert TABLE.row("std_msgs/msg/String", "/robot_description").view is View.SPATIAL
     assert TABLE.row("std_msgs/msg/String", "/chatter").view is View.LOG

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import host_bridge.inputs.queues as queues_module
 from host_bridge.contract import WARNINGS_PATH
 from host_bridge.destinations import SinkOptions
 from host_bridge.dispatch import Dispatcher
@@ -21,6 +22,7 @@ from host_bridge.inputs.base import InputItem, InputProblem, MessageRun, RobotEv
 from host_bridge.inputs.queues import (
     GIL_SWITCH_INTERVAL_S,
     HEAVY_NICENESS,
+    HeavyTopicsThinnedError,
     HostBehindError,
     RobotQueues,
     TypeLanes,
@@ -506,3 +508,119 @@ def test_the_item_bound_drops_the_oldest_item_whole_however_few_messages_wait() 
     queues.put(typed("a", "/imu", IMU, 6))  # a fourth item: the oldest, a run of 2, goes
     assert delivered(queues, 5) == {"robot-a": [("/imu", n) for n in range(2, 7)]}
     assert queues.dropped == {("a", "/imu"): 2}
+
+
+def test_heavy_topics_are_thinned_across_robots_and_the_host_says_so_once() -> None:
+    # Behind is counted over all robots: 2 robots' 3 waiting heavy messages exceed 2.
+    queues = RobotQueues(heavy_backlog=2)
+    queues.put(typed("r0", "/camera", IMAGE, 0))
+    queues.put(typed("r1", "/camera", IMAGE, 1))
+    queues.put(typed("r1", "/points", CLOUD, 2))
+    queues.put(typed("r0", "/camera", IMAGE, 3))  # replaces 0: the host says so
+    queues.put(typed("r1", "/camera", IMAGE, 4))  # replaces 1: said already
+    by_thread = ByThread()
+    queues.serve(by_thread.take)
+    items = by_thread.wait_for(lambda items: len(items) == 4)
+    queues.close(timeout=5)
+    problems = [item for _, item in items if isinstance(item, InputProblem)]
+    assert len(problems) == 1
+    assert (problems[0].robot, problems[0].topic) == ("r0", "/camera")
+    assert isinstance(problems[0].error, HeavyTopicsThinnedError)
+    assert str(problems[0].error) == (
+        "the host converts heavy topics (images, clouds, maps) slower than they arrive: from now "
+        "on it converts only the newest message of each, robots taking turns, and every message "
+        "of the small topics (drops counted in /_stats/<robot><topic>/host_drops and in the "
+        "summary at the stop); thinning now 2 robots (r0, r1): /camera, /points"
+    )
+    assert sorted((name, item.data[0]) for name, item in items if isinstance(item, RawMessage)) == [
+        ("robot-r0-heavy", 3), ("robot-r1-heavy", 2), ("robot-r1-heavy", 4)]
+    assert queues.superseded == {("r0", "/camera"): 1, ("r1", "/camera"): 1}
+
+
+def test_a_fleet_the_host_cannot_keep_up_with_keeps_its_small_topics_and_shares_the_heavy(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Eight robots send images and clouds much faster than the host converts them (4 ms each,
+    one at a time): every robot's every small message is converted, in order; the heavy threads
+    convert one at a time, robots taking turns, so each converts some of its newest frames and
+    none converts far more often than another."""
+    monkeypatch.setattr(queues_module, "STALLED_TURN_S", 30.0)  # a loaded machine's 4 ms sleep
+    robots = [f"r{i}" for i in range(8)]
+    rounds = 120
+    queues = RobotQueues()
+    lock = threading.Lock()
+    small: dict[str, list[int]] = {robot: [] for robot in robots}
+    turns: list[str] = []
+    converting = 0
+    most_at_once = 0
+    thinned: list[InputProblem] = []
+
+    def handle(batch: Sequence[InputItem]) -> None:
+        nonlocal converting, most_at_once
+        messages = [item for item in batch if isinstance(item, RawMessage)]
+        with lock:
+            thinned.extend(i for i in batch if isinstance(i, InputProblem))
+            if not messages or messages[0].msgtype == IMU:
+                for message in messages:
+                    small[message.robot].append(message.data[0])
+                return
+            turns.append(messages[0].robot)
+            converting += 1
+            most_at_once = max(most_at_once, converting)
+        time.sleep(0.004)  # a heavy conversion
+        with lock:
+            converting -= 1
+
+    queues.serve(handle)
+    for n in range(rounds):
+        for robot in robots:
+            queues.put(typed(robot, "/imu", IMU, n))
+            queues.put(typed(robot, "/camera", IMAGE, n))
+            queues.put(typed(robot, "/points", CLOUD, n))
+        time.sleep(0.001)
+    queues.close(timeout=30)
+    assert queues.error is None
+    assert small == {robot: list(range(rounds)) for robot in robots}
+    assert not any(topic == "/imu" for _, topic in queues.dropped)
+    assert most_at_once == 1
+    per_robot = {robot: turns.count(robot) for robot in robots}
+    assert min(per_robot.values()) >= 3, per_robot
+    assert max(per_robot.values()) - min(per_robot.values()) <= 2, per_robot
+    # Thinned: most frames were replaced by newer ones, every one of them counted.
+    assert sum(queues.superseded.values()) > len(robots) * rounds
+    assert sum(queues.dropped.values()) == sum(queues.superseded.values())
+    assert [type(problem.error) for problem in thinned] == [HeavyTopicsThinnedError]
+
+
+def test_robots_take_turns_gathering_what_comes_meanwhile_and_a_hung_turn_ends(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """One small-topic turn at a time: robot b's messages wait while robot a converts, and b
+    converts them in one batch (one run: the busier the host, the longer its runs); a's turn
+    hangs, so after STALLED_TURN_S it stops holding the slot and b goes on without it."""
+    monkeypatch.setattr(queues_module, "STALLED_TURN_S", 0.2)
+    queues = RobotQueues(small_turns=1)
+    converting, release = threading.Event(), threading.Event()
+    batches: list[tuple[str, list[int]]] = []
+
+    def handle(batch: Sequence[InputItem]) -> None:
+        messages = [item for item in batch if isinstance(item, RawMessage)]
+        if messages[0].robot == "a":
+            converting.set()
+            release.wait(20)  # a mesh fetched from a robot that never answers
+        batches.append((messages[0].robot, [m.data[0] for m in messages]))
+
+    queues.serve(handle)
+    queues.put(typed("a", "/robot_description", "std_msgs/msg/String", 0))
+    assert converting.wait(20)
+    started = time.monotonic()
+    for n in range(5):
+        queues.put(typed("b", "/imu", IMU, n))
+    deadline = started + 20
+    while not batches and time.monotonic() < deadline:
+        time.sleep(0.01)
+    waited = time.monotonic() - started
+    release.set()
+    queues.close(timeout=10)
+    assert batches == [("b", [0, 1, 2, 3, 4]), ("a", [0])]
+    assert waited >= 0.2

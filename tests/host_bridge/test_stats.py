@@ -13,6 +13,7 @@ from host_bridge.contract import TIMELINE_LOG, TIMELINE_RECEIVE
 from host_bridge.counters import TopicCounters, sequence_gap, sequence_gaps
 from host_bridge.destinations import SinkOptions
 from host_bridge.inputs.base import MessageRun
+from host_bridge.inputs.clocks import ClockEstimate
 from host_bridge.sink import RerunSink
 from host_bridge.stats import (
     HostDrops,
@@ -20,6 +21,7 @@ from host_bridge.stats import (
     StatsTap,
     StatsTracker,
     TopicStats,
+    clock_items,
     topic_stats_items,
 )
 from robot_relay.wire import RawMessage, RelayReport
@@ -171,6 +173,15 @@ def test_relay_rates_between_reports() -> None:
         "/_stats/tb3/relay/sent_hz": [100.0],
         "/_stats/tb3/relay/sent_kbps": [1000.0],
     }
+
+
+def test_a_relay_clocks_offset_and_uncertainty_in_milliseconds_at_the_pcs_time() -> None:
+    items = clock_items("tb3", ClockEstimate(7_500_123_456, 412_000, T0 + 3 * S))
+    assert [(i.path, i.archetypes[0].scalars.as_arrow_array().to_pylist(),  # type: ignore[attr-defined]
+             i.times) for i in items] == [
+        ("/_stats/tb3/clock/offset_ms", [7500.123456], {TIMELINE_RECEIVE: T0 + 3 * S}),
+        ("/_stats/tb3/clock/uncertainty_ms", [0.412], {TIMELINE_RECEIVE: T0 + 3 * S}),
+    ]
 
 
 def test_stats_tap_logs_scalars_into_rerun(tmp_path: Path) -> None:

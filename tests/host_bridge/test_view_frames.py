@@ -23,7 +23,7 @@ from rerun.chunk import RrdReader
 
 from host_bridge.cli import main as host_main
 from host_bridge.contract import ColumnsItem, LogItem, repeated_texts
-from host_bridge.converters.joints import robot_model
+from host_bridge.converters.urdf.kinematics import robot_model
 from host_bridge.frames import RobotFrames, frames_logged
 from host_bridge.state import RobotState
 from tests.host_bridge.user_robot import (

@@ -177,7 +177,7 @@ def test_relay_killed_and_restarted(tmp_path: Path, reliability: Record) -> None
     bags = [write_traffic_bag(tmp_path / f"bag{n}", t) for n, t in enumerate((first, second))]
     port = free_port()
     out = tmp_path / "relay_restart.rrd"
-    with running(host_on_loopback(port, out, "--until-idle", "4", "--duration", "180")) as host:
+    with running(host_on_loopback(port, out, "--until-idle", "10", "--duration", "180")) as host:
         host_lines = Lines(host)
         with running(relay_on_loopback(bags[0], port, "--wait-for-host", "60", "--hold", "inf")) as relay:
             Lines(relay).wait_for("serving latched topics", timeout=STARTUP_S)

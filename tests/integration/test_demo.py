@@ -10,6 +10,7 @@ to check another output of the same run (e.g. ``--record-mcap``), add its flag t
 from __future__ import annotations
 
 import math
+import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +33,7 @@ from host_bridge.demo.robot import BASE_LINK_Z, SCAN_XYZ, WHEEL_RADIUS, odometry
 from host_bridge.demo.run import demo_bag_seconds
 from host_bridge.demo.sensors import DEPTH_MAX, camera_matrix
 from host_bridge.demo.world import BOUNDS, WALLS, distance_to_walls
-from tests.integration.procs import command, running
+from tests.integration.procs import command, rerun_binary, running
 from tests.rrd import entity_rows, verify
 
 pytestmark = pytest.mark.integration
@@ -314,12 +315,16 @@ def test_recorded_mcap_holds_the_bytes_the_robot_sent(demo: DemoRun) -> None:
 
 def test_fleet_demo_keeps_each_robot_apart(tmp_path: Path) -> None:
     """``--demo --robots 2``: two simulated robots, each through its own relay, in one host;
-    each has its own entity root, frames and position along the route."""
+    each has its own entity root, frames and position along the route, and its own channels in
+    the recorded MCAP (``/sim/scan``, ``/sim2/scan``: a reader that goes by channel names, as
+    ``ros2 bag play`` and ``rerun mcap convert`` do, keeps them apart)."""
     out = tmp_path / "fleet.rrd"
+    mcap = tmp_path / "fleet.mcap"
     with running(command("host_bridge.cli", "--demo", "--robots", "2", "--duration", "4",
-                         "--save", str(out), "--no-stats")) as proc:
+                         "--save", str(out), "--no-stats", "--record-mcap", str(mcap))) as proc:
         _, stderr = proc.communicate(timeout=TIMEOUT_S)
     assert proc.returncode == 0, stderr[-3000:]
+    check_fleet_recording(mcap, ("sim", "sim2"), tmp_path / "imported.rrd")
     rows = entity_rows(out)
     starts = {}
     for robot in ("sim", "sim2"):
@@ -333,3 +338,27 @@ def test_fleet_demo_keeps_each_robot_apart(tmp_path: Path) -> None:
     assert not any(path.startswith("/sim3") for path in rows)
     # Spread along the loop: the two robots do not start on top of each other.
     assert np.linalg.norm(starts["sim"] - starts["sim2"]) > 0.5
+
+
+def check_fleet_recording(mcap: Path, robots: tuple[str, ...], imported: Path) -> None:
+    """Every channel is ``/<robot><topic>``, each robot has all the demo's topics, and Rerun's
+    own MCAP importer puts each robot's messages under its own entity root, none merged."""
+    from mcap.reader import make_reader
+
+    with mcap.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    assert summary.statistics is not None
+    channels = {(c.metadata["swanky.robot"], c.metadata["swanky.topic"]): c.topic
+                for c in summary.channels.values()}
+    assert channels == {(robot, spec.topic): f"/{robot}{spec.topic}"
+                        for robot in robots for spec in TOPICS}
+    counted = {summary.channels[channel].topic: count
+               for channel, count in summary.statistics.channel_message_counts.items()}
+    assert all(counted[f"/{robot}/scan"] >= 1 for robot in robots), counted
+    subprocess.run([str(rerun_binary()), "mcap", "convert", str(mcap), "-o", str(imported)], check=True,
+                   capture_output=True, timeout=120)
+    rows = entity_rows(imported)
+    for robot in robots:  # each scan once, under its robot's root
+        assert sum(not row["static"] for row in rows[f"/{robot}/scan"]) == counted[f"/{robot}/scan"]
+    assert "/scan" not in rows

@@ -11,7 +11,9 @@ on one small module, chosen through ``PYTEST_ADDOPTS`` so the command text stays
 the nested run skips this module, so it never recurses.
 
 Both commands install from the package index (pip's configured mirror here): minutes, so the
-copy and its venv are shared by both tests, as a user's clone is.
+copy and its venv are shared by both tests, as a user's clone is, and they run in the background
+from the start of the session (tests/conftest.py) at a lower CPU priority: the suite's other
+tests go on meanwhile, and these two only read what the commands did.
 """
 
 from __future__ import annotations
@@ -19,8 +21,10 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import signal
 import socket
 import subprocess
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -102,28 +106,72 @@ class QuickStart:
     tests: subprocess.CompletedProcess[str]
 
 
-def run(command: str, copy: Path, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        ["sh", "-c", command], cwd=copy, env=env, capture_output=True, text=True,
-        timeout=INSTALL_TIMEOUT_S, check=False,
-    )
+NICENESS = 10
+"""The commands' CPU priority below the suite's: they take the cores the other tests leave."""
+
+
+class QuickStartRun:
+    """The Quick start's commands run one after the other on a thread, in a fresh copy under
+    ``directory``; :meth:`result` waits for them, :meth:`cancel` kills the one running."""
+
+    def __init__(self, directory: Path) -> None:
+        self._directory = directory
+        self._proc: subprocess.Popen[str] | None = None
+        self._cancelled = False
+        self._lock = threading.Lock()
+        self._outcome: QuickStart | BaseException | None = None
+        self._thread = threading.Thread(target=self._run_all, name="readme-commands", daemon=True)
+        self._thread.start()
+
+    def _run(self, command: str, copy: Path, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+        with self._lock:
+            if self._cancelled:
+                msg = "the test session ended first"
+                raise RuntimeError(msg)
+            self._proc = subprocess.Popen(
+                ["nice", "-n", str(NICENESS), "sh", "-c", command], cwd=copy, env=env,
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+            )
+        out, err = self._proc.communicate(timeout=INSTALL_TIMEOUT_S)
+        return subprocess.CompletedProcess(command, self._proc.returncode, out, err)
+
+    def _run_all(self) -> None:
+        try:
+            demo_command, test_command = quick_start_commands()
+            copy = fresh_copy(self._directory)
+            env = user_environment()
+            verbatim = None
+            if has_display() or viewer_port_taken():
+                # A viewer would open (or rr.spawn would reuse the one listening): no verbatim run.
+                demo = self._run(f"{demo_command} {HEADLESS}", copy, env)
+            else:
+                verbatim = self._run(demo_command, copy, env)
+                last_step = demo_command.rsplit("&&", 1)[1].strip()
+                demo = self._run(f"{last_step} {HEADLESS}", copy, env)
+            tests = self._run(test_command, copy, {**env, NESTED: "1", "PYTEST_ADDOPTS": NESTED_TESTS})
+            self._outcome = QuickStart(copy, verbatim, demo, tests)
+        except BaseException as err:  # handed to the tests, which fail with it
+            self._outcome = err
+
+    def result(self) -> QuickStart:
+        self._thread.join()
+        if isinstance(self._outcome, BaseException):
+            raise self._outcome
+        assert self._outcome is not None
+        return self._outcome
+
+    def cancel(self) -> None:
+        with self._lock:
+            self._cancelled = True
+            if self._proc is not None and self._proc.poll() is None:
+                os.killpg(self._proc.pid, signal.SIGKILL)
+        self._thread.join(timeout=30)
 
 
 @pytest.fixture(scope="module")
-def quick_start(tmp_path_factory: pytest.TempPathFactory) -> QuickStart:
-    demo_command, test_command = quick_start_commands()
-    copy = fresh_copy(tmp_path_factory.mktemp("readme"))
-    env = user_environment()
-    verbatim = None
-    if has_display() or viewer_port_taken():
-        # A viewer would open (or rr.spawn would reuse the one listening): no verbatim run.
-        demo = run(f"{demo_command} {HEADLESS}", copy, env)
-    else:
-        verbatim = run(demo_command, copy, env)
-        last_step = demo_command.rsplit("&&", 1)[1].strip()
-        demo = run(f"{last_step} {HEADLESS}", copy, env)
-    tests = run(test_command, copy, {**env, NESTED: "1", "PYTEST_ADDOPTS": NESTED_TESTS})
-    return QuickStart(copy, verbatim, demo, tests)
+def quick_start(readme_commands: QuickStartRun | None) -> QuickStart:
+    assert readme_commands is not None  # started for this module by tests/conftest.py
+    return readme_commands.result()
 
 
 def test_readme_demo_command(quick_start: QuickStart) -> None:

@@ -1,5 +1,5 @@
 """The Relay over a loopback Zenoh session: a RawMessage goes out on its key with its encoding
-and attachment, and the catalog is answered."""
+and attachment, and the catalog and clock queries are answered."""
 
 from __future__ import annotations
 
@@ -20,12 +20,16 @@ from robot_relay.wire import (
     BUNDLE_ENTRY_SIZE,
     Attachment,
     Catalog,
+    ClockReading,
     MessageDefinition,
     QosProfile,
     RawMessage,
+    RelayReport,
     TopicInfo,
     catalog_key,
+    clock_key,
     data_key,
+    stats_key,
 )
 
 STRING = "std_msgs/msg/String"
@@ -65,6 +69,46 @@ def test_a_message_goes_out_with_its_key_encoding_and_attachment(
     assert replies[0] is not None
     catalog = Catalog.from_json(replies[0].payload.to_bytes(), "test")
     assert catalog == Catalog("tb3", "bag", (CHATTER,))
+
+
+def test_every_time_the_relay_sends_comes_from_its_clock(
+    sessions: tuple[zenoh.Session, zenoh.Session],
+) -> None:
+    """Receive times, stats reports and clock readings all read the clock the relay was given
+    (here 7.5 s ahead of the PC's, as a Pi that booted without NTP), so a host that measures
+    the clock through the query measures the clock of the receive times."""
+    host, robot = sessions
+    shift = 7_500_000_000
+    received: list[zenoh.Sample] = []
+    reports: list[zenoh.Sample] = []
+    subscriber = host.declare_subscriber(data_key("tb3", "/chatter"), received.append)
+    stats = host.declare_subscriber(stats_key("tb3"), reports.append)
+    relay = Relay(robot, Catalog("tb3", "bag", (CHATTER,)), clock=lambda: time.time_ns() + shift)
+    try:
+        assert relay.wait_for_host(20.0)
+        before = time.time_ns()
+        relay.publish(RawMessage("tb3", "/chatter", STRING, cdr("one"), log_ns=123))
+        replies = [reply.ok for reply in host.get(clock_key("tb3"), timeout=10.0)]
+        deadline = time.monotonic() + 20
+        while (not received or not reports) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        after = time.time_ns()
+    finally:
+        relay.close()
+        stats.undeclare()
+        subscriber.undeclare()
+    (sample,) = received
+    assert sample.attachment is not None
+    attachment = Attachment.unpack(sample.attachment.to_bytes(), "test")
+    assert before + shift <= attachment.receive_ns <= after + shift
+    assert attachment.source_ns == 123  # the source's time is the source's, not the relay's
+    (reply,) = replies
+    assert reply is not None
+    assert str(reply.key_expr) == "swanky/tb3/clock"
+    reading = ClockReading.unpack(reply.payload.to_bytes(), "test")
+    assert before + shift <= reading.received_ns <= reading.replied_ns <= after + shift
+    report = RelayReport.from_json(reports[0].payload.to_bytes(), "test")
+    assert before + shift <= report.time_ns <= after + shift
 
 
 def cdr(text: str) -> bytes:

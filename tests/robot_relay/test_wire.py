@@ -14,12 +14,14 @@ from robot_relay.wire import (
     FLAG_ZSTD,
     Attachment,
     Catalog,
+    ClockReading,
     MessageDefinition,
     QosProfile,
     TopicInfo,
     bundle_count,
     cdr_encoding,
     check_robot_name,
+    clock_key,
     data_key,
     decompress,
     files_key,
@@ -55,6 +57,19 @@ def test_attachment_is_32_little_endian_bytes_in_the_documented_order() -> None:
     assert struct.unpack_from("<q", packed, 8)[0] == 1_700_000_000_123
     assert struct.unpack_from("<q", packed, 16)[0] == 42
     assert Attachment.unpack(packed, "k") == Attachment(7, 1_700_000_000_123, 42, 0)
+
+
+def test_a_clock_reading_is_24_little_endian_bytes_in_the_documented_order() -> None:
+    assert clock_key("tb3") == "swanky/tb3/clock"
+    packed = ClockReading(received_ns=1_700_000_007_500_000_001, replied_ns=-3).pack()
+    assert len(packed) == 24
+    assert packed[:8] == b"\x01" + bytes(7)  # version 1, then reserved
+    assert struct.unpack_from("<qq", packed, 8) == (1_700_000_007_500_000_001, -3)
+    assert ClockReading.unpack(packed, "k") == ClockReading(1_700_000_007_500_000_001, -3)
+    with pytest.raises(WireError, match=r"swanky/tb3/clock.*version 2"):
+        ClockReading.unpack(b"\x02" + packed[1:], "swanky/tb3/clock")
+    with pytest.raises(WireError, match=r"'k': 0 bytes, version missing"):
+        ClockReading.unpack(b"", "k")
 
 
 def test_unknown_attachment_version_is_rejected_naming_the_key() -> None:

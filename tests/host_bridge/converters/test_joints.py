@@ -17,7 +17,8 @@ import yourdfpy
 from rerun.urdf import UrdfTree
 
 from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
-from host_bridge.converters import joints, urdf
+from host_bridge.converters import joints
+from host_bridge.converters.urdf import description, kinematics
 from host_bridge.errors import ConvertError, PartialConvertError
 from host_bridge.resources import ResourceResolver
 from host_bridge.state import RobotState
@@ -34,7 +35,7 @@ def joints_ctx(robot: str, xml: str, topic: str = "/joint_states", stamp: int = 
     state = RobotState(ResourceResolver())
     model_ctx = make_ctx("/robot_description", robot=robot, times={}, robot_state=state)
     with contextlib.suppress(PartialConvertError):  # the meshes are not needed for kinematics
-        urdf.convert(SimpleNamespace(data=xml), model_ctx)
+        description.convert(SimpleNamespace(data=xml), model_ctx)
     return make_ctx(topic, stamp_ns=stamp, robot=robot, robot_state=state)
 
 
@@ -194,7 +195,7 @@ def test_model_stands_at_zero_with_mimic_chains_at_their_offsets() -> None:
     entity (the joint states' temporal rows win from their first stamp on)."""
     state = RobotState(ResourceResolver())
     ctx = make_ctx("/robot_description", robot="arm1", times={}, robot_state=state)
-    items = by_path(urdf.convert(SimpleNamespace(data=ARM), ctx))
+    items = by_path(description.convert(SimpleNamespace(data=ARM), ctx))
     assert sorted(items) == [f"/arm1/tf_static/{link}" for link in ("arm", "finger", "slider", "tip")]
     assert all(item.static for item in items.values())
     reference = yourdfpy.URDF.load(io.StringIO(ARM), load_meshes=False)
@@ -210,7 +211,7 @@ def test_model_stands_at_zero_with_mimic_chains_at_their_offsets() -> None:
                                rotation_about(0.05, [0, 0, 1], [0.05, 0, 0]), atol=1e-6)
     model = state.model
     assert model is not None
-    assert joints.zero_positions(model) == {"lift": 0.0, "shoulder": 0.0, "grip": 0.1, "tip_joint": 0.05}
+    assert kinematics.zero_positions(model) == {"lift": 0.0, "shoulder": 0.0, "grip": 0.1, "tip_joint": 0.05}
     assert model.root == "base"
 
 

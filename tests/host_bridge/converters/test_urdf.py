@@ -15,7 +15,7 @@ import trimesh.transformations as tra
 from PIL import Image
 
 from host_bridge.contract import ConvertContext, LogEntry, LogItem
-from host_bridge.converters import urdf
+from host_bridge.converters.urdf import description
 from host_bridge.errors import ConfigError, ConvertError, PartialConvertError
 from host_bridge.resources import ResourceResolver, parse_package_path
 from host_bridge.state import RobotModel, RobotState
@@ -72,7 +72,7 @@ def description_ctx(robot: str, resolver: ResourceResolver | None = None) -> Con
 
 
 def convert(xml: str, ctx: ConvertContext) -> list[LogEntry]:
-    return urdf.convert(SimpleNamespace(data=xml), ctx)
+    return description.convert(SimpleNamespace(data=xml), ctx)
 
 
 def by_path(items: list[LogEntry]) -> dict[str, LogItem]:
@@ -288,15 +288,15 @@ def test_file_form_relative_file_uri_and_formats(tmp_path: Path) -> None:
     write_box(tmp_path / "meshes" / "box.stl")
     write_box(tmp_path / "meshes" / "box.obj")
     write_box(tmp_path / "elsewhere" / "box.dae")
-    description = tmp_path / "robot.urdf"
-    description.write_text(
+    urdf_file = tmp_path / "robot.urdf"
+    urdf_file.write_text(
         mesh_urdf(
             ("meshes/box.stl", "0.5 0.5 0.5"),
             ("meshes/box.obj", "1 1 1"),
             (f"file://{tmp_path}/elsewhere/box.dae", "-1 1 1"),
         )
     )
-    items = by_path(urdf.model_items_from_file(description, description_ctx("r", ResourceResolver())))
+    items = by_path(description.model_items_from_file(urdf_file, description_ctx("r", ResourceResolver())))
     stl = mesh_of(items, "l0")
     assert np.ptp(values(stl.vertex_positions), axis=0) == pytest.approx([0.5, 1.0, 2.0])
     for link, name in (("l1", "meshes/box.obj"), ("l2", "elsewhere/box.dae")):
@@ -311,7 +311,7 @@ def test_file_form_relative_file_uri_and_formats(tmp_path: Path) -> None:
 
 def test_unreadable_urdf_file_is_a_convert_error(tmp_path: Path) -> None:
     with pytest.raises(ConvertError, match="--urdf"):
-        urdf.model_items_from_file(tmp_path / "absent.urdf", description_ctx("r"))
+        description.model_items_from_file(tmp_path / "absent.urdf", description_ctx("r"))
 
 
 @pytest.mark.parametrize(
@@ -386,9 +386,9 @@ def test_package_path_option_parsing(tmp_path: Path) -> None:
 
 
 def test_robot_description_topic_names() -> None:
-    assert urdf.is_robot_description("/robot_description")
-    assert urdf.is_robot_description("/tb1/robot_description")
-    assert not urdf.is_robot_description("/robot_description_semantic")
+    assert description.is_robot_description("/robot_description")
+    assert description.is_robot_description("/tb1/robot_description")
+    assert not description.is_robot_description("/robot_description_semantic")
 
 
 OBJ = b"""mtllib {mtl}
@@ -432,7 +432,7 @@ def test_obj_materials_and_textures_come_through_the_resolver(tmp_path: Path) ->
 
 def user_model(tmp_path: Path) -> tuple[dict[str, LogItem], ConvertContext]:
     ctx = description_ctx("r", ResourceResolver())
-    return by_path(urdf.model_items_from_file(write_user_robot(tmp_path), ctx)), ctx
+    return by_path(description.model_items_from_file(write_user_robot(tmp_path), ctx)), ctx
 
 
 def test_user_model_stands_at_zero_with_the_mimic_finger_at_its_offset(tmp_path: Path) -> None:
@@ -550,7 +550,7 @@ def test_urdf_file_replaces_the_robot_description(
 ) -> None:
     path = write_user_robot(tmp_path)
     ctx = description_ctx("r", ResourceResolver())
-    from_file = urdf.model_items_from_file(path, ctx)
+    from_file = description.model_items_from_file(path, ctx)
     model = ctx.robot_state.model
     caplog.set_level("INFO", logger="swanky.host")
     other = user_urdf(tmp_path / "meshes", name="bag_bot", prefix="bag_")

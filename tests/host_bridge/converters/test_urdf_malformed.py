@@ -27,7 +27,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.cli import main as host_main
 from host_bridge.contract import WARNINGS_PATH, ColumnsItem, LogItem
-from host_bridge.converters import urdf
+from host_bridge.converters.urdf import kinematics
 from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import ConvertError
 from host_bridge.resources import ResourceResolver
@@ -285,7 +285,7 @@ def test_huge_and_missing_meshes_cost_their_visual_only(tmp_path: Path, reliabil
         f"file://{tmp_path}/missing.stl for link 'camera'; looked in no --package-path and no "
         "ROS_PACKAGE_PATH/AMENT_PREFIX_PATH; no robot file server to ask; link 'lidar': "
         f"file://{tmp_path}/huge.stl: 209715200 bytes (200 MiB) is over the mesh size limit of "
-        "64 MiB (urdf.MAX_MESH_BYTES), not loaded; reduce the mesh (MeshLab, Blender's "
+        "64 MiB (urdf.meshes.MAX_MESH_BYTES), not loaded; reduce the mesh (MeshLab, Blender's "
         f"Decimate); link 'bumper': file://{tmp_path}/claims.stl: the file holds no triangles")
     assert sorted(drawn.visuals) == ["base"]
     positions = np.asarray(values(drawn.archetype("base", rr.Mesh3D).vertex_positions))
@@ -401,7 +401,7 @@ def test_a_ten_thousand_link_mimic_chain_is_drawn_in_bounded_time(reliability: R
 
 def test_robot_kinematics_of_a_loop_is_the_tree() -> None:
     """The demo's entry point takes the same checks, without the warning."""
-    model = urdf.robot_kinematics(robot(box_link("a"), box_link("b"), joint("ab", "a", "b"),
+    model = kinematics.robot_kinematics(robot(box_link("a"), box_link("b"), joint("ab", "a", "b"),
                                         joint("ba", "b", "a")), "x.urdf")
     assert sorted(model.joints) == ["ab"]
     assert model.root == "a"

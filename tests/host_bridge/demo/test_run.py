@@ -16,9 +16,10 @@ def test_robot_count_names_the_fleet() -> None:
     assert demo_robot_names("*") == ["sim"]  # --robots left at its live default
     assert demo_robot_names("1") == ["sim"]
     assert demo_robot_names("3") == ["sim", "sim2", "sim3"]
+    assert demo_robot_names("25")[-2:] == ["sim24", "sim25"]  # the fleet on one PC
 
 
-@pytest.mark.parametrize("value", ["abc", "0", "-2", "11", "2.5", "tb$*"])
+@pytest.mark.parametrize("value", ["abc", "0", "-2", "26", "2.5", "tb$*"])
 def test_robots_must_be_a_count_with_demo(value: str) -> None:
     with pytest.raises(ConfigError, match=rf"--robots '{re.escape(value)}'.*number of simulated robots"):
         demo_robot_names(value)

@@ -10,6 +10,7 @@ import pytest
 import zenoh
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from host_bridge.errors import NoClockError
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun, RobotEvent
 from host_bridge.inputs.queues import RobotQueues
 from host_bridge.inputs.zenoh import ZenohInput, check_robot_pattern, robot_matches
@@ -24,6 +25,7 @@ from robot_relay.wire import (
     alive_key,
     catalog_key,
     cdr_encoding,
+    clock_key,
     data_key,
     pack_bundle,
 )
@@ -173,7 +175,9 @@ def test_only_the_robots_of_the_pattern_are_heard(
     assert [item for item in items if isinstance(item, RobotEvent)] == [
         RobotEvent("east-1", True, "swanky relay")
     ]
-    assert not [item for item in items if isinstance(item, InputProblem)]
+    # These stand-in relays answer no clock query; only east-1's clock was asked for.
+    assert [(item.robot, item.topic, type(item.error)) for item in items
+            if isinstance(item, InputProblem)] == [("east-1", clock_key("east-1"), NoClockError)]
 
 
 def test_robot_patterns() -> None:
