@@ -1,23 +1,23 @@
-"""What a viewer that falls behind is sent (issue 24): the same rows in fewer chunks, and fewer
-heavy messages.
+"""What a viewer that falls behind is sent (issue 24): fewer heavy messages, and the same rows
+in fewer chunks.
 
 A viewer drawing with software GL takes in less than a few robots send: the demo's robot fell
 minutes behind in the native viewer, seconds in the web viewer. How far behind it is, is
 measured (viewer_lag.py: the round trip of a flush into the viewer). While that round trip is
 over :data:`BEHIND_S`, every :data:`BACK_OFF_EVERY_S` :class:`Pace` doubles
 
-* the period of the flushes that batch the viewers' rows (``ViewerLag.period``, up to
-  ``LONGEST_PERIOD_S``): Rerun's viewer takes in a bounded number of chunks per frame it draws,
-  so a topic's rows of a longer period in one chunk lose nothing and cost it less;
 * the interval at which each heavy topic (the type table's ``Lane.HEAVY`` rows: images, clouds,
   whole maps) goes to it, latest-only, per robot and topic (from :data:`FIRST_INTERVAL_S` up to
   :data:`MAX_INTERVAL_S`): its newest message once the interval since the last one sent has
   passed, none in between;
+* when the viewers themselves are slow to answer (not this host slow to send), the period of
+  the flushes that batch their rows (``ViewerLag.period``, up to ``LONGEST_PERIOD_S``): Rerun's
+  viewer takes in a bounded number of chunks per frame it draws, so a topic's rows of a longer
+  period in one chunk lose nothing and cost it less;
 
-and once the round trip is under :data:`CAUGHT_UP_S` both shrink by a twentieth every
-:data:`CONTROL_EVERY_S` (the rate up by a fifth a second), until heavy topics go in full again:
-the rate the viewer takes is found by trying, as TCP finds a link's. A topic slower than the
-interval is never thinned.
+and once they are under :data:`CAUGHT_UP_S` both shrink by :data:`RECOVERY` every
+:data:`CONTROL_EVERY_S`, until heavy topics go in full again: the rate the viewer takes is found
+by trying, as TCP finds a link's. A topic slower than the interval is never thinned.
 
 Never thinned: small topics (scans, TF, IMU, odometry), a grid's patches (they must follow their
 grid), static data, and the ``--save`` file: a heavy message the viewers are not sent is still

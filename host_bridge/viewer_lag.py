@@ -13,14 +13,17 @@ So after the flush, each viewer on this PC is asked for its state over its viewe
 service (``rerun.experimental.ViewerClient.get_state``): the request reaches the viewer through
 the same channels as the data, after everything the flush delivered, and is answered when the
 viewer has taken all of it in (in that experiment the call took 12 and 15 s, and the state it
-returned ended at the data logged when it was asked). The lag is the time from the flush's start
-to the last answer. A viewer that cannot answer (on another PC, whose control service serves
-loopback clients only; ``rerun --serve-grpc``, which has no viewer; ``rerun --save``, which only
-writes) is measured by the flush alone, a lower bound; so is the ``--serve-web`` server, whose
-viewer is a browser.
+returned ended at the data logged when it was asked). A flush's round trip is the time from
+its start to the last answer; the lag, what ``/_stats/host/viewer_lag_ms`` shows, adds the
+flush period, which the oldest rows of a flush waited for it. A viewer that cannot answer (on
+another PC, whose control service serves loopback clients only; ``rerun --serve-grpc``, which
+has no viewer; ``rerun --save``, which only writes) is measured by the flush alone, a lower
+bound; so is the ``--serve-web`` server, whose viewer is a browser.
 
 While a measurement is under way its age counts: a viewer that stopped reading shows a lag that
-grows by the second, not one that is known only once it reads again.
+grows by the second, not one that is known only once it reads again. The converter process's
+own round trip (offload.py: its heavy topics reach the viewer over a connection of their own)
+counts too.
 """
 
 from __future__ import annotations
@@ -42,17 +45,18 @@ SHORTEST_PERIOD_S = 0.2
 """How often the viewers' stream is flushed (and a measurement starts) while they keep up: the
 rows of a topic go to them in one chunk per period (Rerun's default batching, 0.2 s)."""
 LONGEST_PERIOD_S = 0.5
+"""The longest a viewer slow to take chunks in is made to wait for its rows (thinning.py): the
+lag it adds must leave room under a second."""
 BATCHER_TICK_S = 2.0
 """The viewers' stream's batcher sends its rows on its own only after this long: the flushes
 every :attr:`ViewerLag.period` decide how they are batched (and a measurement that waits long
 for a slow viewer does not hold them longer than this)."""
 FLUSH_STEP_S = 1.0
 """A flush is waited on in steps this long, so a stop is seen in between."""
-VIEWER_ANSWER_S = 15.0
-"""How long ``ViewerClient`` waits for a viewer's answer (Rerun's own limit)."""
 PROBE_TRIES = 4
-"""A viewer that never answers within VIEWER_ANSWER_S in this many tries is measured by flushes
-only: a ``rerun --save`` viewer has the service but no viewer to answer."""
+"""A viewer that never answers in this many tries (``ViewerClient`` waits 15 s for an answer,
+Rerun's own limit) is measured by flushes only: a ``rerun --save`` viewer has the service but
+no viewer to answer."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,8 +71,8 @@ class LaggingViewer:
 class ViewerLag:
     """A thread flushing the viewers' stream every :attr:`period` and measuring how long each
     flush takes to reach the viewers (one measurement after another). Another thread first
-    finds which viewers answer questions (a ``rerun --save`` viewer takes VIEWER_ANSWER_S to be
-    found out, meanwhile measured by flushes only).
+    finds which viewers answer questions (a ``rerun --save`` viewer takes a minute to be found
+    out, meanwhile measured by flushes only).
 
     Rerun's viewer takes in messages for at most 10 ms per frame it draws (re_viewer's
     ``receive_messages``), and each chunk, a message, costs it about the same whatever its
@@ -152,7 +156,7 @@ class ViewerLag:
 
     def _ask(self, viewers: Sequence[tuple[str, ViewerClient]]) -> None:
         """Ask each viewer for its state: it answers once it took in what the flush delivered.
-        One that times out is VIEWER_ANSWER_S behind or more; one that fails otherwise (it went
+        One that times out (15 s) is that far behind or more; one that fails otherwise (it went
         away) is no longer asked."""
         for name, client in viewers:
             if self._stopping.is_set():
