@@ -210,3 +210,24 @@ def test_a_frozen_viewer_alone_gets_fewer_heavy_messages_and_every_small_one(tmp
     images = temporal(rows, f"/{ROBOT}{IMAGES}")
     assert len(images) + thinned_at_stop(stderr) + queue_drops(stderr) == received_images(stderr)
     assert thinned_at_stop(stderr) > 0
+
+
+def test_with_a_file_the_viewer_misses_only_the_thinned_images_and_the_file_none(tmp_path: Path) -> None:
+    """The same without a display or Vulkan (CI): ``rerun --port N --save`` beside a --save
+    file, the heavy topics converted in the host (a file is this process's own)."""
+    bag = write_bag(tmp_path / "bag")
+    received, saved = tmp_path / "viewer.rrd", tmp_path / "host.rrd"
+    with saving_viewer(received, STARTUP_S) as (url, viewer), \
+            freezing_run(bag, url, viewer, "--save", str(saved)) as (lines, frozen_ns, resumed_ns):
+        viewer.send_signal(signal.SIGINT)  # it writes what it received
+        viewer.wait(timeout=60)
+    stderr = lines.text
+    in_file, in_viewer = entity_rows(saved), entity_rows(received)
+    for rows in (in_file, in_viewer):
+        assert odom_indices(temporal(rows, f"/{ROBOT}{ODOM}")) == list(range(int(BAG_S * ODOM_HZ)))
+    assert_lag_measured_and_recovered(scalars(temporal(in_file, LAG_PATH)), frozen_ns, resumed_ns)
+    images = {row["ros_time"] for row in temporal(in_file, f"/{ROBOT}{IMAGES}")}
+    shown = {row["ros_time"] for row in temporal(in_viewer, f"/{ROBOT}{IMAGES}")}
+    assert len(images) + queue_drops(stderr) == received_images(stderr)
+    assert shown < images
+    assert len(images - shown) == thinned_at_stop(stderr)
