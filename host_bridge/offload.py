@@ -74,6 +74,8 @@ POLL_S = 0.5
 CHILD_MAIN = "import sys; from host_bridge.offload import main; sys.exit(main(sys.argv[1:]))"
 """The child's program: :func:`main` of this module by its name (as ``__main__`` the records it
 sends back would be unpickled as the host's ``__main__``'s)."""
+ROUND_TRIP_VALID_S = 1.0
+"""How long the child's round trip to the viewer, reported with a run's outcome, counts."""
 CLOSE_TIMEOUT_S = 15.0
 """How long the child may take to log what it holds, and then to close its sink (RerunSink
 gives a viewer that stopped answering about 9 s: a probe, then 6 s to disconnect), before it is
@@ -141,8 +143,8 @@ class HeavyProcess:
         self._problem: str | None = None
         """Why the child is gone; heavy runs are then converted here."""
         self._warned = False
-        self.viewer_round_trip = 0.0
-        """The child's round trip to the viewer, as of its last answer."""
+        self._round_trip = (0.0, 0.0)
+        """The child's round trip to the viewer as of its last answer, and when that came."""
         self._ready = False
         self._sent: set[tuple[str, str, str]] = set()
         """The (robot, topic, type)s whose settings the child has."""
@@ -179,10 +181,17 @@ class HeavyProcess:
         counters.dropped += outcome.dropped
         counters.warnings += outcome.warnings
         counters.convert_seconds += outcome.seconds
-        self.viewer_round_trip = outcome.viewer_round_trip
+        self._round_trip = (outcome.viewer_round_trip, time.monotonic())
         self._note_frames(outcome)
         if outcome.error is not None:
             raise ConvertError(f"{first.topic}: {outcome.error}")
+
+    @property
+    def viewer_round_trip(self) -> float:
+        """The child's round trip to the viewer as of its last answer, for ROUND_TRIP_VALID_S:
+        a child sent nothing more (its runs thinned) is not known to be behind any longer."""
+        seconds, at = self._round_trip
+        return seconds if time.monotonic() - at < ROUND_TRIP_VALID_S else 0.0
 
     def _exchange(self, run: Sequence[RawMessage], topic: TopicBinding) -> Outcome | None:
         """The child's outcome of ``run``; None (and ``_problem`` set) when it is gone."""
