@@ -7,10 +7,11 @@ message by message, so only a bad message is lost. A bad message never stops the
 counted, warned about once per (robot, topic, error kind) and shown in Rerun under
 ``/_swanky/warnings``; ``strict`` (tests, ``--strict``) re-raises instead.
 
-:class:`Conversion` is that core; the slow lane (:class:`SlowLane`) and the heavy topics' process
-(offload.py) are built around one, and the :class:`Dispatcher` around another. Everything
-converted for a robot is logged through :meth:`Dispatcher.log`, which also keeps the robot's
-frames one tree and names its 3D view's target frame (see frames.py).
+:class:`Conversion` is that core, with its slow lane (:class:`SlowLane`: the table's slow
+converters, latest-only). The :class:`Dispatcher` is built around one, and so is the heavy
+topics' process (offload.py). Everything the dispatcher converts for a robot is logged through
+:meth:`Dispatcher.log`, which also keeps the robot's frames one tree and names its 3D view's
+target frame (see frames.py).
 """
 
 from __future__ import annotations
@@ -249,13 +250,13 @@ class Conversion:
         )
         started = time.perf_counter()
         # A converter written per message gets its messages one by one (contract.PerMessage).
-        parts = run.split() if isinstance(converter, PerMessage) else [run]
+        parts = run.split() if isinstance(converter, PerMessage) and len(run) > 1 else [run]
         taken = None
         for part in parts:
             taken = self.attempt(part, converter, counters, self.strict) or taken
         counters.convert_seconds += time.perf_counter() - started
         if taken is not None:
-            self._slow.submit(first.msgtype, taken.one(-1))
+            self._slow.submit(first.msgtype, taken)
 
     def attempt(
         self, run: Run, converter: Converter, counters: TopicCounters | None, strict: bool
@@ -313,11 +314,13 @@ class SlowLane:
         self._thread: threading.Thread | None = None
 
     def submit(self, msgtype: str, run: Run) -> None:
+        """The last message of ``run`` for ``msgtype``'s slow converter, if it has one."""
         converter = self._converters.get(msgtype)
         if converter is None:
             return
+        last = run if len(run) == 1 else run.one(-1)
         with self._cond:
-            self._latest[(run.robot, run.topic)] = (converter, run)
+            self._latest[(run.robot, run.topic)] = (converter, last)
             if self._thread is None:
                 self._thread = threading.Thread(target=self._work, name="slow-converters",
                                                 daemon=True)
