@@ -254,8 +254,8 @@ class Run(TopicContext):
     timelines (:meth:`times`). ``receive_ns`` and ``log_ns`` are each message's arrival times
     (None: a timeline the input does not give: receive_time offline, log_time live)."""
 
-    __slots__ = ("_columns", "_messages", "_source", "entity_path", "log_ns", "receive_ns",
-                 "restamp", "robot", "robot_state", "topic", "topic_state")
+    __slots__ = ("_columns", "_contexts", "_messages", "_size", "_source", "entity_path",
+                 "log_ns", "receive_ns", "restamp", "robot", "robot_state", "topic", "topic_state")
 
     def __init__(
         self,
@@ -270,9 +270,12 @@ class Run(TopicContext):
         topic_state: TopicState | None = None,
         robot_state: RobotState | None = None,
         messages: Sequence[Any] | None = None,
+        contexts: list[ConvertContext] | None = None,
     ) -> None:
-        """``messages``: the source's messages, when they are decoded already."""
+        """``messages``, ``contexts``: the source's messages and their contexts, when they are
+        known already."""
         self._source = source
+        self._size = len(source)
         self.robot = robot
         self.topic = topic
         self.entity_path = entity_path
@@ -282,15 +285,16 @@ class Run(TopicContext):
         self.topic_state = TopicState() if topic_state is None else topic_state
         self.robot_state = RobotState() if robot_state is None else robot_state
         self._messages = messages
+        self._contexts = contexts
         self._columns: Columns | None = None
 
     def __len__(self) -> int:
-        return len(self._source)
+        return self._size
 
     def messages(self) -> Sequence[Any]:
         """The messages, decoded (a HostError naming the first that does not decode)."""
         if self._messages is None:
-            self._messages = [self._source.decode(row) for row in range(len(self))]
+            self._messages = [self._source.decode(row) for row in range(self._size)]
         return self._messages
 
     def columns(self) -> Columns:
@@ -303,10 +307,10 @@ class Run(TopicContext):
 
     def stamps(self) -> Int64Array | None:
         """The messages' header stamps in ns, decoding them; None for a type without a header."""
-        messages = self.messages()
-        if not messages or header_stamp(messages[0]) is None:
+        stamps = [header_stamp(m) for m in self.messages()]
+        if not stamps or stamps[0] is None:
             return None
-        return np.fromiter((header_stamp(m) or 0 for m in messages), np.int64, len(messages))
+        return np.array(stamps, np.int64)
 
     def times(self, stamps: Int64Array | None, rows: RowIndex | None = None) -> TimeGroups:
         """The timelines of entries made from the run's messages ``rows`` (default: one entry
@@ -316,40 +320,45 @@ class Run(TopicContext):
         when the topic is restamped; a zero stamp means "no stamp", so its rows have no
         ros_time (one send_columns call cannot leave a timeline out for some rows only);
         ``receive_time`` and ``log_time`` are the arrival times the input gives."""
-        every_message = rows is None
-        rows = np.arange(len(self)) if rows is None else rows
-        if not len(rows):
-            return []
-        arrivals = {
-            name: values if every_message else values[rows]
-            for name, values in ((TIMELINE_RECEIVE, self.receive_ns), (TIMELINE_LOG, self.log_ns))
-            if values is not None
-        }
-        arrival = self.receive_ns if self.receive_ns is not None else self.log_ns
-        every = rows if every_message else np.arange(len(rows))
+        if rows is None:  # every message (the usual case): the arrival arrays as they are
+            if not self._size:
+                return []
+            every = np.arange(self._size)
+            receive, logged = self.receive_ns, self.log_ns
+        else:
+            if not len(rows):
+                return []
+            every = np.arange(len(rows))
+            receive = None if self.receive_ns is None else self.receive_ns[rows]
+            logged = None if self.log_ns is None else self.log_ns[rows]
+        arrivals: dict[str, Int64Array] = {}
+        if receive is not None:
+            arrivals[TIMELINE_RECEIVE] = receive
+        if logged is not None:
+            arrivals[TIMELINE_LOG] = logged
+        arrival = receive if receive is not None else logged
         if self.restamp and arrival is not None:
-            return [(every, {TIMELINE_ROS: arrival if every_message else arrival[rows], **arrivals})]
+            return [(every, {TIMELINE_ROS: arrival, **arrivals})]
         if stamps is None:
             return [(every, arrivals)]
-        unstamped = stamps == 0
-        if not unstamped.any():
+        if np.count_nonzero(stamps) == len(stamps):  # (ndarray.all costs more on a short run)
             return [(every, {TIMELINE_ROS: stamps, **arrivals})]
         groups: TimeGroups = []
+        unstamped = stamps == 0
         stamped_rows = np.flatnonzero(~unstamped)
         if stamped_rows.size:
             times = {name: values[stamped_rows] for name, values in arrivals.items()}
             groups.append((stamped_rows, {TIMELINE_ROS: stamps[stamped_rows], **times}))
         unstamped_rows = np.flatnonzero(unstamped)
-        if unstamped_rows.size:
-            groups.append(
-                (unstamped_rows, {name: values[unstamped_rows] for name, values in arrivals.items()})
-            )
+        groups.append(
+            (unstamped_rows, {name: values[unstamped_rows] for name, values in arrivals.items()})
+        )
         return groups
 
     def row_times(self, row: int = -1, stamp: int | None = None) -> dict[str, int]:
         """Message ``row``'s timelines by :meth:`times`, ``stamp`` its stamp (None: unknown, or
         none): what the dispatcher logs about it (a warning; an item without times)."""
-        rows = np.array([row % len(self)])
+        rows = np.array([row % self._size])
         groups = self.times(None if stamp is None else np.array([stamp], np.int64), rows)
         return {name: int(values[0]) for _, times in groups for name, values in times.items()}
 
@@ -362,7 +371,7 @@ class Run(TopicContext):
             seconds, nanoseconds = (self._columns[f"header.stamp.{part}"] for part in ("sec", "nanosec"))
             return int(seconds[row]) * 1_000_000_000 + int(nanoseconds[row])
         try:
-            message = (self._source.decode(row % len(self)) if self._messages is None
+            message = (self._source.decode(row % self._size) if self._messages is None
                        else self._messages[row])
         except HostError:
             return None
@@ -370,20 +379,23 @@ class Run(TopicContext):
 
     def contexts(self) -> list[ConvertContext]:
         """One context per message, at its timelines (the messages decoded for their stamps)."""
-        per_row: list[dict[str, int]] = [{} for _ in range(len(self))]
-        for rows, times in self.times(self.stamps()):
-            for name, values in times.items():
-                for row, value in zip(rows.tolist(), values.tolist(), strict=True):
-                    per_row[row][name] = value
-        return [
-            ConvertContext(self.robot, self.topic, self.entity_path, times, self.topic_state,
-                           self.robot_state, self.restamp)
-            for times in per_row
-        ]
+        if self._contexts is None:
+            per_row: list[dict[str, int]] = [{}] * self._size
+            for rows, times in self.times(self.stamps()):
+                columns = {name: values.tolist() for name, values in times.items()}
+                for entry, row in enumerate(rows.tolist()):
+                    per_row[row] = {name: column[entry] for name, column in columns.items()}
+            self._contexts = [
+                ConvertContext(self.robot, self.topic, self.entity_path, times, self.topic_state,
+                               self.robot_state, self.restamp)
+                for times in per_row
+            ]
+        return self._contexts
 
     def one(self, row: int) -> Run:
-        """Message ``row`` as a run of its own (decoded, if this run's messages are)."""
-        row %= len(self)
+        """Message ``row`` as a run of its own (decoded and its context made, if this run's
+        are)."""
+        row %= self._size
         return Run(
             self._source.part(row), robot=self.robot, topic=self.topic,
             entity_path=self.entity_path,
@@ -391,11 +403,12 @@ class Run(TopicContext):
             log_ns=None if self.log_ns is None else self.log_ns[row : row + 1],
             restamp=self.restamp, topic_state=self.topic_state, robot_state=self.robot_state,
             messages=None if self._messages is None else [self._messages[row]],
+            contexts=None if self._contexts is None else [self._contexts[row]],
         )
 
     def split(self) -> list[Run]:
         """The run message by message, a run of one each."""
-        return [self.one(row) for row in range(len(self))]
+        return [self.one(row) for row in range(self._size)]
 
 
 def header_stamp(msg: Any) -> int | None:

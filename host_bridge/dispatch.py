@@ -16,6 +16,7 @@ target frame (see frames.py).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -40,7 +41,7 @@ from host_bridge.contract import (
 )
 from host_bridge.counters import TopicCounters, summary_table
 from host_bridge.decode import Decoder
-from host_bridge.errors import ConfigError, PartialConvertError, TypeChangeError
+from host_bridge.errors import ConfigError, HostError, PartialConvertError, TypeChangeError
 from host_bridge.frames import RobotFrames
 from host_bridge.inputs.base import (
     InputItem,
@@ -104,38 +105,42 @@ class _TopicTypes:
 
 
 class _Payloads:
-    """A run's payloads as its messages' source: decoded message by message with the decoder,
-    or read as columns all at once."""
+    """A run's payloads (``raws[start:stop]``) as its messages' source: decoded message by
+    message with the decoder, or read as columns all at once."""
 
-    __slots__ = ("_decoder", "_raws")
+    __slots__ = ("_decoder", "_raws", "_start", "_stop")
 
-    def __init__(self, raws: Sequence[RawMessage], decoder: Decoder) -> None:
+    def __init__(self, raws: Sequence[RawMessage], decoder: Decoder, start: int = 0,
+                 stop: int | None = None) -> None:
         self._raws = raws
         self._decoder = decoder
+        self._start = start
+        self._stop = len(raws) if stop is None else stop
 
     def __len__(self) -> int:
-        return len(self._raws)
+        return self._stop - self._start
 
     def decode(self, row: int) -> Any:
-        return self._decoder.decode(self._raws[row])
+        return self._decoder.decode(self._raws[self._start + row])
 
     def columns(self) -> Columns:
-        raws = self._raws
-        first = raws[0]
+        raws, start, stop = self._raws, self._start, self._stop
+        first = raws[start]
         store = self._decoder.typestore_for(first.msgtype, first.definition)
-        payloads = raws.payloads if isinstance(raws, MessageRun) else [raw.data for raw in raws]
+        if isinstance(raws, MessageRun):
+            payloads = raws.payloads if (start, stop) == (0, len(raws)) else raws.payloads[start:stop]
+        else:
+            payloads = [raws[row].data for row in range(start, stop)]
         # Any number of blocks: decoding the messages one by one would cost more.
         columns = read_columns(payloads, first.msgtype, store, max_blocks=len(payloads))
         if columns is not None:
             return columns
         # A payload columns refuse, which the decoder names; or a layout that is not columns
         # (nested sequences of differing lengths), which columns_of_messages names.
-        return columns_of_messages([self.decode(row) for row in range(len(raws))], first.topic)
+        return columns_of_messages([self.decode(row) for row in range(len(self))], first.topic)
 
     def part(self, row: int) -> _Payloads:
-        raws = self._raws
-        one = raws.part(row, row + 1) if isinstance(raws, MessageRun) else raws[row : row + 1]
-        return _Payloads(one, self._decoder)
+        return _Payloads(self._raws, self._decoder, self._start + row, self._start + row + 1)
 
 
 def _arrivals(raws: Sequence[RawMessage]) -> tuple[Int64Array | None, Int64Array | None]:
@@ -249,8 +254,13 @@ class Conversion:
             restamp=topic.restamp, topic_state=topic.state, robot_state=self.robot_state(first.robot),
         )
         started = time.perf_counter()
-        # A converter written per message gets its messages one by one (contract.PerMessage).
-        parts = run.split() if isinstance(converter, PerMessage) and len(run) > 1 else [run]
+        parts = [run]
+        if isinstance(converter, PerMessage) and len(run) > 1:
+            # A converter written per message gets its messages one by one, decoded and timed
+            # at once for the run (unless one does not decode: then each on its own).
+            with contextlib.suppress(HostError):
+                run.contexts()
+            parts = run.split()
         taken = None
         for part in parts:
             taken = self.attempt(part, converter, counters, self.strict) or taken
@@ -281,7 +291,10 @@ class Conversion:
                 counters.dropped += len(run)
             self._failed(run, err, strict)
             return None
-        self.log(run.robot, entries, run.row_times())
+        # Items without times of their own (none of this package's converters returns one) go at
+        # the run's last arrival.
+        untimed = any(isinstance(e, LogItem) and e.times is None and not e.static for e in entries)
+        self.log(run.robot, entries, run.row_times() if untimed else {})
         if counters is not None:
             counters.converted += len(run)
         return run
