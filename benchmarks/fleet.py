@@ -276,7 +276,7 @@ def run_phase(
             slam_tap = SlamTap(dispatcher, lambda robot: config.slam_settings(robot, True),
                                lossless=False)
             closing.callback(slam_tap.close)
-            dispatcher.taps.append(slam_tap)
+            dispatcher.add_tap(slam_tap)
         options = HostOptions(zenoh=ZenohOptions(listen=(endpoint,), multicast_scouting=False),
                               robots=f"{DEMO_ROBOT}$*", rmw_zenoh=False)
         live = open_input(options, dispatcher, demo=None, robot_files=None,

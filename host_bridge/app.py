@@ -155,7 +155,7 @@ def open_input(
         from host_bridge.inputs.bag import BagInput
 
         if options.stats:
-            dispatcher.taps.append(StatsTap(dispatcher.sink, dispatcher.counters))
+            dispatcher.add_tap(StatsTap(dispatcher.sink, dispatcher.counters))
         bag: Input = BagInput(options.bag, options.robot)
         closing.callback(bag.close)
         return bag
@@ -178,7 +178,7 @@ def open_input(
             dispatcher.sink, dispatcher.counters, session=session, robots=robots,
             host_dropped=live.queues.dropped_when_taken, clocks=live.clocks,
         )
-        dispatcher.taps.append(stats)
+        dispatcher.add_tap(stats)
         closing.callback(stats.close)  # after the input's: its queues' last drops are counted
     source: Input = live
     if demo is not None:
@@ -266,7 +266,7 @@ def run(
             demo_robots=None if demo is None else len(demo.robots),
             robots=options.robots))
         outputs.recorder = recorder
-        dispatcher.taps.append(recorder)
+        dispatcher.add_tap(recorder)
     viewer = sink.shared_viewer()
     # The converter process gets its end of a socket pair by file descriptor (POSIX).
     if live and viewer is not None and os.name == "posix":
@@ -291,7 +291,7 @@ def run(
 
         extent = bag_extent(options.bag)
         progress = Progress(extent)
-        dispatcher.taps.append(progress)
+        dispatcher.add_tap(progress)
     if options.slam or config.slam_configured():
         from host_bridge.slam.feeder import SlamTap
 
@@ -300,7 +300,7 @@ def run(
             lossless=options.bag is not None, stop=stop, save_map=options.save_map,
             bag_types=None if extent is None else extent.types,
         )
-        dispatcher.taps.append(outputs.slam)
+        dispatcher.add_tap(outputs.slam)
     with ExitStack() as closing:
         source = open_input(
             options, dispatcher, demo=demo, robot_files=robot_files, stop=stop, closing=closing

@@ -1,10 +1,10 @@
-"""The converter contract: what a converter gets (a run of one topic's messages and their
-contexts) and what it returns (log items or columns); it never calls ``rr.log``, the sink does.
+"""The converter contract: what a converter gets (a :class:`Run` of one topic's messages) and
+what it returns (log items or columns); it never calls ``rr.log``, the sink does.
 
-A converter is a pure function ``(msg, ctx) -> list[LogEntry]``; converters of high-rate small
-types also offer the run form, which turns many messages of one topic into columns for
-``rr.send_columns``, and the columnar form (:func:`columnar`), which reads the run's payloads as
-numpy columns (:mod:`host_bridge.columns`) with no Python per message. Kept apart from
+One form: a converter is a function ``(run) -> list[LogEntry]``. The run gives the messages
+decoded, or their fields as numpy columns (:mod:`host_bridge.columns`, no Python per message),
+each on demand, and the one rule of every timeline (:meth:`Run.times`). A converter written for
+one message at a time is made one by :func:`per_message`. Kept apart from
 :mod:`host_bridge.registry` (the type table) so converters, the sink, queues and the layout
 import the contract without importing every converter.
 """
@@ -14,14 +14,14 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
 import rerun as rr
 
-from host_bridge.errors import ConvertError, PartialConvertError
+from host_bridge.errors import ConvertError, HostError, PartialConvertError
 from host_bridge.options import Options
 from host_bridge.state import RobotState, State, TopicState
 
@@ -44,8 +44,9 @@ RowIndex = npt.NDArray[np.intp]
 class LogItem:
     """Archetypes to log at one entity path.
 
-    ``times`` replaces the message's timeline values for this item (a TF message carries one
-    stamp per transform); ``None`` keeps them. Static items ignore times.
+    ``times`` are its timelines (:meth:`Run.times`; :func:`per_message` gives each message's
+    items its own); ``None``: the arrival times of its run's last message, where the dispatcher
+    logs the run. Static items ignore times.
     """
 
     path: str
@@ -200,7 +201,9 @@ class TopicContext:
 
 @dataclass(frozen=True, slots=True)
 class ConvertContext(TopicContext):
-    """What a converter may know beyond the message itself.
+    """One message's context, as :func:`per_message` hands it to a converter written for one
+    message at a time: its topic's, and the message's timelines (``times``, by the run's rule,
+    :meth:`Run.times`).
 
     ``topic_state`` is kept by the dispatcher for the topic between messages: its options (read
     typed with :meth:`options`) and converter state records (:meth:`state`: odometry trails,
@@ -219,116 +222,227 @@ class ConvertContext(TopicContext):
     restamp: bool = False
 
 
-@dataclass(frozen=True, slots=True)
-class RunContext(TopicContext):
-    """A run of ``size`` messages of one topic, converted in columns: the topic's context and
-    each message's arrival times (``None`` for a timeline the input does not give: receive_time
-    offline, log_time live). A columnar converter takes each row's ros_time from its header
-    stamps through :meth:`stamped`, which applies ``restamp`` and the zero-stamp rule."""
+TimeGroups = list[tuple[RowIndex, dict[str, Int64Array]]]
+"""Rows in groups ``(row indices, their timelines)``: one ``send_columns`` each."""
 
-    robot: str
-    topic: str
-    entity_path: str
-    size: int
-    receive_ns: Int64Array | None = None
-    log_ns: Int64Array | None = None
-    restamp: bool = False
-    topic_state: TopicState = field(default_factory=TopicState)
-    robot_state: RobotState = field(default_factory=RobotState)
 
-    def stamped(
-        self, stamps: Int64Array | None, rows: RowIndex | None = None
-    ) -> list[tuple[RowIndex, dict[str, Int64Array]]]:
+class MessageSource(Protocol):
+    """Where a run's messages come from: payloads the dispatcher decodes on demand
+    (dispatch.py), or messages already decoded (:func:`message_run`)."""
+
+    def __len__(self) -> int: ...
+
+    def decode(self, row: int) -> Any:
+        """Message ``row``; a HostError naming the problem when its payload does not decode."""
+        ...
+
+    def columns(self) -> Columns:
+        """Every message's fields as columns; a HostError when they cannot be read so."""
+        ...
+
+    def part(self, row: int) -> MessageSource:
+        """Message ``row`` alone."""
+        ...
+
+
+class Run(TopicContext):
+    """A run of one topic's messages of one type, in their order: all a converter gets.
+
+    Its topic's context (options, state records, frame names, entity paths); the messages,
+    decoded (:meth:`messages`) or read as numpy columns with no Python per message
+    (:meth:`columns`), each on demand and once; and the one rule giving every row its
+    timelines (:meth:`times`). ``receive_ns`` and ``log_ns`` are each message's arrival times
+    (None: a timeline the input does not give: receive_time offline, log_time live)."""
+
+    __slots__ = ("_columns", "_contexts", "_messages", "_size", "_source", "entity_path",
+                 "log_ns", "receive_ns", "restamp", "robot", "robot_state", "topic", "topic_state")
+
+    def __init__(
+        self,
+        source: MessageSource,
+        *,
+        robot: str,
+        topic: str,
+        entity_path: str,
+        receive_ns: Int64Array | None = None,
+        log_ns: Int64Array | None = None,
+        restamp: bool = False,
+        topic_state: TopicState | None = None,
+        robot_state: RobotState | None = None,
+        messages: Sequence[Any] | None = None,
+        contexts: list[ConvertContext] | None = None,
+    ) -> None:
+        """``messages``, ``contexts``: the source's messages and their contexts, when they are
+        known already."""
+        self._source = source
+        self._size = len(source)
+        self.robot = robot
+        self.topic = topic
+        self.entity_path = entity_path
+        self.receive_ns = receive_ns
+        self.log_ns = log_ns
+        self.restamp = restamp
+        self.topic_state = TopicState() if topic_state is None else topic_state
+        self.robot_state = RobotState() if robot_state is None else robot_state
+        self._messages = messages
+        self._contexts = contexts
+        self._columns: Columns | None = None
+
+    def __len__(self) -> int:
+        return self._size
+
+    def messages(self) -> Sequence[Any]:
+        """The messages, decoded (a HostError naming the first that does not decode)."""
+        if self._messages is None:
+            self._messages = [self._source.decode(row) for row in range(self._size)]
+        return self._messages
+
+    def columns(self) -> Columns:
+        """The messages' fields as columns (:mod:`host_bridge.columns`), read from their
+        payloads without decoding them; a HostError when the run cannot be read so (a payload
+        that does not decode, nested sequences of differing lengths)."""
+        if self._columns is None:
+            self._columns = self._source.columns()
+        return self._columns
+
+    def stamps(self) -> Int64Array | None:
+        """The messages' header stamps in ns, decoding them; None for a type without a header."""
+        stamps = [header_stamp(m) for m in self.messages()]
+        if not stamps or stamps[0] is None:
+            return None
+        return np.array(stamps, np.int64)
+
+    def times(self, stamps: Int64Array | None, rows: RowIndex | None = None) -> TimeGroups:
         """The timelines of entries made from the run's messages ``rows`` (default: one entry
-        per message), ``stamps`` their header stamps in ns (None: a type without a header), in
-        groups ``(entry indices, times)``: one group, two when some stamps are zero, none
-        without rows. A zero
-        stamp means "no stamp", as one message gets no ros_time then (``message_times``), and
-        one send_columns call cannot leave a timeline out for some rows only."""
-        every_message = rows is None
-        rows = np.arange(self.size) if rows is None else rows
-        if not len(rows):
-            return []
-        arrivals = {
-            name: values if every_message else values[rows]
-            for name, values in ((TIMELINE_RECEIVE, self.receive_ns), (TIMELINE_LOG, self.log_ns))
-            if values is not None
-        }
-        arrival = self.receive_ns if self.receive_ns is not None else self.log_ns
-        every = rows if every_message else np.arange(len(rows))
+        per message), ``stamps`` their stamps in ns (None: a type without a header), in groups
+        ``(entry indices, times)``: one group, two when some stamps are zero, none without
+        rows. The one rule of every timeline: ``ros_time`` is the stamp, or the arrival time
+        when the topic is restamped; a zero stamp means "no stamp", so its rows have no
+        ros_time (one send_columns call cannot leave a timeline out for some rows only);
+        ``receive_time`` and ``log_time`` are the arrival times the input gives."""
+        if rows is None:  # every message (the usual case): the arrival arrays as they are
+            if not self._size:
+                return []
+            every = np.arange(self._size)
+            receive, logged = self.receive_ns, self.log_ns
+        else:
+            if not len(rows):
+                return []
+            every = np.arange(len(rows))
+            receive = None if self.receive_ns is None else self.receive_ns[rows]
+            logged = None if self.log_ns is None else self.log_ns[rows]
+        arrivals: dict[str, Int64Array] = {}
+        if receive is not None:
+            arrivals[TIMELINE_RECEIVE] = receive
+        if logged is not None:
+            arrivals[TIMELINE_LOG] = logged
+        arrival = receive if receive is not None else logged
         if self.restamp and arrival is not None:
-            return [(every, {TIMELINE_ROS: arrival if every_message else arrival[rows], **arrivals})]
+            return [(every, {TIMELINE_ROS: arrival, **arrivals})]
         if stamps is None:
             return [(every, arrivals)]
-        unstamped = stamps == 0
-        if not unstamped.any():
+        if np.count_nonzero(stamps) == len(stamps):  # (ndarray.all costs more on a short run)
             return [(every, {TIMELINE_ROS: stamps, **arrivals})]
-        groups: list[tuple[RowIndex, dict[str, Int64Array]]] = []
+        groups: TimeGroups = []
+        unstamped = stamps == 0
         stamped_rows = np.flatnonzero(~unstamped)
         if stamped_rows.size:
             times = {name: values[stamped_rows] for name, values in arrivals.items()}
             groups.append((stamped_rows, {TIMELINE_ROS: stamps[stamped_rows], **times}))
         unstamped_rows = np.flatnonzero(unstamped)
-        if unstamped_rows.size:
-            groups.append(
-                (unstamped_rows, {name: values[unstamped_rows] for name, values in arrivals.items()})
-            )
+        groups.append(
+            (unstamped_rows, {name: values[unstamped_rows] for name, values in arrivals.items()})
+        )
         return groups
 
-    def last_times(self) -> dict[str, int]:
-        """The last message's arrival times: where a warning about the run goes."""
-        return {
-            name: int(values[-1])
-            for name, values in ((TIMELINE_RECEIVE, self.receive_ns), (TIMELINE_LOG, self.log_ns))
-            if values is not None and len(values)
-        }
+    def row_times(self, row: int = -1, stamp: int | None = None) -> dict[str, int]:
+        """Message ``row``'s timelines by :meth:`times`, ``stamp`` its stamp (None: unknown, or
+        none): what the dispatcher logs about it (a warning; an item without times)."""
+        rows = np.array([row % self._size])
+        groups = self.times(None if stamp is None else np.array([stamp], np.int64), rows)
+        return {name: int(values[0]) for _, times in groups for name, values in times.items()}
+
+    def stamp(self, row: int = -1) -> int | None:
+        """Message ``row``'s header stamp: from the columns or messages the run has read, else
+        decoded alone; None for a type without a header, or a message that does not decode."""
+        if self._columns is not None and self._messages is None:
+            if "header.stamp.sec" not in self._columns.paths:
+                return None
+            seconds, nanoseconds = (self._columns[f"header.stamp.{part}"] for part in ("sec", "nanosec"))
+            return int(seconds[row]) * 1_000_000_000 + int(nanoseconds[row])
+        try:
+            message = (self._source.decode(row % self._size) if self._messages is None
+                       else self._messages[row])
+        except HostError:
+            return None
+        return header_stamp(message)
+
+    def contexts(self) -> list[ConvertContext]:
+        """One context per message, at its timelines (the messages decoded for their stamps)."""
+        if self._contexts is None:
+            per_row: list[dict[str, int]] = [{}] * self._size
+            for rows, times in self.times(self.stamps()):
+                columns = {name: values.tolist() for name, values in times.items()}
+                for entry, row in enumerate(rows.tolist()):
+                    per_row[row] = {name: column[entry] for name, column in columns.items()}
+            self._contexts = [
+                ConvertContext(self.robot, self.topic, self.entity_path, times, self.topic_state,
+                               self.robot_state, self.restamp)
+                for times in per_row
+            ]
+        return self._contexts
+
+    def one(self, row: int) -> Run:
+        """Message ``row`` as a run of its own (decoded and its context made, if this run's
+        are)."""
+        row %= self._size
+        return Run(
+            self._source.part(row), robot=self.robot, topic=self.topic,
+            entity_path=self.entity_path,
+            receive_ns=None if self.receive_ns is None else self.receive_ns[row : row + 1],
+            log_ns=None if self.log_ns is None else self.log_ns[row : row + 1],
+            restamp=self.restamp, topic_state=self.topic_state, robot_state=self.robot_state,
+            messages=None if self._messages is None else [self._messages[row]],
+            contexts=None if self._contexts is None else [self._contexts[row]],
+        )
+
+    def split(self) -> list[Run]:
+        """The run message by message, a run of one each."""
+        return [self.one(row) for row in range(self._size)]
 
 
-Converter = Callable[[Any, ConvertContext], list[LogEntry]]
-RunConverter = Callable[[Sequence[Any], Sequence[ConvertContext]], list[LogEntry]]
-ColumnsConverter = Callable[["Columns", RunContext], "list[LogEntry] | None"]
-"""A run's payloads as columns -> entries; None: this run needs the message path."""
+def header_stamp(msg: Any) -> int | None:
+    """A message's header stamp in ns; None for a type without a header."""
+    stamp = getattr(getattr(msg, "header", None), "stamp", None)
+    return None if stamp is None else int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 @dataclass(frozen=True, slots=True)
-class ConverterSpec:
-    """A converter, batch-first: ``convert_run`` takes a run of one topic's messages (with one
-    context each) and returns log items or columns for ``rr.send_columns``; one message is the
-    special case (:meth:`convert`).
+class _Decoded:
+    """Messages already decoded, as a run's source (:func:`message_run`)."""
 
-    ``single`` is the converter's own one-message form where it has one (cheaper than a run of
-    one, or logging rows where the run logs columns). ``message_by_message`` marks a run that is
-    only a loop over ``single`` (:func:`per_message`): the dispatcher then converts message by
-    message, so a bad message costs only itself and no message's state is applied twice.
+    messages: Sequence[Any]
+    topic: str
 
-    ``convert_columns`` is the columnar form (:func:`columnar`): the dispatcher reads a run's
-    payloads with :func:`host_bridge.columns.read_columns` and hands the columns over, decoding
-    nothing message by message.
-    """
+    def __len__(self) -> int:
+        return len(self.messages)
 
-    convert_run: RunConverter
-    single: Converter | None = None
-    message_by_message: bool = False
-    convert_columns: ColumnsConverter | None = None
+    def decode(self, row: int) -> Any:
+        return self.messages[row]
 
-    def convert(self, msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-        if self.single is not None:
-            return self.single(msg, ctx)
-        return self.convert_run((msg,), (ctx,))
+    def columns(self) -> Columns:
+        from host_bridge.columns import columns_of_messages
+
+        return columns_of_messages(self.messages, self.topic)
+
+    def part(self, row: int) -> _Decoded:
+        return _Decoded([self.messages[row]], self.topic)
 
 
-def per_message(convert: Converter) -> ConverterSpec:
-    """The spec of a converter written for one message at a time (maps, meshes, markers): its
-    run is a loop until a columnar form is worth writing."""
-
-    def convert_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-        return [entry for msg, ctx in zip(msgs, ctxs, strict=True) for entry in convert(msg, ctx)]
-
-    return ConverterSpec(convert_run, single=convert, message_by_message=True)
-
-
-def run_context(ctxs: Sequence[ConvertContext]) -> RunContext:
-    """The run context of messages given one context each (decoded messages in columns)."""
+def message_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> Run:
+    """The run of messages already decoded (tests, benchmarks, a user's script), given one
+    context each: the first one's topic and restamp, each one's arrival times (a timeline some
+    lack is left out); ros_time follows the run's rule (:meth:`Run.times`), from the stamps."""
     ctx = ctxs[0]
 
     def arrivals(name: str) -> Int64Array | None:
@@ -336,48 +450,67 @@ def run_context(ctxs: Sequence[ConvertContext]) -> RunContext:
             return None
         return np.fromiter((c.times[name] for c in ctxs), dtype=np.int64, count=len(ctxs))
 
-    return RunContext(
-        robot=ctx.robot,
-        topic=ctx.topic,
-        entity_path=ctx.entity_path,
-        size=len(ctxs),
-        receive_ns=arrivals(TIMELINE_RECEIVE),
-        log_ns=arrivals(TIMELINE_LOG),
-        restamp=ctx.restamp,
-        topic_state=ctx.topic_state,
-        robot_state=ctx.robot_state,
+    return Run(
+        _Decoded(msgs, ctx.topic), robot=ctx.robot, topic=ctx.topic, entity_path=ctx.entity_path,
+        receive_ns=arrivals(TIMELINE_RECEIVE), log_ns=arrivals(TIMELINE_LOG), restamp=ctx.restamp,
+        topic_state=ctx.topic_state, robot_state=ctx.robot_state, messages=msgs,
     )
 
 
-def columnar(convert_columns: ColumnsConverter) -> ConverterSpec:
-    """The spec of a converter written against columns only. Its message form (tests, a run the
-    dispatcher had to decode message by message) serializes the messages again and reads them
-    as columns, so the one body serves both and both give the same rows."""
+Converter = Callable[[Run], list[LogEntry]]
+"""The one form of every converter: a run of one topic's messages -> its log entries."""
+MessageConverter = Callable[[Any, ConvertContext], list[LogEntry]]
+"""A converter written for one message at a time, made a :data:`Converter` by :func:`per_message`."""
 
-    def convert_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-        from host_bridge.columns import columns_of_messages
 
-        if not msgs:
-            return []
-        entries = convert_columns(columns_of_messages(msgs, ctxs[0].topic), run_context(ctxs))
-        if entries is None:
-            msg = f"{ctxs[0].topic}: its converter needs columns the messages do not give"
-            raise ConvertError(msg)
+def _timed(entries: Iterable[LogEntry], times: Mapping[str, int]) -> list[LogEntry]:
+    """``entries`` with each LogItem that has no times of its own (and is not static) at
+    ``times``."""
+    return [
+        LogItem(e.path, e.archetypes, False, times)
+        if isinstance(e, LogItem) and e.times is None and not e.static else e
+        for e in entries
+    ]
+
+
+@dataclass(frozen=True, slots=True)
+class PerMessage:
+    """The converter of a type converted one message at a time (maps, meshes, images): each
+    message with its own context, its items at its own times. The dispatcher hands it runs of
+    one message, so a bad message costs only itself and no message's state is applied twice."""
+
+    convert: MessageConverter
+
+    def __call__(self, run: Run) -> list[LogEntry]:
+        entries: list[LogEntry] = []
+        errors: list[str] = []
+        for msg, ctx in zip(run.messages(), run.contexts(), strict=True):
+            try:
+                items = self.convert(msg, ctx)
+            except PartialConvertError as err:
+                items = err.items
+                errors.append(str(err))
+            entries.extend(_timed(items, ctx.times))
+        if errors:
+            raise PartialConvertError("; ".join(errors), entries)
         return entries
 
-    return ConverterSpec(convert_run, convert_columns=convert_columns)
+
+def per_message(convert: MessageConverter) -> PerMessage:
+    """The converter of a function written for one message at a time."""
+    return PerMessage(convert)
 
 
-def combine(*specs: ConverterSpec) -> ConverterSpec:
-    """One spec running several converters on the same message (JointState: the robot's
-    kinematics and the joint plots); a part that fails does not cost the others' output."""
+def combine(*converters: Converter) -> Converter:
+    """One converter running several on the same run (JointState: the robot's kinematics and
+    the joint plots); a part that fails does not cost the others' output."""
 
-    def gather(parts: Sequence[Callable[[], list[LogEntry]]]) -> list[LogEntry]:
+    def convert(run: Run) -> list[LogEntry]:
         entries: list[LogEntry] = []
         errors: list[ConvertError] = []
-        for part in parts:
+        for part in converters:
             try:
-                entries.extend(part())
+                entries.extend(part(run))
             except PartialConvertError as err:
                 entries.extend(err.items)
                 errors.append(err)
@@ -387,27 +520,4 @@ def combine(*specs: ConverterSpec) -> ConverterSpec:
             raise PartialConvertError("; ".join(str(e) for e in errors), entries)
         return entries
 
-    def convert(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-        return gather([lambda s=s: s.convert(msg, ctx) for s in specs])  # type: ignore[misc]
-
-    def convert_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-        return gather([lambda s=s: s.convert_run(msgs, ctxs) for s in specs])  # type: ignore[misc]
-
-    column_forms = [s.convert_columns for s in specs]
-
-    def column_part(form: ColumnsConverter, columns: Columns, ctx: RunContext) -> list[LogEntry]:
-        entries = form(columns, ctx)
-        if entries is None:  # the other parts would run twice on the message path
-            msg = f"{ctx.topic}: one part of its converter declined the columns"
-            raise ConvertError(msg)
-        return entries
-
-    def convert_columns(columns: Columns, ctx: RunContext) -> list[LogEntry] | None:
-        return gather([lambda f=f: column_part(f, columns, ctx) for f in column_forms])  # type: ignore[misc]
-
-    return ConverterSpec(
-        convert_run,
-        single=convert,
-        message_by_message=all(s.message_by_message for s in specs),
-        convert_columns=convert_columns if None not in column_forms else None,
-    )
+    return convert

@@ -4,7 +4,7 @@ sequence gaps, conversion time) and the table it prints when it stops; the /_sta
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +23,25 @@ class TopicCounters:
     sequence_gaps: int = 0
     last_sequence: int | None = None
     convert_seconds: float = 0.0
+
+    def receive(
+        self, count: int, sequence: npt.NDArray[np.int64] | Sequence[int | None] | None
+    ) -> None:
+        """``count`` messages arrived, carrying the wire sequence numbers ``sequence`` (None, or
+        None for a message: a source without them, a bag): the numbers lost since the last one
+        are counted as gaps."""
+        self.received += count
+        if sequence is None:
+            return
+        if isinstance(sequence, np.ndarray):
+            self.sequence_gaps += sequence_gaps(self.last_sequence, sequence)
+            if len(sequence):
+                self.last_sequence = int(sequence[-1])
+            return
+        for number in sequence:
+            if number is not None:
+                self.sequence_gaps += sequence_gap(self.last_sequence, number)
+                self.last_sequence = number
 
 
 def sequence_gap(last: int | None, sequence: int) -> int:

@@ -1,15 +1,22 @@
-"""RawMessage runs -> decode -> convert -> sink, with the error policy and per-topic counters.
+"""RawMessage runs -> taps -> decode -> convert -> sink, with the error policy and per-topic
+counters (counters.py).
 
-A bad message never stops the host: decoding and conversion errors are caught per message,
-warned about once per (robot, topic, error kind), counted, and shown in Rerun under
-``/_swanky/warnings``. ``strict`` (tests, ``--strict``) re-raises instead.
+One path: a topic's run is handed to its converter whole (:class:`~host_bridge.contract.Run`:
+messages decoded, or columns read, on demand); a run its converter fails on is converted again
+message by message, so only a bad message is lost. A bad message never stops the host: it is
+counted, warned about once per (robot, topic, error kind) and shown in Rerun under
+``/_swanky/warnings``; ``strict`` (tests, ``--strict``) re-raises instead.
 
-Everything converted for a robot is logged through :meth:`Dispatcher.log`, which also keeps the
-robot's frames one tree and names its 3D view's target frame (see frames.py).
+:class:`Conversion` is that core, with its slow lane (:class:`SlowLane`: the table's slow
+converters, latest-only). The :class:`Dispatcher` is built around one, and so is the heavy
+topics' process (offload.py). Everything the dispatcher converts for a robot is logged through
+:meth:`Dispatcher.log`, which also keeps the robot's frames one tree and names its 3D view's
+target frame (see frames.py).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -18,23 +25,21 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
-import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.columns import read_columns
+from host_bridge.columns import Columns, columns_of_messages, read_columns
 from host_bridge.config import HostConfig
 from host_bridge.contract import (
-    TIMELINE_LOG,
     TIMELINE_RECEIVE,
-    TIMELINE_ROS,
     WARNINGS_PATH,
-    ConvertContext,
-    ConverterSpec,
+    Converter,
+    Int64Array,
     LogEntry,
     LogItem,
-    RunContext,
+    PerMessage,
+    Run,
 )
-from host_bridge.counters import TopicCounters, sequence_gap, sequence_gaps, summary_table
+from host_bridge.counters import TopicCounters, summary_table
 from host_bridge.decode import Decoder
 from host_bridge.errors import ConfigError, HostError, PartialConvertError, TypeChangeError
 from host_bridge.frames import RobotFrames
@@ -100,54 +105,277 @@ class _TopicTypes:
     """Its other types, least recently used first."""
 
 
-@dataclass(frozen=True, slots=True)
-class _RobotConversion:
-    """What the host keeps per robot: the state its converters share, and its frame tree."""
+class _Payloads:
+    """A run's payloads (``raws[start:stop]``) as its messages' source: decoded message by
+    message with the decoder, or read as columns all at once."""
 
-    state: RobotState
+    __slots__ = ("_decoder", "_raws", "_start", "_stop")
+
+    def __init__(self, raws: Sequence[RawMessage], decoder: Decoder, start: int = 0,
+                 stop: int | None = None) -> None:
+        self._raws = raws
+        self._decoder = decoder
+        self._start = start
+        self._stop = len(raws) if stop is None else stop
+
+    def __len__(self) -> int:
+        return self._stop - self._start
+
+    def decode(self, row: int) -> Any:
+        return self._decoder.decode(self._raws[self._start + row])
+
+    def columns(self) -> Columns:
+        raws, start, stop = self._raws, self._start, self._stop
+        first = raws[start]
+        store = self._decoder.typestore_for(first.msgtype, first.definition)
+        if isinstance(raws, MessageRun):
+            payloads = raws.payloads if (start, stop) == (0, len(raws)) else raws.payloads[start:stop]
+        else:
+            payloads = [raws[row].data for row in range(start, stop)]
+        # Any number of blocks: decoding the messages one by one would cost more.
+        columns = read_columns(payloads, first.msgtype, store, max_blocks=len(payloads))
+        if columns is not None:
+            return columns
+        # A payload columns refuse, which the decoder names; or a layout that is not columns
+        # (nested sequences of differing lengths), which columns_of_messages names.
+        return columns_of_messages([self.decode(row) for row in range(len(self))], first.topic)
+
+    def part(self, row: int) -> _Payloads:
+        return _Payloads(self._raws, self._decoder, self._start + row, self._start + row + 1)
+
+
+def _arrivals(raws: Sequence[RawMessage]) -> tuple[Int64Array | None, Int64Array | None]:
+    """The run's receive and log times, one array each (None: its messages lack that time)."""
+    if isinstance(raws, MessageRun):
+        return raws.receive_ns, raws.log_ns
+    first = raws[0]
+    receive = None if first.receive_ns is None else np.array([raw.receive_ns for raw in raws], np.int64)
+    logged = None if first.log_ns is None else np.array([raw.log_ns for raw in raws], np.int64)
+    return receive, logged
+
+
+def _continues(run: Sequence[RawMessage], raw: RawMessage) -> bool:
+    """Whether ``raw`` may join its topic's last ``run``: the same type and definition, and the
+    same arrival timelines, as the messages of one :class:`~host_bridge.contract.Run` have."""
+    first = run[0]
+    return (
+        raw.msgtype == first.msgtype
+        and (raw.definition is first.definition or raw.definition == first.definition)
+        and (raw.receive_ns is None) == (first.receive_ns is None)
+        and (raw.log_ns is None) == (first.log_ns is None)
+    )
+
+
+LogEntries = Callable[[str, Sequence[LogEntry], Mapping[str, int]], None]
+"""Logs a robot's entries (``times``: where items without times of their own go)."""
+
+
+class Conversion:
+    """Decode -> convert -> log for runs of one topic, with the error policy, the robots' state
+    and the slow lane: the core the dispatcher is built around, and all the heavy topics'
+    process runs (offload.py). Entries go to ``log``, warnings to ``sink``.
+
+    The error policy: a message that does not decode or convert is counted as dropped, warned
+    about once per (robot, topic, error kind) on its timelines and, ``strict``, re-raised; one
+    that converts in part (PartialConvertError) has what converted logged and is warned about.
+    """
+
+    def __init__(
+        self,
+        sink: Sink,
+        log: LogEntries,
+        *,
+        registry: Registry,
+        decoder: Decoder,
+        counters: dict[tuple[str, str], TopicCounters],
+        strict: bool = False,
+        resolver: ResourceResolver | None = None,
+    ) -> None:
+        self.sink = sink
+        self.log = log
+        self.registry = registry
+        self.decoder = decoder
+        self.counters = counters
+        self.strict = strict
+        # Finds mesh files for every robot (each robot's own relay for what is missing here).
+        self._resolver = resolver or ResourceResolver.from_env()
+        self._robots: dict[str, RobotState] = {}
+        self._robots_lock = threading.Lock()
+        self._warned: set[tuple[str, str, str]] = set()
+        self._slow = SlowLane(self.attempt, self.registry.slow_converters())
+
+    def robot_state(self, robot: str) -> RobotState:
+        """The state ``robot``'s converters share. The slow lane converts for robots too."""
+        with self._robots_lock:
+            state = self._robots.get(robot)
+            if state is None:
+                state = self._robots[robot] = RobotState(resolver=self._resolver.for_robot(robot))
+            return state
+
+    def warn(
+        self, robot: str, topic: str, err: Exception, times: Mapping[str, int] | None = None
+    ) -> None:
+        """Report an error once per (robot, topic, kind); later ones are only counted.
+
+        The warning goes on the bad message's timelines; without a message (an input or file
+        problem) on the host's receive clock. A row without any time would be static, and each
+        static warning would replace the one before it in the viewer.
+        """
+        self._warn(robot, topic, err, lambda: times or {TIMELINE_RECEIVE: time.time_ns()})
+
+    def _warn(
+        self, robot: str, topic: str, err: Exception, times: Callable[[], Mapping[str, int]]
+    ) -> None:
+        """:meth:`warn`, the warning's times asked for only when it is shown."""
+        counters = self.counters.get((robot, topic))
+        if counters is not None:
+            counters.warnings += 1
+        kind = type(err).__name__
+        if (robot, topic, kind) in self._warned:
+            return
+        self._warned.add((robot, topic, kind))
+        problem = str(err)
+        # Converters name the topic themselves (their errors also end --strict runs).
+        if not problem.startswith(f"{topic}: "):
+            problem = f"{topic}: {problem}"
+        text = f"[{robot}] {problem} (further {kind}s on this topic are counted, not shown)"
+        log.warning("%s", text)
+        self.sink.log([LogItem(WARNINGS_PATH, (rr.TextLog(text, level=rr.TextLogLevel.WARN),))], times())
+
+    def convert(self, raws: Sequence[RawMessage], topic: TopicBinding, counters: TopicCounters) -> None:
+        """Decode, convert and log a run of one enabled topic (one type, one definition, the
+        same arrival timelines: see :meth:`Dispatcher.dispatch`), counted in ``counters``. The
+        newest message its converter took goes on to the row's slow converter, if it has one."""
+        first = raws[0]
+        converter = self.registry.get(first.msgtype, first.topic)
+        receive_ns, log_ns = _arrivals(raws)
+        run = Run(
+            _Payloads(raws, self.decoder), robot=first.robot, topic=first.topic,
+            entity_path=topic.entity_path, receive_ns=receive_ns, log_ns=log_ns,
+            restamp=topic.restamp, topic_state=topic.state, robot_state=self.robot_state(first.robot),
+        )
+        started = time.perf_counter()
+        parts = [run]
+        if isinstance(converter, PerMessage) and len(run) > 1:
+            # A converter written per message gets its messages one by one, decoded and timed
+            # at once for the run (unless one does not decode: then each on its own).
+            with contextlib.suppress(HostError):
+                run.contexts()
+            parts = run.split()
+        taken = None
+        for part in parts:
+            taken = self.attempt(part, converter, counters, self.strict) or taken
+        counters.convert_seconds += time.perf_counter() - started
+        if taken is not None:
+            self._slow.submit(first.msgtype, taken)
+
+    def attempt(
+        self, run: Run, converter: Converter, counters: TopicCounters | None, strict: bool
+    ) -> Run | None:
+        """Convert and log ``run`` under the error policy; when the converter fails on it, the
+        run again message by message, so only a bad message is lost. The (last) run the
+        converter took, None if none."""
+        try:
+            entries = converter(run)
+        except PartialConvertError as err:
+            # The run converted but for a part (the kinematics of a JointState run before the
+            # robot model arrives; a long custom array): what did is logged, the rest warned of.
+            self._failed(run, err, strict)
+            entries = err.items
+        except Exception as err:
+            if len(run) > 1 and not strict:
+                taken = None
+                for one in run.split():
+                    taken = self.attempt(one, converter, counters, strict) or taken
+                return taken
+            if counters is not None:
+                counters.dropped += len(run)
+            self._failed(run, err, strict)
+            return None
+        # Items without times of their own (none of this package's converters returns one) go at
+        # the run's last arrival.
+        untimed = any(isinstance(e, LogItem) and e.times is None and not e.static for e in entries)
+        self.log(run.robot, entries, run.row_times() if untimed else {})
+        if counters is not None:
+            counters.converted += len(run)
+        return run
+
+    def _failed(self, run: Run, err: Exception, strict: bool) -> None:
+        """Re-raise ``err`` (strict), or warn about it at the run's last message's timelines."""
+        if strict:
+            raise err
+        self._warn(run.robot, run.topic, err, lambda: run.row_times(-1, run.stamp(-1)))
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Let the slow lane finish what it holds (a saved .rrd then has the walls)."""
+        self._slow.close(timeout)
+
+
+class SlowLane:
+    """One thread running the type table's slow converters (the walls of a map) on the newest
+    message of each topic only: a map that changes faster than its walls can be computed
+    skips intermediate versions. Its runs go through ``attempt`` (:meth:`Conversion.attempt`),
+    never strict: its message was converted already, so its errors are only warned about."""
+
+    def __init__(self, attempt: Callable[[Run, Converter, None, bool], Run | None],
+                 converters: Mapping[str, Converter]) -> None:
+        self._attempt = attempt
+        self._converters = converters
+        self._latest: dict[tuple[str, str], tuple[Converter, Run]] = {}
+        self._cond = threading.Condition()
+        self._busy = False
+        self._closed = False
+        self._thread: threading.Thread | None = None
+
+    def submit(self, msgtype: str, run: Run) -> None:
+        """The last message of ``run`` for ``msgtype``'s slow converter, if it has one."""
+        converter = self._converters.get(msgtype)
+        if converter is None:
+            return
+        last = run if len(run) == 1 else run.one(-1)
+        with self._cond:
+            self._latest[(run.robot, run.topic)] = (converter, last)
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._work, name="slow-converters",
+                                                daemon=True)
+                self._thread.start()
+            self._cond.notify()
+
+    def _work(self) -> None:
+        while True:
+            with self._cond:
+                while not self._latest and not self._closed:
+                    self._cond.wait()
+                if not self._latest:
+                    return
+                _, (converter, run) = self._latest.popitem()
+                self._busy = True
+            self._attempt(run, converter, None, False)
+            with self._cond:
+                self._busy = False
+                self._cond.notify_all()
+
+    def close(self, timeout: float) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+            self._cond.wait_for(lambda: not self._latest and not self._busy, timeout)
+
+
+@dataclass(frozen=True, slots=True)
+class _Frames:
+    """A robot's frame tree, and the lock held from observing logged frames to logging the
+    placements they call for (see :meth:`Dispatcher.log`)."""
+
     frames: RobotFrames
-    # Held from observing logged frames to logging the placements they call for (see log).
     placing: threading.Lock = field(default_factory=threading.Lock)
 
 
-Arrivals = tuple[npt.NDArray[np.int64] | None, npt.NDArray[np.int64] | None]
-
-
-def run_arrivals(run: Sequence[RawMessage]) -> Arrivals | None:
-    """The run's receive and log times, one array each (None: no message has that time); None
-    when some messages have a time and others not, which columns cannot say."""
-    if isinstance(run, MessageRun):
-        return run.receive_ns, run.log_ns
-    found = []
-    for values in ([raw.receive_ns for raw in run], [raw.log_ns for raw in run]):
-        missing = values.count(None)
-        if 0 < missing < len(values):
-            return None
-        found.append(None if missing else np.array(values, dtype=np.int64))
-    return found[0], found[1]
-
-
-def message_times(msg: Any, raw: RawMessage, *, restamp: bool = False) -> dict[str, int]:
-    """The message's timelines; ``restamp`` makes ros_time the receive (else log) time, for
-    robots whose clock is off or whose stamps are zero."""
-    times: dict[str, int] = {}
-    header = getattr(msg, "header", None)
-    stamp = getattr(header, "stamp", None)
-    arrival = raw.receive_ns if raw.receive_ns is not None else raw.log_ns
-    if restamp and arrival is not None:
-        times[TIMELINE_ROS] = arrival
-    elif stamp is not None:
-        ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-        if ns:
-            times[TIMELINE_ROS] = ns
-    if raw.receive_ns is not None:
-        times[TIMELINE_RECEIVE] = raw.receive_ns
-    if raw.log_ns is not None:
-        times[TIMELINE_LOG] = raw.log_ns
-    return times
-
-
 class Dispatcher:
+    """Runs from the inputs -> the taps, then per topic: its settings and counters, and its
+    conversion here (:class:`Conversion`) or in the heavy topics' process (``offload``);
+    everything converted is logged with its robot's frame tree."""
+
     def __init__(
         self,
         sink: Sink,
@@ -161,52 +389,68 @@ class Dispatcher:
         on_new_topic: TopicListener | None = None,
     ) -> None:
         self.sink = sink
-        self.taps = list(taps)
+        self._taps = tuple(taps)
         self.on_new_topic = on_new_topic
         self.registry = registry or default_registry()
-        self.decoder = decoder or Decoder()
         self.config = config or HostConfig.builtin(self.registry)
-        self.strict = strict
         self.counters: dict[tuple[str, str], TopicCounters] = {}
+        self.conversion = Conversion(
+            sink, self.log, registry=self.registry, decoder=decoder or Decoder(),
+            counters=self.counters, strict=strict, resolver=resolver,
+        )
         self._topics: dict[tuple[str, str], _TopicTypes] = {}
         # Taken when a topic's type changes: a robot's two threads may both carry the topic.
         self._retyping = threading.Lock()
-        # Finds mesh files for every robot (each robot's own relay for what is missing here).
-        self._resolver = resolver or ResourceResolver.from_env()
-        self._robots: dict[str, _RobotConversion] = {}
-        self._robots_lock = threading.Lock()
-        self._warned: set[tuple[str, str, str]] = set()
-        self._slow = _SlowWorker(self, self.registry.slow_converters())
+        self._frames: dict[str, _Frames] = {}
+        self._frames_lock = threading.Lock()
         self.offload: Offload | None = None
         """Where heavy topics are converted when not here (offload.py's process)."""
 
-    def _robot(self, robot: str) -> _RobotConversion:
-        # The slow converters' thread logs for robots too.
-        with self._robots_lock:
-            found = self._robots.get(robot)
-            if found is None:
-                state = RobotState(resolver=self._resolver.for_robot(robot))
-                found = self._robots[robot] = _RobotConversion(state, RobotFrames(robot))
-            return found
+    @property
+    def decoder(self) -> Decoder:
+        return self.conversion.decoder
+
+    @property
+    def strict(self) -> bool:
+        return self.conversion.strict
+
+    def add_tap(self, tap: Tap) -> None:
+        """``tap`` sees every run from now on, after the taps before it (add taps before the
+        input starts: a run being dispatched meanwhile may miss it)."""
+        self._taps = (*self._taps, tap)
 
     def robot_state(self, robot: str) -> RobotState:
-        return self._robot(robot).state
+        return self.conversion.robot_state(robot)
+
+    def warn(
+        self, robot: str, topic: str, err: Exception, times: Mapping[str, int] | None = None
+    ) -> None:
+        """:meth:`Conversion.warn`: once per (robot, topic, kind), later ones only counted."""
+        self.conversion.warn(robot, topic, err, times)
+
+    def _frames_of(self, robot: str) -> _Frames:
+        # The slow lane's thread logs for robots too.
+        with self._frames_lock:
+            found = self._frames.get(robot)
+            if found is None:
+                found = self._frames[robot] = _Frames(RobotFrames(robot))
+            return found
 
     def frames(self, robot: str) -> RobotFrames:
-        return self._robot(robot).frames
+        return self._frames_of(robot).frames
 
     def log(self, robot: str, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
         """Log ``robot``'s entries, then what its frames need now (placements, target).
 
-        A robot's small topics, its heavy ones (inputs/queues.py) and the slow converters log
-        from threads of their own. A frame placed at the robot's root shares its static entity
-        with the frame's real transform and must never be written after it: entries are observed
+        A robot's small topics, its heavy ones (inputs/queues.py) and the slow lane log from
+        threads of their own. A frame placed at the robot's root shares its static entity with
+        the frame's real transform and must never be written after it: entries are observed
         before they are logged, and those that call for placements are logged with them under
         the robot's lock, so a transform observed later is also logged later. Other entries
         (nearly all) are logged outside it: a small topic does not wait for a cloud's log."""
-        known = self._robot(robot)
+        known = self._frames_of(robot)
         with known.placing:
-            updates = known.frames.observe(entries, known.state)
+            updates = known.frames.observe(entries, self.robot_state(robot))
             if updates:
                 self.sink.log(entries, times)
                 self.sink.log(updates, times)
@@ -218,9 +462,9 @@ class Dispatcher:
     ) -> None:
         """Note the frames that ``robot``'s entries logged elsewhere named (offload.py), and log
         the placements and target they call for."""
-        known = self._robot(robot)
+        known = self._frames_of(robot)
         with known.placing:
-            updates = known.frames.note(relations, frames, known.state)
+            updates = known.frames.note(relations, frames, self.robot_state(robot))
             if updates:
                 self.sink.log(updates, {})
 
@@ -272,51 +516,6 @@ class Dispatcher:
             self.warn(robot, name, err)
         return topic
 
-    def warn(
-        self, robot: str, topic: str, err: Exception, times: Mapping[str, int] | None = None
-    ) -> None:
-        """Report an error once per (robot, topic, kind); later ones are only counted.
-
-        The warning goes on the bad message's timelines; without a message (an input or file
-        problem) on the host's receive clock. A row without any time would be static, and each
-        static warning would replace the one before it in the viewer.
-        """
-        counters = self.counters.get((robot, topic))
-        if counters is not None:
-            counters.warnings += 1
-        kind = type(err).__name__
-        if (robot, topic, kind) in self._warned:
-            return
-        self._warned.add((robot, topic, kind))
-        problem = str(err)
-        # Converters name the topic themselves (their errors also end --strict runs).
-        if not problem.startswith(f"{topic}: "):
-            problem = f"{topic}: {problem}"
-        text = f"[{robot}] {problem} (further {kind}s on this topic are counted, not shown)"
-        log.warning("%s", text)
-        self.sink.log(
-            [LogItem(WARNINGS_PATH, (rr.TextLog(text, level=rr.TextLogLevel.WARN),))],
-            times or {TIMELINE_RECEIVE: time.time_ns()},
-        )
-
-    def _count(self, run: Sequence[RawMessage], first: RawMessage) -> TopicCounters:
-        """Counts a run of one topic as received, with the wire sequence gaps within it."""
-        key = (first.robot, first.topic)
-        counters = self.counters.get(key)
-        if counters is None:
-            counters = self.counters[key] = TopicCounters(first.msgtype)
-        counters.received += len(run)
-        if isinstance(run, MessageRun):  # a bag's runs carry no wire sequence, bundles do
-            if run.sequence is not None:
-                counters.sequence_gaps += sequence_gaps(counters.last_sequence, run.sequence)
-                counters.last_sequence = int(run.sequence[-1])
-        elif first.sequence is not None or run[-1].sequence is not None:
-            for raw in run:
-                if raw.sequence is not None:
-                    counters.sequence_gaps += sequence_gap(counters.last_sequence, raw.sequence)
-                    counters.last_sequence = raw.sequence
-        return counters
-
     def take(self, items: Sequence[InputItem]) -> None:
         """A run from an input (inputs/base.py): problems warned about, robots joining or
         leaving logged under /_swanky/robots, messages dispatched."""
@@ -339,9 +538,9 @@ class Dispatcher:
 
     def dispatch(self, batch: Sequence[RawMessage]) -> None:
         """Convert and log a run of messages; messages of one topic keep their order. A topic's
-        messages are converted in runs of one type: the run's first message decides how all of
-        it is decoded and converted."""
-        for tap in self.taps:
+        messages are converted in runs of one type, definition and set of arrival timelines:
+        the run's first message decides how all of it is decoded and converted."""
+        for tap in self._taps:
             tap(batch)
         if isinstance(batch, MessageRun):
             if len(batch):
@@ -352,7 +551,7 @@ class Dispatcher:
             topic_runs = runs.get((raw.robot, raw.topic))
             if topic_runs is None:
                 runs[(raw.robot, raw.topic)] = [[raw]]
-            elif topic_runs[-1][0].msgtype == raw.msgtype:
+            elif _continues(topic_runs[-1], raw):
                 topic_runs[-1].append(raw)
             else:
                 topic_runs.append([raw])
@@ -363,164 +562,31 @@ class Dispatcher:
     def _dispatch_run(self, run: Sequence[RawMessage]) -> None:
         first = run[0]
         topic = self._topic(first.robot, first.topic, first.msgtype)
-        counters = self._count(run, first)
+        counters = self.counters.get((first.robot, first.topic))
+        if counters is None:
+            counters = self.counters[(first.robot, first.topic)] = TopicCounters(first.msgtype)
+        if isinstance(run, MessageRun):  # a bag's runs carry no wire sequence, bundles do
+            counters.receive(len(run), run.sequence)
+        elif first.sequence is not None or run[-1].sequence is not None:
+            counters.receive(len(run), [raw.sequence for raw in run])
+        else:
+            counters.receive(len(run), None)
         if not topic.enabled:
             counters.skipped += len(run)
             return
         if self.offload is not None and self.offload.takes(first):
             self.offload.convert(run, topic, counters)
             return
-        self.convert_run(run, topic, counters)
-
-    def convert_run(self, run: Sequence[RawMessage], topic: TopicBinding, counters: TopicCounters) -> None:
-        """Decode, convert and log a run of one enabled topic, counted in ``counters``."""
-        first = run[0]
-        spec = self.registry.get(first.msgtype, first.topic)
-        if spec.convert_columns is not None and self._convert_columns(run, topic, spec, counters):
-            return
-        robot_state = self.robot_state(first.robot)
-        decoded: list[tuple[Any, ConvertContext, RawMessage]] = []
-        for raw in run:
-            try:
-                msg = self.decoder.decode(raw)
-            except HostError as err:
-                counters.dropped += 1
-                if self.strict:
-                    raise
-                self.warn(raw.robot, raw.topic, err, message_times(None, raw))
-                continue
-            ctx = ConvertContext(
-                robot=raw.robot,
-                topic=raw.topic,
-                entity_path=topic.entity_path,
-                times=message_times(msg, raw, restamp=topic.restamp),
-                topic_state=topic.state,
-                robot_state=robot_state,
-                restamp=topic.restamp,
-            )
-            decoded.append((msg, ctx, raw))
-        if decoded:
-            self._convert(decoded)
-
-    def _convert_columns(
-        self, run: Sequence[RawMessage], topic: TopicBinding, spec: ConverterSpec, counters: TopicCounters
-    ) -> bool:
-        """Convert the run through its columns, no Python per message; False when the run needs
-        the message path: columns refuse it (a payload rosbags would refuse: that path names it
-        and converts the others), its arrival times or definitions differ between messages, or
-        the converter declines or fails on the run as a whole."""
-        assert spec.convert_columns is not None
-        first = run[0]
-        definition = first.definition
-        if not isinstance(run, MessageRun) and any(
-            raw.definition is not definition and raw.definition != definition for raw in run
-        ):
-            return False
-        arrivals = run_arrivals(run)
-        if arrivals is None:
-            return False
-        receive_ns, log_ns = arrivals
-        try:
-            store = self.decoder.typestore_for(first.msgtype, definition)
-        except HostError:
-            return False  # the message path warns about the type
-        started = time.perf_counter()
-        # Any number of blocks: the message path would read its messages as columns anyway.
-        payloads = run.payloads if isinstance(run, MessageRun) else [raw.data for raw in run]
-        columns = read_columns(payloads, first.msgtype, store, max_blocks=len(run))
-        if columns is None:
-            return False
-        ctx = RunContext(
-            robot=first.robot,
-            topic=first.topic,
-            entity_path=topic.entity_path,
-            size=len(run),
-            receive_ns=receive_ns,
-            log_ns=log_ns,
-            restamp=topic.restamp,
-            topic_state=topic.state,
-            robot_state=self.robot_state(first.robot),
-        )
-        try:
-            entries = spec.convert_columns(columns, ctx)
-        except PartialConvertError as err:
-            if self.strict:
-                raise
-            # As for a run of messages (see _convert): log what converted, warn once.
-            entries = err.items
-            self.warn(first.robot, first.topic, err, ctx.last_times())
-        except Exception:
-            if self.strict:
-                raise
-            return False  # message by message, so only a bad message is lost
-        if entries is None:
-            return False
-        self.log(first.robot, entries, ctx.last_times())
-        counters.converted += len(run)
-        counters.convert_seconds += time.perf_counter() - started
-        return True
-
-    def _convert(self, decoded: list[tuple[Any, ConvertContext, RawMessage]]) -> None:
-        msgtype = decoded[0][2].msgtype
-        spec = self.registry.get(msgtype, decoded[0][2].topic)
-        counters = self.counters[(decoded[0][2].robot, decoded[0][2].topic)]
-        started = time.perf_counter()
-        # The newest message its fast converter took; the slow converters (walls) get only that
-        # one, so a message the fast path rejected is neither re-warned nor drawn as walls.
-        accepted: tuple[Any, ConvertContext, RawMessage] | None = None
-        if not spec.message_by_message and len(decoded) > 1:
-            robot, topic = decoded[0][2].robot, decoded[0][2].topic
-            entries: list[LogEntry] | None = None
-            try:
-                entries = spec.convert_run([d[0] for d in decoded], [d[1] for d in decoded])
-            except PartialConvertError as err:
-                if self.strict:
-                    raise
-                # The run converted but for a part (the kinematics of a JointState run before
-                # the robot model arrives; a long custom array): log what did convert and warn
-                # once for the run, instead of converting it again message by message.
-                entries = err.items
-                self.warn(robot, topic, err, decoded[-1][1].times)
-            except Exception:
-                if self.strict:
-                    raise
-                # Fall through: convert one by one so only the bad message is lost.
-            if entries is not None:
-                self.log(robot, entries, decoded[0][1].times)
-                counters.converted += len(decoded)
-                accepted = decoded[-1]
-        if accepted is None:
-            for msg, ctx, raw in decoded:
-                try:
-                    entries = spec.convert(msg, ctx)
-                except PartialConvertError as err:
-                    if self.strict:
-                        raise
-                    self.log(raw.robot, err.items, ctx.times)
-                    self.warn(raw.robot, raw.topic, err, ctx.times)
-                    counters.converted += 1
-                    continue
-                except Exception as err:
-                    counters.dropped += 1
-                    if self.strict:
-                        raise
-                    self.warn(raw.robot, raw.topic, err, ctx.times)
-                    continue
-                self.log(raw.robot, entries, ctx.times)
-                counters.converted += 1
-                accepted = (msg, ctx, raw)
-        counters.convert_seconds += time.perf_counter() - started
-        if accepted is not None:
-            self._slow.submit(msgtype, *accepted)
+        self.conversion.convert(run, topic, counters)
 
     def close(self, timeout: float = 30.0) -> None:
-        """Let the slow worker and the heavy topics' process finish what they hold (a saved .rrd
+        """Let the slow lane and the heavy topics' process finish what they hold (a saved .rrd
         then has the walls), and name the frames no transform ever placed."""
         if self.offload is not None:
             self.offload.close()
-        self._slow.close(timeout)
-        with self._robots_lock:
-            robots = sorted(self._robots.items())
+        self.conversion.close(timeout)
+        with self._frames_lock:
+            robots = sorted(self._frames.items())
         for robot, known in robots:
             unplaced = known.frames.unplaced()
             if unplaced:
@@ -532,55 +598,3 @@ class Dispatcher:
     def summary(self) -> str:
         """A table of every topic seen (counters.summary_table)."""
         return summary_table(self.counters)
-
-
-class _SlowWorker:
-    """One thread running slow converters on the latest message of each topic only: a map
-    that changes faster than its walls can be computed skips intermediate versions."""
-
-    def __init__(self, dispatcher: Dispatcher, specs: Mapping[str, Any]) -> None:
-        self._dispatcher = dispatcher
-        self._specs = specs
-        self._latest: dict[tuple[str, str], tuple[Any, Any, ConvertContext, RawMessage]] = {}
-        self._cond = threading.Condition()
-        self._busy = False
-        self._closed = False
-        self._thread: threading.Thread | None = None
-
-    def submit(self, msgtype: str, msg: Any, ctx: ConvertContext, raw: RawMessage) -> None:
-        spec = self._specs.get(msgtype)
-        if spec is None:
-            return
-        with self._cond:
-            self._latest[(raw.robot, raw.topic)] = (spec, msg, ctx, raw)
-            if self._thread is None:
-                self._thread = threading.Thread(target=self._run, name="slow-converters",
-                                                daemon=True)
-                self._thread.start()
-            self._cond.notify()
-
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._latest and not self._closed:
-                    self._cond.wait()
-                if not self._latest:
-                    return
-                _, (spec, msg, ctx, raw) = self._latest.popitem()
-                self._busy = True
-            try:
-                self._dispatcher.log(raw.robot, spec.convert(msg, ctx), ctx.times)
-            except PartialConvertError as err:
-                self._dispatcher.log(raw.robot, err.items, ctx.times)
-                self._dispatcher.warn(raw.robot, raw.topic, err, ctx.times)
-            except Exception as err:
-                self._dispatcher.warn(raw.robot, raw.topic, err, ctx.times)
-            with self._cond:
-                self._busy = False
-                self._cond.notify_all()
-
-    def close(self, timeout: float) -> None:
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-            self._cond.wait_for(lambda: not self._latest and not self._busy, timeout)

@@ -19,11 +19,12 @@ topics stay on their robots' heavy threads here (inputs/queues.py).
 What stays here: everything about a heavy run but its conversion: the taps (``/_stats``,
 ``--record-mcap``), the topic's settings (entity path, options, the layout's views), its
 counters and sequence gaps, the robot's frame tree. The converter process gets the run's
-payloads and the topic's settings, decodes, converts and logs the run with a Dispatcher of its
-own (which runs the slow converters, walls, too), and answers with what the run's counters
-gained and the frames its entries named. The placements those frames call for are logged here
-(frames.py): a placement shares its entity with /tf_static's transform of the frame and must
-never be written after it, which only the stream that logs /tf can ensure.
+payloads and the topic's settings, decodes, converts and logs the run with a
+:class:`~host_bridge.dispatch.Conversion` of its own (whose slow lane runs the slow converters,
+walls, too), and answers with what the run's counters gained and the frames its entries named.
+The placements those frames call for are logged here (frames.py): a placement shares its
+entity with /tf_static's transform of the frame and must never be written after it, which only
+the stream that logs /tf can ensure.
 
 Protocol, over a socket pair with multiprocessing's framing: the child first sends
 ``("ready", None)`` once its sink is open, or ``("failed", why)``. Then per run the host sends a
@@ -175,7 +176,7 @@ class HeavyProcess:
                     f"the heavy topics' converter process {self._problem}; converting heavy "
                     "topics in the host process from now on"))
         if outcome is None:
-            self._dispatcher.convert_run(run, topic, counters)
+            self._dispatcher.conversion.convert(run, topic, counters)
             return
         counters.converted += outcome.converted
         counters.dropped += outcome.dropped
@@ -322,22 +323,15 @@ class _FrameNotes:
 
 def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool) -> int:
     from host_bridge.counters import TopicCounters
+    from host_bridge.decode import Decoder
     from host_bridge.destinations import SinkOptions
-    from host_bridge.dispatch import Dispatcher, TopicBinding
+    from host_bridge.dispatch import Conversion, TopicBinding
     from host_bridge.errors import SinkError
+    from host_bridge.registry import default_registry
     from host_bridge.sink import RerunSink
     from host_bridge.state import TopicState
 
     notes = _FrameNotes()
-
-    class Converter(Dispatcher):
-        """Logs like the host's dispatcher, but leaves the frame tree to the host: the frames
-        its entries name are noted for the host instead."""
-
-        def log(self, robot: str, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
-            notes.add(robot, entries)
-            self.sink.log(entries, times)
-
     giving_up = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: giving_up.set())
     try:
@@ -348,7 +342,14 @@ def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool)
     except SinkError as err:
         connection.send(("failed", str(err)))
         return 1
-    converter = Converter(sink, strict=strict)
+    def log_noting_frames(robot: str, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
+        """Logs like the host's dispatcher, but leaves the frame tree to the host: the frames
+        the entries name are noted for the host instead."""
+        notes.add(robot, entries)
+        sink.log(entries, times)
+
+    conversion = Conversion(sink, log_noting_frames, registry=default_registry(), decoder=Decoder(),
+                            counters={}, strict=strict)
     topics: dict[tuple[str, str, str], TopicBinding] = {}
     connection.send(("ready", None))
     while True:
@@ -364,10 +365,10 @@ def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool)
         if head.settings is not None:
             entity_path, options, restamp = head.settings
             topics[key] = TopicBinding(head.msgtype, entity_path, TopicState(options), True, restamp)
-        counters = converter.counters[(head.robot, head.topic)] = TopicCounters(head.msgtype)
+        counters = conversion.counters[(head.robot, head.topic)] = TopicCounters(head.msgtype)
         outcome = Outcome()
         try:
-            converter.convert_run(run, topics[key], counters)
+            conversion.convert(run, topics[key], counters)
         except Exception as err:  # --strict, or a bug: the host reports it
             outcome.error = f"{type(err).__name__}: {err}"
         outcome.converted, outcome.dropped = counters.converted, counters.dropped
@@ -378,7 +379,7 @@ def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool)
             connection.send(notes.take(outcome))
         except OSError:
             break
-    converter.close()
+    conversion.close()
     with contextlib.suppress(OSError):  # unless the host is gone
         connection.send(notes.take(Outcome()))
     problem = None

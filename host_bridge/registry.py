@@ -22,7 +22,7 @@ from enum import Enum
 from fnmatch import fnmatchcase
 from typing import Any
 
-from host_bridge.contract import ConverterSpec, combine
+from host_bridge.contract import Converter, combine
 from host_bridge.errors import RegistryError
 from host_bridge.options import NoOptions
 from robot_relay.policy import DEFAULT_TRAFFIC, TrafficClass
@@ -74,18 +74,19 @@ class Row:
     the topics it accepts, tried before the type's other row (std_msgs/String on
     /robot_description is a robot model, elsewhere text). ``options``: the record the
     converters read with ``ctx.options`` (:mod:`host_bridge.options`), which is what a config
-    file may set for the type. ``lane``: see :class:`Lane`. ``slow``: a second converter too
-    slow for the receive path (wall meshes of a map), run after ``spec`` in a worker that keeps
-    only the newest message. ``traffic``: the relay's share of the link for the type (its own
-    table, ``robot_relay.policy.TRAFFIC``, must agree).
+    file may set for the type. ``converter``: see :mod:`host_bridge.contract`. ``lane``: see
+    :class:`Lane`. ``slow``: a second converter too slow for the receive path (wall meshes of a
+    map), run after ``converter`` in a worker that keeps only the newest message. ``traffic``:
+    the relay's share of the link for the type (its own table, ``robot_relay.policy.TRAFFIC``,
+    must agree).
     """
 
     msgtype: str
-    spec: ConverterSpec
+    converter: Converter
     view: View
     options: type[Any] = NoOptions
     lane: Lane = Lane.SMALL
-    slow: ConverterSpec | None = None
+    slow: Converter | None = None
     traffic: TrafficClass = DEFAULT_TRAFFIC
     topics: Callable[[str], bool] | None = None
 
@@ -137,8 +138,8 @@ class Registry:
             return exact
         return next(row for row in self._families if fnmatchcase(msgtype, row.msgtype))
 
-    def get(self, msgtype: str, topic: str = "") -> ConverterSpec:
-        return self.row(msgtype, topic).spec
+    def get(self, msgtype: str, topic: str = "") -> Converter:
+        return self.row(msgtype, topic).converter
 
     def rows(self) -> tuple[Row, ...]:
         """Every row in table order (a test walks them all)."""
@@ -148,7 +149,7 @@ class Registry:
         """The type names the table spells out (no globs)."""
         return sorted({row.msgtype for row in self._rows if not row.is_family})
 
-    def slow_converters(self) -> dict[str, ConverterSpec]:
+    def slow_converters(self) -> dict[str, Converter]:
         return {t: row.slow for t, row in self._exact.items() if row.slow is not None}
 
 

@@ -154,12 +154,12 @@ class ViewerThinning:
         if self._lanes(first) is Lane.HEAVY and not self._admits(first.robot, first.topic, len(run)):
             if self._sink.saving:
                 with self._sink.saved_only():
-                    self._dispatcher.convert_run(run, topic, counters)
+                    self._dispatcher.conversion.convert(run, topic, counters)
             return
         if self._inner is not None and self._inner.takes(first):
             self._inner.convert(run, topic, counters)
         else:
-            self._dispatcher.convert_run(run, topic, counters)
+            self._dispatcher.conversion.convert(run, topic, counters)
 
     def _admits(self, robot: str, topic: str, count: int) -> bool:
         """Whether a run of ``count`` messages of ``robot``'s heavy ``topic`` goes to the

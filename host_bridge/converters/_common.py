@@ -1,8 +1,8 @@
-"""Small pieces several converters share: stamps, quaternions, frames, time columns."""
+"""Small pieces several converters share: stamps, quaternions, frames."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -53,17 +53,3 @@ def xyzw(quaternion: Any) -> list[float]:
     """ROS quaternion in Rerun's xyzw order; the all-zero (invalid) one becomes identity."""
     q = [float(quaternion.x), float(quaternion.y), float(quaternion.z), float(quaternion.w)]
     return q if any(q) else [0.0, 0.0, 0.0, 1.0]
-
-
-def time_columns(
-    ctxs: Sequence[ConvertContext], ros_ns: Sequence[int] | None = None
-) -> dict[str, npt.NDArray[np.int64]]:
-    """Timeline arrays for one row per context; ``ros_ns`` overrides ros_time per row."""
-    names = set().union(*(c.times for c in ctxs)) if ctxs else set()
-    columns = {
-        name: np.fromiter((c.times.get(name, 0) for c in ctxs), dtype=np.int64, count=len(ctxs))
-        for name in names
-    }
-    if ros_ns is not None:
-        columns["ros_time"] = np.asarray(ros_ns, dtype=np.int64)
-    return columns

@@ -21,8 +21,7 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
-from host_bridge.converters._common import time_columns
+from host_bridge.contract import ColumnsItem, LogEntry, LogItem, Run
 from host_bridge.errors import PartialConvertError
 from host_bridge.options import GenericOptions
 
@@ -75,35 +74,41 @@ def _bar_chart(values: np.ndarray[Any, Any]) -> rr.BarChart:
     return rr.BarChart(values.astype(np.uint8) if values.dtype.kind == "b" else values)
 
 
-def convert_generic_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-    max_array = ctxs[0].options(GenericOptions).max_array
+def _column(values: Sequence[Leaf]) -> Any:
+    """One path's values, one row each: text, numbers, or arrays of numbers."""
+    if isinstance(values[0], str):
+        return rr.TextLog.columns(text=[str(v) for v in values])
+    if isinstance(values[0], np.ndarray):
+        lengths = [np.size(v) for v in values]
+        flat = np.concatenate([np.atleast_1d(np.asarray(v, dtype=np.float64)) for v in values])
+        return rr.Scalars.columns(scalars=flat).partition(lengths)
+    return rr.Scalars.columns(scalars=np.asarray(values, dtype=np.float64))
+
+
+def convert_generic(run: Run) -> list[LogEntry]:
+    max_array = run.options(GenericOptions).max_array
+    msgs = run.messages()
+    stamps = run.stamps()
     rows: dict[str, tuple[list[int], list[Leaf]]] = defaultdict(lambda: ([], []))
     items: list[LogEntry] = []
     truncated: set[str] = set()
     for row, msg in enumerate(msgs):
         for path, value in flatten(msg, "", truncated):
             if isinstance(value, np.ndarray) and value.size > max_array:
-                items.append(LogItem(ctxs[row].child_path(path), (_bar_chart(value),),
-                                     times=ctxs[row].times))
+                at = run.row_times(row, None if stamps is None else int(stamps[row]))
+                items.append(LogItem(run.child_path(path), (_bar_chart(value),), times=at))
                 continue
             indices, values = rows[path]
             indices.append(row)
             values.append(value)
     for path, (indices, values) in rows.items():
-        entity = ctxs[0].child_path(path)
-        times = time_columns([ctxs[i] for i in indices])
-        if isinstance(values[0], str):
-            columns = rr.TextLog.columns(text=[str(v) for v in values])
-        elif isinstance(values[0], np.ndarray):
-            lengths = [np.size(v) for v in values]
-            flat = np.concatenate([np.atleast_1d(np.asarray(v, dtype=np.float64)) for v in values])
-            columns = rr.Scalars.columns(scalars=flat).partition(lengths)
-        else:
-            columns = rr.Scalars.columns(scalars=np.asarray(values, dtype=np.float64))
-        items.append(ColumnsItem(entity, columns, times))
+        index = np.array(indices, np.intp)
+        for entries, times in run.times(None if stamps is None else stamps[index], index):
+            picked = values if len(entries) == len(values) else [values[i] for i in entries.tolist()]
+            items.append(ColumnsItem(run.child_path(path), _column(picked), times))
     if truncated:
         text = (
-            f"{ctxs[0].topic}: no converter for {getattr(msgs[0], '__msgtype__', 'this type')}; "
+            f"{run.topic}: no converter for {getattr(msgs[0], '__msgtype__', 'this type')}; "
             f"the generic one shows the first {MAX_SEQUENCE_MESSAGES} elements of "
             f"{', '.join(sorted(truncated))}"
         )
@@ -111,8 +116,4 @@ def convert_generic_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> 
     return items
 
 
-def convert_generic(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    return convert_generic_run([msg], [ctx])
-
-
-SPEC = ConverterSpec(convert_generic_run, single=convert_generic)
+SPEC = convert_generic

@@ -12,8 +12,7 @@ from __future__ import annotations
 import numpy as np
 import rerun as rr
 
-from host_bridge.columns import Columns
-from host_bridge.contract import ColumnsItem, LogEntry, RunContext, columnar
+from host_bridge.contract import ColumnsItem, LogEntry, Run
 from host_bridge.converters._common import stamps_ns
 from host_bridge.converters.scalars import scalar_columns
 from host_bridge.options import NavSatFixOptions
@@ -22,7 +21,9 @@ STATUS_NO_FIX = -1
 COVARIANCE_TYPE_UNKNOWN = 0
 
 
-def convert_navsatfix_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+def convert_navsatfix(run: Run) -> list[LogEntry]:
+    """A fix per message with a fix, and its altitude, read as columns."""
+    columns = run.columns()
     fixes = np.stack(
         [columns[name].astype(np.float64) for name in ("latitude", "longitude", "altitude")], axis=1
     )
@@ -31,19 +32,19 @@ def convert_navsatfix_columns(columns: Columns, ctx: RunContext) -> list[LogEntr
     known = columns["position_covariance_type"] != COVARIANCE_TYPE_UNKNOWN
     with np.errstate(invalid="ignore"):
         sigma = np.sqrt(np.maximum(covariance[:, 0], covariance[:, 4]))  # east, north variances
-    ui_radius = -abs(ctx.options(NavSatFixOptions).radius)
+    ui_radius = -abs(run.options(NavSatFixOptions).radius)
     radii = np.where(known & np.isfinite(sigma) & (sigma > 0.0), sigma, ui_radius)
     valid = (status != STATUS_NO_FIX) & np.isfinite(fixes[:, :2]).all(axis=1)
     stamps = stamps_ns(columns)
     items: list[LogEntry] = []
     rows = np.flatnonzero(valid)
-    for entries, times in ctx.stamped(stamps[rows], rows):
+    for entries, times in run.times(stamps[rows], rows):
         points = rr.GeoPoints.columns(positions=fixes[rows[entries], :2], radii=radii[rows[entries]])
-        items.append(ColumnsItem(ctx.entity_path, list(points), times))
+        items.append(ColumnsItem(run.entity_path, list(points), times))
     rows = np.flatnonzero(valid & np.isfinite(fixes[:, 2]))
-    for entries, times in ctx.stamped(stamps[rows], rows):
-        items.append(scalar_columns(ctx.child_path("altitude"), fixes[rows[entries], 2], times))
+    for entries, times in run.times(stamps[rows], rows):
+        items.append(scalar_columns(run.child_path("altitude"), fixes[rows[entries], 2], times))
     return items
 
 
-SPEC = columnar(convert_navsatfix_columns)
+SPEC = convert_navsatfix

@@ -25,12 +25,11 @@ from host_bridge.columns import Columns
 from host_bridge.contract import (
     ColumnsItem,
     ConvertContext,
-    ConverterSpec,
+    Converter,
     LogEntry,
     LogItem,
-    RunContext,
+    Run,
     TopicContext,
-    columnar,
     per_message,
 )
 from host_bridge.converters._common import frame_components, stamps_ns, vectors
@@ -149,18 +148,18 @@ def pose_columns_arrays(columns: Columns, path: str) -> tuple[Float64Array, Floa
     return positions, quats
 
 
-def pose_columns(
-    columns: Columns, ctx: RunContext, path: str, options: PoseOptions | None = None,
-) -> list[LogEntry]:
-    """The pose at ``path`` of each message of a run: transforms with axes, and the trail rows
-    the run grew; ``options`` are the topic's (a covariance topic's record holds more)."""
-    options = ctx.options(PoseOptions) if options is None else options
+def pose_columns(run: Run, path: str, options: PoseOptions | None = None) -> list[LogEntry]:
+    """The pose at ``path`` of each message of a run, read as columns: transforms with axes,
+    and the trail rows the run grew; ``options`` are the topic's (a covariance topic's record
+    holds more)."""
+    columns = run.columns()
+    options = run.options(PoseOptions) if options is None else options
     positions, quats = pose_columns_arrays(columns, path)
     stamps = stamps_ns(columns)
-    frame_rows = _frame_rows(ctx, columns)
+    frame_rows = _frame_rows(run, columns)
     entries: list[LogEntry] = []
     for frame, rows in frame_rows:
-        for picked, times in ctx.stamped(stamps[rows], rows):
+        for picked, times in run.times(stamps[rows], rows):
             chosen = rows[picked]
             pose = [
                 *rr.Transform3D.columns(
@@ -170,27 +169,27 @@ def pose_columns(
                 ),
                 *rr.TransformAxes3D.columns(axis_length=np.full(len(chosen), options.axis_length)),
             ]
-            entries.append(ColumnsItem(ctx.entity_path, pose, times))
-    frames: list[str | None] = [None] * ctx.size
+            entries.append(ColumnsItem(run.entity_path, pose, times))
+    frames: list[str | None] = [None] * len(run)
     for frame, rows in frame_rows:
         for row in rows.tolist():
             frames[row] = frame
-    grown = _advance_trail(ctx, options.trail_length, positions, frames)
+    grown = _advance_trail(run, options.trail_length, positions, frames)
     if grown:
         grown_rows = np.array([row for row, _ in grown], dtype=np.intp)
-        for picked, times in ctx.stamped(stamps[grown_rows], grown_rows):
+        for picked, times in run.times(stamps[grown_rows], grown_rows):
             trail = [
                 *rr.LineStrips3D.columns(strips=[grown[i][1] for i in picked.tolist()]),
                 *rr.CoordinateFrame.columns(
-                    frame=[fixed_frame(ctx, frames[row]) for row in grown_rows[picked].tolist()]
+                    frame=[fixed_frame(run, frames[row]) for row in grown_rows[picked].tolist()]
                 ),
             ]
-            entries.append(ColumnsItem(ctx.child_path("trail"), trail, times))
+            entries.append(ColumnsItem(run.child_path("trail"), trail, times))
     return entries
 
 
-def _pose_stamped(columns: Columns, ctx: RunContext) -> list[LogEntry]:
-    return pose_columns(columns, ctx, "pose")
+def _pose_stamped(run: Run) -> list[LogEntry]:
+    return pose_columns(run, "pose")
 
 
 def _quats_from_matrices(m: Float64Array) -> Float64Array:
@@ -238,29 +237,30 @@ def covariance_ellipsoids(
     return half_sizes, _quats_from_matrices(vectors_)
 
 
-def _pose_with_covariance(columns: Columns, ctx: RunContext) -> list[LogEntry]:
-    options = ctx.options(PoseCovarianceOptions)
-    entries = pose_columns(columns, ctx, "pose.pose", options)
+def _pose_with_covariance(run: Run) -> list[LogEntry]:
+    options = run.options(PoseCovarianceOptions)
+    entries = pose_columns(run, "pose.pose", options)
+    columns = run.columns()
     covariance = columns["pose.covariance"].astype(np.float64).reshape(-1, 6, 6)[:, :3, :3]
     # A non-finite covariance says nothing about the spread; the pose itself is still valid.
     finite = np.all(np.isfinite(covariance.reshape(len(covariance), -1)), axis=1)
     positions, _ = pose_columns_arrays(columns, "pose.pose")
     stamps = stamps_ns(columns)
-    for frame, frame_rows in _frame_rows(ctx, columns):
+    for frame, frame_rows in _frame_rows(run, columns):
         rows = frame_rows[finite[frame_rows]]
         if not len(rows):
             continue
         half_sizes, rotations = covariance_ellipsoids(covariance[rows], options.sigma)
-        for picked, times in ctx.stamped(stamps[rows], rows):
+        for picked, times in run.times(stamps[rows], rows):
             ellipsoids = [
                 *rr.Ellipsoids3D.columns(
                     centers=positions[rows[picked]],
                     half_sizes=half_sizes[picked],
                     quaternions=rotations[picked],
                 ),
-                *rr.CoordinateFrame.columns(frame=[fixed_frame(ctx, frame)] * len(picked)),
+                *rr.CoordinateFrame.columns(frame=[fixed_frame(run, frame)] * len(picked)),
             ]
-            entries.append(ColumnsItem(ctx.child_path("covariance"), ellipsoids, times))
+            entries.append(ColumnsItem(run.child_path("covariance"), ellipsoids, times))
     return entries
 
 
@@ -273,18 +273,19 @@ def _pose_array(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
 # --- vectors: twist, wrench, vector3 ------------------------------------------------------------
 
 
-def _vector_converter(fields: Mapping[str, str], colors: list[tuple[int, int, int]]) -> ConverterSpec:
+def _vector_converter(fields: Mapping[str, str], colors: list[tuple[int, int, int]]) -> Converter:
     """Named Vector3 fields of a stamped message (``name: path``), each drawn as an arrow from
     the origin of the header frame and plotted per axis."""
     names = list(fields)
     palette = np.array(colors, dtype=np.uint8)
 
-    def convert_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+    def convert(run: Run) -> list[LogEntry]:
+        columns = run.columns()
         values = np.stack([vectors(columns, path) for path in fields.values()], axis=1)  # (n, k, 3)
         stamps = stamps_ns(columns)
         entries: list[LogEntry] = []
-        for frame, frame_rows in _frame_rows(ctx, columns):
-            for picked, times in ctx.stamped(stamps[frame_rows], frame_rows):
+        for frame, frame_rows in _frame_rows(run, columns):
+            for picked, times in run.times(stamps[frame_rows], frame_rows):
                 rows = frame_rows[picked]
                 flat = values[rows].reshape(-1, 3)
                 arrows = rr.Arrows3D.columns(
@@ -294,11 +295,11 @@ def _vector_converter(fields: Mapping[str, str], colors: list[tuple[int, int, in
                     colors=np.tile(palette, (len(rows), 1)),
                 ).partition(np.full(len(rows), len(names)))
                 frame_columns = rr.CoordinateFrame.columns(frame=[frame] * len(rows)) if frame else []
-                entries.append(ColumnsItem(ctx.entity_path, [*arrows, *frame_columns], times))
-        for picked, times in ctx.stamped(stamps):
+                entries.append(ColumnsItem(run.entity_path, [*arrows, *frame_columns], times))
+        for picked, times in run.times(stamps):
             entries.extend(
                 ColumnsItem(
-                    ctx.child_path(name, axis),
+                    run.child_path(name, axis),
                     list(rr.Scalars.columns(scalars=values[picked, j, a])),
                     times,
                 )
@@ -307,7 +308,7 @@ def _vector_converter(fields: Mapping[str, str], colors: list[tuple[int, int, in
             )
         return entries
 
-    return columnar(convert_columns)
+    return convert
 
 
 _LINEAR_COLOR = (60, 140, 255)
@@ -330,8 +331,8 @@ def _polygon_stamped(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
     return [LogItem(ctx.entity_path, (lines, *frame_components(ctx.frame(msg.header.frame_id))))]
 
 
-POSE_STAMPED = columnar(_pose_stamped)
-POSE_WITH_COVARIANCE = columnar(_pose_with_covariance)
+POSE_STAMPED = _pose_stamped
+POSE_WITH_COVARIANCE = _pose_with_covariance
 POSE_ARRAY = per_message(_pose_array)
 TWIST = _vector_converter(
     {"linear": "twist.linear", "angular": "twist.angular"}, [_LINEAR_COLOR, _ANGULAR_COLOR]

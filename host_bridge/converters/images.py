@@ -37,7 +37,6 @@ depth or grey), ``depth_meter`` (raw units per metre), ``colormap`` (a Rerun col
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -45,7 +44,7 @@ import numpy.typing as npt
 import pyarrow as pa
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, ConverterSpec, LogEntry, LogItem, per_message
+from host_bridge.contract import ConvertContext, LogEntry, LogItem, Run, header_stamp, per_message
 from host_bridge.converters.video import CODEC_SPELLINGS, VideoFrame, video_codec, video_entries
 from host_bridge.errors import ConvertError
 from host_bridge.options import ImageOptions, converter_choices
@@ -522,35 +521,28 @@ def _video_codec(msg: Any) -> rr.VideoCodec | None:
     return video_codec(msg.format)
 
 
-def convert_compressed_image_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
+def convert_compressed_image(run: Run) -> list[LogEntry]:
     """Stills become one image each (each on its own message's times); video messages of the
     run become the rows of one ``VideoStream`` column batch."""
+    msgs = run.messages()
     codecs = [_video_codec(m) for m in msgs]
-    entries: list[LogEntry] = [
-        _still_image(m, c) for m, c, codec in zip(msgs, ctxs, codecs, strict=True) if codec is None
-    ]
-    video = [
-        (VideoFrame(codec, m.data), c)
-        for m, c, codec in zip(msgs, ctxs, codecs, strict=True)
-        if codec is not None
-    ]
+    entries: list[LogEntry] = []
+    if None in codecs:
+        entries.extend(_still_image(m, c) for m, c, codec in zip(msgs, run.contexts(), codecs, strict=True)
+                       if codec is None)
+    video = [(row, codec) for row, codec in enumerate(codecs) if codec is not None]
     if video:
-        frames, video_ctxs = zip(*video, strict=True)
-        entries.extend(video_entries(frames, video_ctxs))
+        frames = [VideoFrame(codec, msgs[row].data, header_stamp(msgs[row]) or 0) for row, codec in video]
+        entries.extend(video_entries(run, frames, np.array([row for row, _ in video], np.intp)))
     return entries
 
 
-def convert_compressed_image(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    return convert_compressed_image_run([msg], [ctx])
-
-
 IMAGE = per_message(convert_image)
-COMPRESSED_IMAGE = ConverterSpec(convert_compressed_image_run, single=convert_compressed_image)
+COMPRESSED_IMAGE = convert_compressed_image
 
 __all__ = [
     "COMPRESSED_IMAGE",
     "IMAGE",
     "convert_compressed_image",
-    "convert_compressed_image_run",
     "convert_image",
 ]

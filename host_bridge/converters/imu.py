@@ -28,8 +28,7 @@ from host_bridge.contract import (
     ColumnsItem,
     LogEntry,
     LogItem,
-    RunContext,
-    columnar,
+    Run,
     component_columns,
     repeated_texts,
 )
@@ -69,24 +68,25 @@ class _ImuTopic:
     logged: bool = False
 
 
-def convert_imu_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+def convert_imu(run: Run) -> list[LogEntry]:
     """One row per message: the orientation transform with its two arrows, one block of rows
-    per frame id, and the two vectors' scalars."""
+    per frame id, and the two vectors' scalars; read as columns."""
+    columns = run.columns()
     quaternions = vectors(columns, "orientation", "xyzw")
     covariance0 = columns["orientation_covariance"][:, 0].astype(np.float64)
     # Both vectors of every message in one array, (n, 2, 3): the plots' values and the arrows'.
     measured = np.stack(
         [columns[f"{name}.{axis}"] for name in _VECTORS for axis in XYZ], axis=-1
     ).astype(np.float64).reshape(-1, len(_VECTORS), len(XYZ))
-    options = ctx.options(ImuOptions)
+    options = run.options(ImuOptions)
     scales = np.array([options.acceleration_scale, options.angular_velocity_scale])
     arrows = measured * scales[:, None]
     unit = orientations(quaternions, covariance0)
     stamps = stamps_ns(columns)
-    run_times = ctx.stamped(stamps)
-    orientation_path = ctx.child_path("orientation")
-    items: list[LogEntry] = series_names_once(ctx, _LEGENDS)
-    axes = ctx.state(_ImuTopic)
+    run_times = run.times(stamps)
+    orientation_path = run.child_path("orientation")
+    items: list[LogEntry] = series_names_once(run, _LEGENDS)
+    axes = run.state(_ImuTopic)
     if not axes.logged:
         axes.logged = True
         # The arrows' colours and labels never change: static, not repeated in every row.
@@ -97,9 +97,9 @@ def convert_imu_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
     groups = columns.groups("header.frame_id")
     for frame_id, frame_rows in groups:
         # Without a frame id the orientation hangs under the topic entity, as Rerun would default.
-        parent = ctx.frame(str(frame_id)) or f"tf#{ctx.entity_path}"
+        parent = run.frame(str(frame_id)) or f"tf#{run.entity_path}"
         # One frame id (the usual case): its rows are the run's, and so are their times.
-        frame_times = run_times if len(groups) == 1 else ctx.stamped(stamps[frame_rows], frame_rows)
+        frame_times = run_times if len(groups) == 1 else run.times(stamps[frame_rows], frame_rows)
         for entries, times in frame_times:
             rows = frame_rows[entries]
             n = len(rows)
@@ -112,7 +112,7 @@ def convert_imu_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
             items.append(ColumnsItem(orientation_path, [*transform, *arrow_vectors], times))
     for rows, times in run_times:
         items.extend(
-            scalar_columns(ctx.child_path(name), measured[rows, which], times)
+            scalar_columns(run.child_path(name), measured[rows, which], times)
             for which, name in enumerate(_VECTORS)
         )
     return items
@@ -122,7 +122,7 @@ def _magnetic_field(columns: Columns) -> npt.NDArray[np.float64]:
     return vectors(columns, "magnetic_field")
 
 
-IMU = columnar(convert_imu_columns)
+IMU = convert_imu
 # Drivers publish NaN for "no new reading" (the phidgets magnetometer samples at half the IMU
 # rate, so every other message is NaN); such a message has nothing to plot, and NaN rows would
 # only cut the plotted line into pieces.

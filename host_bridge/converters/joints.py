@@ -38,15 +38,13 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.columns import Columns
 from host_bridge.contract import (
     ColumnsItem,
     ConvertContext,
     LogEntry,
     LogItem,
-    RunContext,
+    Run,
     TopicContext,
-    columnar,
     per_message,
 )
 from host_bridge.converters._common import stamps_ns
@@ -189,20 +187,21 @@ def _block_values(
     return columns, unknown
 
 
-def convert_joint_state_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
-    """One Transform3D column per joint over the run; a row per message that moves the joint.
-    Without a robot model this costs one check per run, not one per message."""
-    model = _require_model(ctx)
+def convert_joint_state(run: Run) -> list[LogEntry]:
+    """One Transform3D column per joint over the run (read as columns); a row per message that
+    moves the joint. Without a robot model this costs one check per run, not one per message."""
+    model = _require_model(run)
+    columns = run.columns()
     stamps = stamps_ns(columns)
     moved: dict[str, list[tuple[npt.NDArray[np.intp], FloatArray]]] = {}
     unknown: set[str] = set()
     for block in columns.blocks:
         names = cast(tuple[str, ...], block.strings["name"])
-        values, missing = _block_values(model, names, block.numbers["position"], ctx)
+        values, missing = _block_values(model, names, block.numbers["position"], run)
         unknown.update(missing)
         for name, column in values.items():
             joint = model.joints[name]
-            if joint.type not in MOVABLE_TYPES or tf_carries(ctx, joint.child):
+            if joint.type not in MOVABLE_TYPES or tf_carries(run, joint.child):
                 continue
             given = ~np.isnan(column)
             if given.any():
@@ -214,8 +213,8 @@ def convert_joint_state_columns(columns: Columns, ctx: RunContext) -> list[LogEn
         order = np.argsort(rows, kind="stable")
         rows, joint_values = rows[order], joint_values[order]
         joint = model.joints[name]
-        parent, child = link_frame(ctx, joint.parent), link_frame(ctx, joint.child)
-        for entries, times in ctx.stamped(stamps[rows], rows):
+        parent, child = link_frame(run, joint.parent), link_frame(run, joint.child)
+        for entries, times in run.times(stamps[rows], rows):
             translations, quaternions = joint_motion(joint, joint_values[entries])
             transforms = rr.Transform3D.columns(
                 translation=translations,
@@ -223,8 +222,8 @@ def convert_joint_state_columns(columns: Columns, ctx: RunContext) -> list[LogEn
                 parent_frame=[parent] * len(entries),
                 child_frame=[child] * len(entries),
             )
-            items.append(ColumnsItem(joint_entity_path(ctx.robot, name), list(transforms), times))
-    return _report_unknown(ctx, model, unknown, items)
+            items.append(ColumnsItem(joint_entity_path(run.robot, name), list(transforms), times))
+    return _report_unknown(run, model, unknown, items)
 
 
 def convert_joint_trajectory(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
@@ -238,5 +237,5 @@ def convert_joint_trajectory(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
 
 
 # JointState's row combines this (the robot model moves) with scalars.JOINT_STATE (plots).
-JOINT_STATE = columnar(convert_joint_state_columns)
+JOINT_STATE = convert_joint_state
 JOINT_TRAJECTORY = per_message(convert_joint_trajectory)

@@ -9,9 +9,9 @@ Speed: the ray directions of a scan geometry (``angle_min``, ``angle_increment``
 are computed once and cached, as laser_geometry caches its cos/sin tables, and colours come from
 a cached table as packed words. A run of scans is converted at once: the rays of all scans are
 one array, and the points go out as one ``Points3D`` column partitioned by scan
-(``send_columns``), so the per-scan cost is a few attribute reads. Runs in ``rays``/``both``
-mode go scan by scan (Rerun builds line-strip columns strip by strip in Python, slower than
-logging each scan).
+(``send_columns``), so the per-scan cost is a few attribute reads. A scan alone, and runs in
+``rays``/``both`` mode, go scan by scan (Rerun builds line-strip columns strip by strip in
+Python, slower than logging each scan; one ``Points3D`` costs less than a column of one row).
 """
 
 from __future__ import annotations
@@ -26,8 +26,16 @@ import numpy.typing as npt
 import rerun as rr
 
 from host_bridge.colormap import colormap_packed
-from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
-from host_bridge.converters._common import frame_components, header_frame, time_columns
+from host_bridge.contract import (
+    ColumnsItem,
+    ConvertContext,
+    LogEntry,
+    LogItem,
+    Run,
+    TopicContext,
+    per_message,
+)
+from host_bridge.converters._common import frame_components, header_frame
 from host_bridge.errors import ConvertError
 from host_bridge.options import LaserScanOptions, converter_choices
 
@@ -127,7 +135,7 @@ def _colors(
     return colors[returns.valid]
 
 
-def _options(ctx: ConvertContext) -> LaserScanOptions:
+def _options(ctx: TopicContext) -> LaserScanOptions:
     options = ctx.options(LaserScanOptions)
     if options.mode not in _MODES:
         msg = f"{ctx.topic}: laser option mode={options.mode!r} is not one of {', '.join(_MODES)}"
@@ -166,22 +174,31 @@ def _partitioned(archetype: rr.AsComponents, lengths: npt.NDArray[np.intp]) -> l
     ]
 
 
-def convert_scan_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
+_SCAN_BY_SCAN = per_message(convert_scan)
+
+
+def convert_scans(run: Run) -> list[LogEntry]:
     """A run of one topic's scans as one ``Points3D`` column partitioned by scan."""
-    ctx0 = ctxs[0]
-    options = _options(ctx0)
-    frames = [header_frame(m, c) for m, c in zip(msgs, ctxs, strict=True)]
+    options = _options(run)
+    msgs = run.messages()
+    frames = [run.frame(m.header.frame_id) for m in msgs]
     named = [f for f in frames if f is not None]
-    if options.mode != "points" or 0 < len(named) < len(frames):
+    if len(msgs) == 1 or options.mode != "points" or 0 < len(named) < len(frames):
         # Rays, or scans with and without a frame id (a row cannot log "no frame"): one by one.
-        return [e for m, c in zip(msgs, ctxs, strict=True) for e in convert_scan(m, c)]
-    returns = scan_returns(msgs)
-    colors = _colors(msgs, returns, options, ctx0.topic)
-    columns = _partitioned(rr.Points3D(returns.points, colors=colors), returns.counts)
-    columns.extend(rr.Points3D.columns(radii=np.full(len(msgs), options.radius)))
-    if named:
-        columns.extend(rr.CoordinateFrame.columns(frame=named))
-    return [ColumnsItem(ctx0.entity_path, columns, time_columns(ctxs))]
+        return _SCAN_BY_SCAN(run)
+    entries: list[LogEntry] = []
+    for rows, times in run.times(run.stamps()):
+        every = len(rows) == len(msgs)
+        scans = msgs if every else [msgs[i] for i in rows.tolist()]
+        returns = scan_returns(scans)
+        colors = _colors(scans, returns, options, run.topic)
+        columns = _partitioned(rr.Points3D(returns.points, colors=colors), returns.counts)
+        columns.extend(rr.Points3D.columns(radii=np.full(len(scans), options.radius)))
+        if named:
+            scan_frames = named if every else [named[i] for i in rows.tolist()]
+            columns.extend(rr.CoordinateFrame.columns(frame=scan_frames))
+        entries.append(ColumnsItem(run.entity_path, columns, times))
+    return entries
 
 
-SPEC = ConverterSpec(convert_scan_run, single=convert_scan)
+SPEC = convert_scans

@@ -1,7 +1,7 @@
 """Text topics: /rosout (ROS 2 rcl_interfaces/Log, ROS 1 rosgraph_msgs/Log) and std_msgs/String.
 
 /rosout of a busy graph carries hundreds of lines a second, so every type converts a run of
-messages into one TextLog column; a single message is a run of one.
+messages into one TextLog column.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry
-from host_bridge.converters._common import stamp_ns, time_columns
+from host_bridge.contract import ColumnsItem, Converter, LogEntry, Run
+from host_bridge.converters._common import stamp_ns
 
 # Rerun levels from least to most severe; a ROS level at or above threshold i maps to entry i+1.
 _RR_LEVELS = np.array(
@@ -42,28 +42,32 @@ def rerun_levels(levels: npt.ArrayLike, thresholds: npt.NDArray[np.int_]) -> lis
     return [str(level) for level in _RR_LEVELS[index]]
 
 
-def _text_spec(
+def text_converter(
     text: Callable[[Any], str],
     levels: Callable[[Sequence[Any]], list[str]],
     stamp: Callable[[Any], Any] | None = None,
-) -> ConverterSpec:
-    """Converter pair for a text type.
+) -> Converter:
+    """The converter of a text type: one TextLog row per message, at its header stamp.
 
-    ``stamp`` reads a top-level stamp: rcl_interfaces/Log has no header, so the message time
-    the dispatcher derives from headers would be missing or the receive time.
+    ``stamp`` reads a top-level stamp instead: rcl_interfaces/Log has no header.
     """
 
-    def convert_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-        if not msgs:
-            return []
-        columns = rr.TextLog.columns(text=[text(m) for m in msgs], level=levels(msgs))
-        ros_ns = None if stamp is None else [stamp_ns(stamp(m)) for m in msgs]
-        return [ColumnsItem(ctxs[0].entity_path, list(columns), time_columns(ctxs, ros_ns))]
+    def convert(run: Run) -> list[LogEntry]:
+        msgs = run.messages()
+        texts, message_levels = [text(m) for m in msgs], levels(msgs)
+        stamps = run.stamps() if stamp is None else np.fromiter(
+            (stamp_ns(stamp(m)) for m in msgs), np.int64, len(msgs))
+        items: list[LogEntry] = []
+        for rows, times in run.times(stamps):
+            if len(rows) < len(msgs):  # some messages unstamped: a group without ros_time
+                columns = rr.TextLog.columns(text=[texts[i] for i in rows.tolist()],
+                                             level=[message_levels[i] for i in rows.tolist()])
+            else:
+                columns = rr.TextLog.columns(text=texts, level=message_levels)
+            items.append(ColumnsItem(run.entity_path, list(columns), times))
+        return items
 
-    def convert(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-        return convert_run([msg], [ctx])
-
-    return ConverterSpec(convert_run, single=convert)
+    return convert
 
 
 def _log_text(msg: Any) -> str:
@@ -74,6 +78,6 @@ def _log_levels(thresholds: npt.NDArray[np.int_]) -> Callable[[Sequence[Any]], l
     return lambda msgs: rerun_levels([m.level for m in msgs], thresholds)
 
 
-ROS2_LOG = _text_spec(_log_text, _log_levels(ROS2_THRESHOLDS), stamp=lambda m: m.stamp)
-ROS1_LOG = _text_spec(_log_text, _log_levels(ROS1_THRESHOLDS))
-STRING = _text_spec(lambda m: str(m.data), lambda msgs: [_INFO] * len(msgs))
+ROS2_LOG = text_converter(_log_text, _log_levels(ROS2_THRESHOLDS), stamp=lambda m: m.stamp)
+ROS1_LOG = text_converter(_log_text, _log_levels(ROS1_THRESHOLDS))
+STRING = text_converter(lambda m: str(m.data), lambda msgs: [_INFO] * len(msgs))

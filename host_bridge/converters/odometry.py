@@ -10,26 +10,27 @@ from __future__ import annotations
 
 import rerun as rr
 
-from host_bridge.columns import Columns
-from host_bridge.contract import ColumnsItem, LogEntry, RunContext, columnar
+from host_bridge.contract import ColumnsItem, LogEntry, Run
 from host_bridge.converters._common import stamps_ns, vectors
 from host_bridge.converters.geometry import pose_columns
 
 TWIST_SERIES = ("linear/x", "linear/y", "linear/z", "angular/x", "angular/y", "angular/z")
 
 
-def convert_odometry_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
-    items = pose_columns(columns, ctx, "pose.pose")
+def convert_odometry(run: Run) -> list[LogEntry]:
+    """The pose and its trail, and the twist's plots, read as columns."""
+    items = pose_columns(run, "pose.pose")
+    columns = run.columns()
     twist = [
         *vectors(columns, "twist.twist.linear").T,
         *vectors(columns, "twist.twist.angular").T,
     ]
-    for rows, times in ctx.stamped(stamps_ns(columns)):
+    for rows, times in run.times(stamps_ns(columns)):
         items.extend(
-            ColumnsItem(ctx.child_path("twist", name), rr.Scalars.columns(scalars=values[rows]), times)
+            ColumnsItem(run.child_path("twist", name), rr.Scalars.columns(scalars=values[rows]), times)
             for name, values in zip(TWIST_SERIES, twist, strict=True)
         )
     return items
 
 
-SPEC = columnar(convert_odometry_columns)
+SPEC = convert_odometry

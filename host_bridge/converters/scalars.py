@@ -1,9 +1,10 @@
 """Small numeric messages -> Scalars: std_msgs numbers and arrays, times, environment sensors,
 batteries and joint states.
 
-These are the high-rate small types, so each is described once by an *extractor* (message ->
-values per sub-entity) and both the per-message form (``rr.Scalars``) and the run form (one
-``send_columns`` per sub-entity) are built from it.
+These are the high-rate small types: a run of messages becomes one ``send_columns`` per
+sub-entity. Types of fixed layout are read as columns (a *columns extractor*: the run's columns
+-> values); the others (arrays whose length varies, batteries) are decoded and described by an
+*extractor* (message -> values per sub-entity).
 """
 
 from __future__ import annotations
@@ -20,16 +21,14 @@ import rerun as rr
 from host_bridge.columns import Columns
 from host_bridge.contract import (
     ColumnsItem,
-    ConvertContext,
-    ConverterSpec,
+    Converter,
     LogEntry,
     LogItem,
-    RunContext,
+    Run,
     TopicContext,
-    columnar,
     component_columns,
 )
-from host_bridge.converters._common import stamps_ns, time_columns
+from host_bridge.converters._common import stamps_ns
 from host_bridge.errors import ConvertError
 
 SubPath = tuple[str, ...]
@@ -79,36 +78,29 @@ def _rows_column(parts: list[Values]) -> list[Any]:
         return list(columns.partition([len(p) for p in flat]))
 
 
-def series_spec(
+def series_converter(
     extract: Extractor, names: Mapping[SubPath, Sequence[str]] | None = None
-) -> ConverterSpec:
-    """Single and run converters for a type whose extractor yields its values."""
+) -> Converter:
+    """The converter of a type whose extractor yields its values from each decoded message."""
     legends = names or {}
 
-    def convert(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-        items = series_names_once(ctx, legends)
-        items.extend(
-            LogItem(ctx.child_path(*sub), (rr.Scalars(np.asarray(values, np.float64)),))
-            for sub, values in extract(msg, ctx.topic).items()
-        )
-        return items
-
-    def convert_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-        ctx0 = ctxs[0]
+    def convert(run: Run) -> list[LogEntry]:
         rows: dict[SubPath, list[int]] = {}
         chunks: dict[SubPath, list[Values]] = {}
-        for i, msg in enumerate(msgs):
-            for sub, values in extract(msg, ctx0.topic).items():
+        for i, msg in enumerate(run.messages()):
+            for sub, values in extract(msg, run.topic).items():
                 rows.setdefault(sub, []).append(i)
                 chunks.setdefault(sub, []).append(values)
-        all_times = time_columns(ctxs)
-        items = series_names_once(ctx0, legends)
+        stamps = run.stamps()
+        items = series_names_once(run, legends)
         for sub, parts in chunks.items():
-            times = {name: column[rows[sub]] for name, column in all_times.items()}
-            items.append(ColumnsItem(ctx0.child_path(*sub), _rows_column(parts), times))
+            indices = np.array(rows[sub], np.intp)
+            for entries, times in run.times(None if stamps is None else stamps[indices], indices):
+                picked = parts if len(entries) == len(parts) else [parts[i] for i in entries.tolist()]
+                items.append(ColumnsItem(run.child_path(*sub), _rows_column(picked), times))
         return items
 
-    return ConverterSpec(convert_run, single=convert)
+    return convert
 
 
 ColumnsExtractor = Callable[[Columns], npt.NDArray[Any]]
@@ -120,25 +112,26 @@ def columns_series(
     names: Mapping[SubPath, Sequence[str]] | None = None,
     *,
     skip_unread: bool = False,
-) -> ConverterSpec:
+) -> Converter:
     """A plot at the topic entity of the values ``extract`` reads from a run's columns, one row
     per message at its header stamp (a type without a header: its arrival times).
     ``skip_unread``: a message whose values are all NaN ("no new reading") logs no row."""
     legends = names or {}
 
-    def convert_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+    def convert(run: Run) -> list[LogEntry]:
+        columns = run.columns()
         values = np.asarray(extract(columns), np.float64)
         stamps = stamps_ns(columns) if "header.stamp.sec" in columns.paths else None
         rows = np.arange(len(values))
         if skip_unread:
             read = ~np.isnan(values.reshape(len(values), -1)).all(axis=1)
             rows = rows[read]
-        items = series_names_once(ctx, legends)
-        for entries, times in ctx.stamped(None if stamps is None else stamps[rows], rows):
-            items.append(scalar_columns(ctx.entity_path, values[rows[entries]], times))
+        items = series_names_once(run, legends)
+        for entries, times in run.times(None if stamps is None else stamps[rows], rows):
+            items.append(scalar_columns(run.entity_path, values[rows[entries]], times))
         return items
 
-    return columnar(convert_columns)
+    return convert
 
 
 def _column(path: str) -> ColumnsExtractor:
@@ -174,28 +167,30 @@ def _battery(msg: Any, _topic: str) -> Mapping[SubPath, Values]:
 JOINT_QUANTITIES = ("position", "velocity", "effort")
 
 
-def convert_joint_state_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+def convert_joint_state(run: Run) -> list[LogEntry]:
     """``<topic>/<joint>/<quantity>`` per joint and quantity of each block of messages naming
-    the same joints; a quantity a driver does not measure is empty and left out."""
+    the same joints, read as columns; a quantity a driver does not measure is empty and left
+    out."""
+    columns = run.columns()
     stamps = stamps_ns(columns)
     items: list[LogEntry] = []
     for block in columns.blocks:
         names = [rr.escape_entity_path_part(name) for name in cast(tuple[str, ...], block.strings["name"])]
-        groups = ctx.stamped(stamps[block.rows], block.rows)
+        groups = run.times(stamps[block.rows], block.rows)
         for quantity in JOINT_QUANTITIES:
             values = block.numbers[quantity]
             if values.shape[1] == 0:
                 continue
             if values.shape[1] != len(names):
                 msg = (
-                    f"{ctx.topic}: JointState has {len(names)} names but {values.shape[1]} "
+                    f"{run.topic}: JointState has {len(names)} names but {values.shape[1]} "
                     f"{quantity} values; each of position/velocity/effort must be empty or one "
                     "per name"
                 )
                 raise ConvertError(msg)
             for entries, times in groups:
                 items.extend(
-                    scalar_columns(ctx.child_path(name, quantity), values[entries, i], times)
+                    scalar_columns(run.child_path(name, quantity), values[entries, i], times)
                     for i, name in enumerate(names)
                 )
     return items
@@ -203,7 +198,7 @@ def convert_joint_state_columns(columns: Columns, ctx: RunContext) -> list[LogEn
 
 NUMBER = columns_series(_column("data"))
 """std_msgs' single numbers (``data``: Bool, Byte, Char, Int8 ... Float64)."""
-NUMBER_ARRAY = series_spec(_array)
+NUMBER_ARRAY = series_converter(_array)
 """std_msgs' ``*MultiArray``: one multi-series plot (message by message: lengths vary)."""
 SECONDS = columns_series(_seconds)
 """builtin_interfaces Time and Duration."""
@@ -211,6 +206,6 @@ TEMPERATURE = columns_series(_column("temperature"))
 FLUID_PRESSURE = columns_series(_column("fluid_pressure"))
 ILLUMINANCE = columns_series(_column("illuminance"))
 RELATIVE_HUMIDITY = columns_series(_column("relative_humidity"))
-BATTERY = series_spec(_battery)
-JOINT_STATE = columnar(convert_joint_state_columns)
+BATTERY = series_converter(_battery)
+JOINT_STATE = convert_joint_state
 """JointState's plots; its row combines them with joints.JOINT_STATE (the model moves)."""

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from host_bridge.converters.generic import data_fields
-from host_bridge.converters.logs import _INFO, _text_spec
+from host_bridge.converters.logs import _INFO, text_converter
 
 # service_msgs/ServiceEventInfo event_type: REQUEST_SENT, REQUEST_RECEIVED, RESPONSE_SENT,
 # RESPONSE_RECEIVED.
@@ -63,4 +63,4 @@ def event_text(event: Any) -> str:
 
 
 # logs.py's text converter (a TextLog column per run, with the message's own stamp), reused.
-SPEC = _text_spec(event_text, lambda msgs: [_INFO] * len(msgs), stamp=lambda m: m.info.stamp)
+SPEC = text_converter(event_text, lambda msgs: [_INFO] * len(msgs), stamp=lambda m: m.info.stamp)

@@ -20,9 +20,8 @@ from host_bridge.contract import (
     ColumnsItem,
     LogEntry,
     LogItem,
-    RunContext,
+    Run,
     TopicContext,
-    columnar,
     component_columns,
     repeated_texts,
 )
@@ -51,21 +50,21 @@ def _transforms(block: Block) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.f
     return translations, quaternions
 
 
-def _static_items(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+def _static_items(columns: Columns, run: Run) -> list[LogEntry]:
     """One static entity per child frame; a later message's relation replaces an earlier one,
     so the items keep the run's order (/tf_static sends few messages: a loop is fine)."""
-    ctx.robot_state.static_tf_root = ctx.entity_path
+    run.robot_state.static_tf_root = run.entity_path
     ordered: list[tuple[int, int, LogItem]] = []
     for block in columns.blocks:
         translations, quaternions = _transforms(block)
         children = cast(tuple[str, ...], block.strings["transforms.child_frame_id"])
         parents = cast(tuple[str, ...], block.strings["transforms.header.frame_id"])
-        _remember_children(ctx, children)
+        _remember_children(run, children)
         for j, (child_id, parent_id) in enumerate(zip(children, parents, strict=True)):
-            child, parent = ctx.frame(child_id), ctx.frame(parent_id)
+            child, parent = run.frame(child_id), run.frame(parent_id)
             if child is None or parent is None:
                 continue
-            path = static_transform_path(ctx.robot, ctx.robot_state, child_id)
+            path = static_transform_path(run.robot, run.robot_state, child_id)
             for local, row in enumerate(block.rows.tolist()):
                 transform = rr.Transform3D(
                     translation=translations[local, j],
@@ -77,11 +76,13 @@ def _static_items(columns: Columns, ctx: RunContext) -> list[LogEntry]:
     return [item for _, _, item in sorted(ordered, key=lambda entry: entry[:2])]
 
 
-def convert_tf_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
+def convert_tf(run: Run) -> list[LogEntry]:
     """/tf: one row per transform on the topic entity, at its own header stamp; a block of
-    messages with the same frames at a time (TF of k transforms each is k columns wide)."""
-    if _is_static(ctx):
-        return _static_items(columns, ctx)
+    messages with the same frames at a time (TF of k transforms each is k columns wide), read
+    as columns."""
+    columns = run.columns()
+    if _is_static(run):
+        return _static_items(columns, run)
     items: list[LogEntry] = []
     for block in columns.blocks:
         translations, quaternions = _transforms(block)
@@ -94,16 +95,16 @@ def convert_tf_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
         ]
         if not kept or not len(block.rows):
             continue
-        _remember_children(ctx, (children[j] for j in kept))
+        _remember_children(run, (children[j] for j in kept))
         # Rows message by message, transform by transform, as the messages list them.
         width = len(kept)
         rows = np.repeat(block.rows, width)
-        parent_frames = [cast(str, ctx.frame(parents[j])) for j in kept]
-        child_frames = [cast(str, ctx.frame(children[j])) for j in kept]
+        parent_frames = [cast(str, run.frame(parents[j])) for j in kept]
+        child_frames = [cast(str, run.frame(children[j])) for j in kept]
         translations, quaternions = (
             values[:, kept].reshape(len(rows), -1) for values in (translations, quaternions)
         )
-        for entries, times in ctx.stamped(stamps[:, kept].reshape(-1), rows):
+        for entries, times in run.times(stamps[:, kept].reshape(-1), rows):
             # Every row (no zero stamp, the usual case): the frames in order, once a message.
             every = len(entries) == len(rows)
             slots: npt.NDArray[np.intp] | int = len(block.rows) if every else entries % width
@@ -114,8 +115,8 @@ def convert_tf_columns(columns: Columns, ctx: RunContext) -> list[LogEntry]:
                 parent_frame=repeated_texts(parent_frames, slots),
                 child_frame=repeated_texts(child_frames, slots),
             )
-            items.append(ColumnsItem(ctx.entity_path, columns_of_rows, times))
+            items.append(ColumnsItem(run.entity_path, columns_of_rows, times))
     return items
 
 
-SPEC = columnar(convert_tf_columns)
+SPEC = convert_tf

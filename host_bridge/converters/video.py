@@ -40,8 +40,7 @@ import numpy.typing as npt
 import pyarrow as pa
 import rerun as rr
 
-from host_bridge.contract import TIMELINE_ROS, ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
-from host_bridge.converters._common import time_columns
+from host_bridge.contract import ColumnsItem, LogEntry, LogItem, RowIndex, Run
 from host_bridge.errors import ConvertError
 
 COMPRESSED_VIDEO = "foxglove_msgs/msg/CompressedVideo"
@@ -195,12 +194,12 @@ class VideoTopic:
 
 @dataclass(frozen=True, slots=True)
 class VideoFrame:
-    """One message's video payload; ``stamp_ns`` is its own time when it has no header (a
-    CompressedVideo's ``timestamp``), used as ``ros_time`` unless the topic is restamped."""
+    """One message's video payload and its stamp (a CompressedImage's header stamp, a
+    CompressedVideo's ``timestamp``): its ros_time by the run's rule (:meth:`Run.times`)."""
 
     codec: rr.VideoCodec
     data: npt.NDArray[np.uint8]
-    stamp_ns: int | None = None
+    stamp_ns: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -288,31 +287,31 @@ def _sample_column(samples: Sequence[bytes | npt.NDArray[np.uint8]]) -> Any:
     return rr.components.VideoSampleBatch(array)
 
 
-def video_entries(frames: Sequence[VideoFrame], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-    """``VideoStream`` rows for a run of one topic's video messages (one row per picture)."""
-    ctx0 = ctxs[0]
-    topic = ctx0.state(VideoTopic)
+def video_entries(run: Run, frames: Sequence[VideoFrame], rows: RowIndex) -> list[LogEntry]:
+    """``VideoStream`` rows for the video messages ``rows`` of a run (``frames``, one each):
+    one row per picture."""
+    topic = run.state(VideoTopic)
     before = state = topic.committed
     samples: list[_Sample] = []
-    rows: list[ConvertContext] = []
-    stamps: list[int | None] = []
-    for frame, ctx in zip(frames, ctxs, strict=True):
-        state, sample = _sample(state, frame, ctx.topic)
+    sampled: list[tuple[int, int]] = []  # the row and stamp of each sample
+    for frame, row in zip(frames, rows.tolist(), strict=True):
+        state, sample = _sample(state, frame, run.topic)
         if sample is not None:
             samples.append(sample)
-            rows.append(ctx)
-            stamps.append(ctx.times.get(TIMELINE_ROS, frame.stamp_ns or None))
+            sampled.append((row, frame.stamp_ns))
     entries: list[LogEntry] = []
     if before.codec is None and state.codec is not None:
-        entries.append(LogItem(ctx0.entity_path, (rr.VideoStream(codec=state.codec),), static=True))
+        entries.append(LogItem(run.entity_path, (rr.VideoStream(codec=state.codec),), static=True))
     if samples:
-        columns = rr.VideoStream.columns(
-            sample=_sample_column([s.data for s in samples]),
-            is_keyframe=[s.keyframe for s in samples],
-        )
-        ros_ns = [s for s in stamps if s is not None]
-        times = time_columns(rows, ros_ns if len(ros_ns) == len(rows) else None)
-        entries.append(ColumnsItem(ctx0.entity_path, list(columns), times))
+        sample_rows = np.array([row for row, _ in sampled], np.intp)
+        stamps = np.array([stamp for _, stamp in sampled], np.int64)
+        for picked, times in run.times(stamps, sample_rows):
+            chosen = samples if len(picked) == len(samples) else [samples[i] for i in picked.tolist()]
+            columns = rr.VideoStream.columns(
+                sample=_sample_column([s.data for s in chosen]),
+                is_keyframe=[s.keyframe for s in chosen],
+            )
+            entries.append(ColumnsItem(run.entity_path, list(columns), times))
     topic.committed = state
     return entries
 
@@ -321,27 +320,23 @@ def _stamp_ns(stamp: Any) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-def _compressed_video_frame(msg: Any, ctx: ConvertContext) -> VideoFrame:
+def _compressed_video_frame(msg: Any, topic: str) -> VideoFrame:
     codec = video_codec(msg.format)
     if codec is None:
         msg_ = (
-            f"{ctx.topic}: CompressedVideo format {msg.format!r} is not a codec Rerun decodes "
+            f"{topic}: CompressedVideo format {msg.format!r} is not a codec Rerun decodes "
             f"({CODEC_SPELLINGS}); its frames are dropped"
         )
         raise ConvertError(msg_)
     return VideoFrame(codec, msg.data, _stamp_ns(msg.timestamp))
 
 
-def convert_compressed_video_run(msgs: Sequence[Any], ctxs: Sequence[ConvertContext]) -> list[LogEntry]:
-    frames = [_compressed_video_frame(m, c) for m, c in zip(msgs, ctxs, strict=True)]
-    return video_entries(frames, ctxs)
+def convert_compressed_video(run: Run) -> list[LogEntry]:
+    frames = [_compressed_video_frame(m, run.topic) for m in run.messages()]
+    return video_entries(run, frames, np.arange(len(frames)))
 
 
-def convert_compressed_video(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    return convert_compressed_video_run([msg], [ctx])
-
-
-SPEC = ConverterSpec(convert_compressed_video_run, single=convert_compressed_video)
+SPEC = convert_compressed_video
 
 __all__ = [
     "SPEC",
@@ -349,7 +344,6 @@ __all__ = [
     "VideoTopic",
     "VideoTopicState",
     "convert_compressed_video",
-    "convert_compressed_video_run",
     "video_codec",
     "video_entries",
 ]

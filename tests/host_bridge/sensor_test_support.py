@@ -12,9 +12,19 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 from rosbags.highlevel import AnyReader
+from rosbags.interfaces import Nodetype
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
+from host_bridge.columns import Columns, columns_of_messages
+from host_bridge.contract import (
+    ColumnsItem,
+    ConvertContext,
+    Converter,
+    LogEntry,
+    LogItem,
+    Run,
+    message_run,
+)
 from host_bridge.state import RobotState, TopicState
 
 ROBOT = "r"
@@ -45,6 +55,51 @@ def make_ctx(
         topic_state=TopicState(options) if topic_state is None else topic_state,
         robot_state=RobotState() if robot_state is None else robot_state,
     )
+
+
+def convert(converter: Converter, message: Any, ctx: ConvertContext) -> list[LogEntry]:
+    """``converter`` on ``message`` alone, a run of one as the dispatcher hands a live message:
+    ``ctx`` gives the topic and the arrival times (receive_time, log_time); ros_time is the
+    header stamp (contract.Run.times)."""
+    return converter(message_run([message], [ctx]))
+
+
+def convert_run(
+    converter: Converter, messages: Sequence[Any], ctxs: Sequence[ConvertContext]
+) -> list[LogEntry]:
+    """``converter`` on a run of ``messages`` of one topic, one context each (see convert)."""
+    return converter(message_run(messages, ctxs))
+
+
+class _WatchedMessages:
+    """Decoded messages as a run's source, noting whether a converter asked for them decoded
+    (it could have read the columns alone)."""
+
+    def __init__(self, messages: Sequence[Any], topic: str) -> None:
+        self.messages = messages
+        self.topic = topic
+        self.decoded = False
+
+    def __len__(self) -> int:
+        return len(self.messages)
+
+    def decode(self, row: int) -> Any:
+        self.decoded = True
+        return self.messages[row]
+
+    def columns(self) -> Columns:
+        return columns_of_messages(self.messages, self.topic)
+
+    def part(self, row: int) -> _WatchedMessages:
+        return _WatchedMessages([self.messages[row]], self.topic)
+
+
+def reads_columns_only(converter: Converter, messages: Sequence[Any], ctx: ConvertContext) -> bool:
+    """Whether ``converter`` converts a run of ``messages`` from their columns, decoding none."""
+    source = _WatchedMessages(messages, ctx.topic)
+    converter(Run(source, robot=ctx.robot, topic=ctx.topic, entity_path=ctx.entity_path,
+                  topic_state=ctx.topic_state, robot_state=ctx.robot_state))
+    return not source.decoded
 
 
 def header(frame_id: str = "", stamp_ns: int = 1_000_000_000) -> Any:
@@ -114,3 +169,32 @@ def stamp_ns(message: Any) -> int:
 
 def scalars_of(item: LogItem) -> npt.NDArray[np.float64]:
     return flat(archetype(item, rr.Scalars).scalars)
+
+
+def default_message(store: Any, msgtype: str) -> Any:
+    """A message of ``msgtype`` with zero/empty fields, built from the typestore's field table."""
+    _, fields = store.fielddefs[msgtype]
+    values: dict[str, Any] = {}
+    for name, (kind, arg) in fields:
+        if kind == Nodetype.BASE:
+            values[name] = "" if arg[0] == "string" else 0
+        elif kind == Nodetype.NAME:
+            values[name] = default_message(store, arg)
+        elif kind == Nodetype.ARRAY:
+            sub, count = arg
+            if sub[0] == Nodetype.BASE and sub[1][0] != "string":
+                values[name] = np.zeros(count, dtype=_dtype(sub[1][0]))
+            else:
+                values[name] = [default_message(store, sub[1]) if sub[0] == Nodetype.NAME else ""
+                                for _ in range(count)]
+        else:  # SEQUENCE
+            sub = arg[0]
+            if sub[0] == Nodetype.BASE and sub[1][0] != "string":
+                values[name] = np.zeros(0, dtype=_dtype(sub[1][0]))
+            else:
+                values[name] = []
+    return store.types[msgtype](**values)
+
+
+def _dtype(ros_type: str) -> str:
+    return {"bool": "bool", "byte": "uint8", "char": "uint8", "octet": "uint8"}.get(ros_type, ros_type)

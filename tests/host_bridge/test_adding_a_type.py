@@ -7,14 +7,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import rerun as rr
 import rerun.blueprint as rrb
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from host_bridge.blueprint import BlueprintFollower, TopicEntry, build_blueprint
-from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
-from host_bridge.converters._common import frame_components
+from host_bridge.contract import ColumnsItem, LogEntry, Run
+from host_bridge.converters._common import stamps_ns
 from host_bridge.destinations import SinkOptions
 from host_bridge.dispatch import Dispatcher
 from host_bridge.registry import Registry, Row, View, default_registry
@@ -39,17 +40,26 @@ TIME_DEFINITION = "int32 sec\nuint32 nanosec\n"
 SEPARATOR = "=" * 80 + "\n"
 
 
-# Step 1: the converter, a pure function from the message to log items (a module of its own in
-# host_bridge/converters/, exporting its spec).
-def convert_beacon(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
-    position = [[float(msg.x), float(msg.y), float(msg.z)]]
-    return [LogItem(ctx.entity_path, (
-        rr.Points3D(position, labels=[str(msg.label)]),
-        *frame_components(ctx.frame(msg.header.frame_id)),
-    ))]
+# Step 1: the converter, a pure function from a run of the topic's messages to log entries (a
+# module of its own in host_bridge/converters/, exporting it). A beacon is a few numbers and a
+# header: the run is read as columns, no message decoded, one row per beacon at its stamp.
+def convert_beacons(run: Run) -> list[LogEntry]:
+    columns = run.columns()
+    positions = np.stack([columns[axis] for axis in "xyz"], axis=1)
+    labels = columns["label"]
+    stamps = stamps_ns(columns)
+    entries: list[LogEntry] = []
+    for frame_id, rows in columns.groups("header.frame_id"):  # a row is in one frame
+        frame = run.frame(str(frame_id))
+        for picked, times in run.times(stamps[rows], rows):  # the rows' timelines
+            beacons = rows[picked]
+            points = rr.Points3D.columns(positions=positions[beacons], labels=labels[beacons].tolist())
+            frames = [] if frame is None else rr.CoordinateFrame.columns(frame=[frame] * len(beacons))
+            entries.append(ColumnsItem(run.entity_path, [*points, *frames], times))
+    return entries
 
 
-BEACON = per_message(convert_beacon)
+BEACON = convert_beacons
 
 
 # Step 2: one row in the table (in default_registry(), beside the others).
@@ -86,8 +96,8 @@ def views_of(blueprint: rrb.Blueprint) -> dict[str, list[str]]:
     return {str(v.name): list(v.contents) for v in walk(blueprint.root_container)}  # type: ignore[arg-type]
 
 
-# Step 3: the test. The dispatcher decodes with the definition the message came with and
-# converts with the new row's converter; the layout puts the topic where the row says.
+# Step 3: the test. The dispatcher reads the payloads with the definition they came with and
+# converts them with the new row's converter; the layout puts the topic where the row says.
 def test_a_new_type_is_one_converter_and_one_row(tmp_path: Path) -> None:
     registry = registry_with_beacon()
     sent: list[rrb.Blueprint] = []

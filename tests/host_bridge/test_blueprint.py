@@ -22,7 +22,7 @@ from host_bridge.dispatch import Dispatcher
 from host_bridge.registry import default_registry
 from host_bridge.sink import APPLICATION_ID, RerunSink
 from robot_relay.wire import RawMessage
-from tests.host_bridge.sensor_test_support import make_ctx
+from tests.host_bridge.sensor_test_support import convert, make_ctx
 from tests.host_bridge.test_dispatch import float_cdr, string_cdr
 
 ROBOT_TOPICS = {
@@ -141,7 +141,7 @@ def test_custom_types_long_arrays_land_in_the_bar_chart_view() -> None:
     table = default_registry()
     context = make_ctx("/hist", robot="tb3", times={})
     logged = {
-        entry.path: entry for entry in table.get("acme_msgs/msg/Histogram").convert(message, context)
+        entry.path: entry for entry in convert(table.get("acme_msgs/msg/Histogram"), message, context)
     }
     (bars,) = logged["/tb3/hist/histogram"].archetypes  # type: ignore[union-attr]
     assert isinstance(bars, rr.BarChart)

@@ -1,6 +1,6 @@
 """The dispatcher's columnar path (issue 13): a run of payloads read as columns and converted with
 no per-message decode gives the same rows (entity paths, timelines, component values, frames) as
-the message path (rosbags decode, message_times, the converter one message at a time) on the
+the message path (rosbags decodes each payload, the converter takes it as a run of its own) on the
 same payloads; a bad payload costs only itself; restamp, zero stamps and strings changing within
 a run (blocks) keep their rows and times exact."""
 
@@ -18,9 +18,9 @@ from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.columns import PackedPayloads
 from host_bridge.config import HostConfig
-from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry
+from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, message_run
 from host_bridge.decode import Decoder
-from host_bridge.dispatch import Dispatcher, message_times
+from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import PartialConvertError
 from host_bridge.frames import frames_logged
 from host_bridge.inputs.base import MessageRun
@@ -211,25 +211,26 @@ def dispatcher(sink: RecordingSink, host_config: HostConfig | None = None,
 
 def message_path(run: Sequence[RawMessage], *, restamp: bool = False,
                  model_xml: str | None = None) -> list[tuple[list[LogEntry], dict[str, int]]]:
-    """The reference: rosbags decodes each payload, message_times gives its timelines, and the
-    type's converter takes it alone."""
+    """The reference: rosbags decodes each payload, and the type's converter takes it as a run
+    of its own, with its arrival times."""
     decoder = Decoder()
     robot_state = RobotState()
     if model_xml is not None:
         robot_state.model = joints_ctx(ROBOT, model_xml).robot_state.model
     topic_state = TopicState()
-    spec = REGISTRY.get(run[0].msgtype, run[0].topic)
+    converter = REGISTRY.get(run[0].msgtype, run[0].topic)
     calls = []
     for raw in run:
-        msg = decoder.decode(raw)
-        times = message_times(msg, raw, restamp=restamp)
+        arrivals = {name: ns for name, ns in (("receive_time", raw.receive_ns), ("log_time", raw.log_ns))
+                    if ns is not None}
         ctx = ConvertContext(robot=ROBOT, topic=raw.topic, entity_path=f"/{ROBOT}{raw.topic}",
-                             times=times, topic_state=topic_state, robot_state=robot_state,
+                             times=arrivals, topic_state=topic_state, robot_state=robot_state,
                              restamp=restamp)
+        one = message_run([decoder.decode(raw)], [ctx])
         try:
-            calls.append((spec.convert(msg, ctx), times))
+            calls.append((converter(one), one.row_times()))
         except PartialConvertError as err:  # JointState without a model: its plots only
-            calls.append((err.items, times))
+            calls.append((err.items, one.row_times()))
     return calls
 
 

@@ -280,7 +280,10 @@ class RecordingSink(RerunSink):
         self.logged: list[tuple[LogEntry, dict[str, int]]] = []
 
     def log(self, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
-        self.logged.extend((entry, dict(times)) for entry in entries)
+        self.logged.extend(
+            (entry, dict(times if not isinstance(entry, LogItem) or entry.times is None else entry.times))
+            for entry in entries
+        )
 
     def close(self) -> None:
         pass

@@ -10,7 +10,7 @@ import pytest
 import rerun as rr
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from host_bridge.contract import ColumnsItem, LogItem
+from host_bridge.contract import ColumnsItem, LogItem, PerMessage, per_message
 from host_bridge.converters import occupancy
 from host_bridge.converters.generic import convert_generic
 from host_bridge.converters.services import event_text
@@ -19,7 +19,7 @@ from host_bridge.errors import PartialConvertError, UnknownTypeError
 from host_bridge.registry import default_registry
 from host_bridge.schemas import base_typestore
 from robot_relay.wire import MessageDefinition, RawMessage
-from tests.host_bridge.sensor_test_support import archetype, column_rows, log_item, make_ctx
+from tests.host_bridge.sensor_test_support import archetype, column_rows, convert, log_item, make_ctx
 from tests.host_bridge.test_user_bags import CHANGE_STATE_DEFINITION, CHANGE_STATE_EVENTS, GID
 from tests.host_bridge.user_bags import SEPARATOR, service_definition
 
@@ -54,7 +54,7 @@ def bar_values(item: LogItem) -> list[float]:
 
 
 def test_large_arrays_are_bar_charts_and_constants_are_not_data() -> None:
-    entries = convert_generic(thing(), make_ctx("/thing"))
+    entries = convert(convert_generic, thing(), make_ctx("/thing"))
     paths = sorted(e.path for e in entries)
     assert paths == [
         "/r/thing/blob", "/r/thing/flags", "/r/thing/points/0/x", "/r/thing/points/0/y",
@@ -70,7 +70,7 @@ def test_large_arrays_are_bar_charts_and_constants_are_not_data() -> None:
 
 
 def test_max_array_option_moves_the_bar_chart_threshold() -> None:
-    entries = convert_generic(thing(), make_ctx("/thing", {"max_array": 200}))
+    entries = convert(convert_generic, thing(), make_ctx("/thing", {"max_array": 200}))
     [ranges] = [e for e in entries if e.path == "/r/thing/ranges"]
     assert isinstance(ranges, ColumnsItem)
     assert len(column_rows(ranges, "Scalars:scalars")[0]) == 100
@@ -78,7 +78,7 @@ def test_max_array_option_moves_the_bar_chart_threshold() -> None:
 
 def test_long_message_sequences_show_sixteen_elements_and_say_so() -> None:
     with pytest.raises(PartialConvertError) as caught:
-        convert_generic(thing(points=20), make_ctx("/thing"))
+        convert(convert_generic, thing(points=20), make_ctx("/thing"))
     assert str(caught.value) == (
         "/thing: no converter for my_msgs/msg/Thing; the generic one shows the first 16 "
         "elements of points"
@@ -150,8 +150,8 @@ def test_costmap_raw_scheme_shows_the_costs_and_updates_patch_them() -> None:
 
 def test_costmap_types_are_registered_and_bundled() -> None:
     registry = default_registry()
-    assert registry.get("nav2_msgs/msg/Costmap").single is occupancy.convert_costmap
-    assert registry.get("nav2_msgs/msg/CostmapUpdate").single is occupancy.convert_costmap_update
+    assert registry.get("nav2_msgs/msg/Costmap") == per_message(occupancy.convert_costmap)
+    assert registry.get("nav2_msgs/msg/CostmapUpdate") == per_message(occupancy.convert_costmap_update)
     fields = [name for name, _ in base_typestore().fielddefs["nav2_msgs/msg/CostmapMetaData"][1]]
     assert fields == ["map_load_time", "update_time", "layer", "resolution", "size_x", "size_y",
                       "origin"]
@@ -179,7 +179,7 @@ def test_service_event_bytes_from_rclpy_decode_with_rosbag2s_definition() -> Non
     assert list(request.response) == []
     assert bool(response.response[0].success) is True
     assert event_text(response) == f"response sent #7 (client {GID}): {{success: true}}"
-    assert not default_registry().get(EVENT).message_by_message
+    assert not isinstance(default_registry().get(EVENT), PerMessage)
 
 
 def test_service_with_empty_request_and_idl_dependencies() -> None:

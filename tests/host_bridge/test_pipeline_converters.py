@@ -18,7 +18,7 @@ from host_bridge.converters.tf import SPEC as TF
 from host_bridge.options import Options
 from host_bridge.registry import Row, default_registry
 from host_bridge.state import TopicState
-from tests.host_bridge.sensor_test_support import make_ctx
+from tests.host_bridge.sensor_test_support import convert, convert_run, default_message, make_ctx
 
 T = get_typestore(Stores.ROS2_HUMBLE).types
 
@@ -66,7 +66,7 @@ def test_dynamic_tf_is_one_row_per_transform_with_prefixed_frames_and_own_stamps
         transform("odom", "base_link", 1.5, math.pi / 2, 10),
         transform("/base_link", "wheel", 0.1, 0.0, 20),
     ])
-    [item] = TF.convert(msg, ctx("/tf"))
+    [item] = convert(TF, msg, ctx("/tf"))
     assert isinstance(item, ColumnsItem)
     assert item.path == "/tb3/tf"
     assert column(item, "Transform3D:parent_frame") == [["tb3/odom"], ["tb3/base_link"]]
@@ -82,10 +82,10 @@ def test_dynamic_tf_is_one_row_per_transform_with_prefixed_frames_and_own_stamps
 
 def test_tf_runs_concatenate_and_two_robots_never_share_frames() -> None:
     one = T["tf2_msgs/msg/TFMessage"](transforms=[transform("odom", "base_link", 1.0, 0, 1)])
-    [item] = TF.convert_run([one, one], [ctx("/tf", "tb1"), ctx("/tf", "tb1")])
+    [item] = convert_run(TF, [one, one], [ctx("/tf", "tb1"), ctx("/tf", "tb1")])
     assert isinstance(item, ColumnsItem)
     assert len(item.times["ros_time"]) == 2
-    [other] = TF.convert(one, ctx("/tf", "tb2"))
+    [other] = convert(TF, one, ctx("/tf", "tb2"))
     assert isinstance(other, ColumnsItem)
     assert column(other, "Transform3D:child_frame") == [["tb2/base_link"]]
 
@@ -95,7 +95,7 @@ def test_static_tf_is_static_one_entity_per_child_frame() -> None:
         transform("base_link", "laser", 0.2, 0.0, 0), transform("base_link", "imu", 0.0, 0.0, 0),
     ])
     state = ctx("/tf_static")
-    items = TF.convert(msg, state)
+    items = convert(TF, msg, state)
     assert [i.path for i in items] == ["/tb3/tf_static/laser", "/tb3/tf_static/imu"]
     assert all(isinstance(i, LogItem) and i.static for i in items)
     assert state.robot_state.tf_children == {"laser", "imu"}
@@ -138,7 +138,7 @@ def test_odometry_pose_twist_and_trail() -> None:
         )
 
     c = ctx("/odom")
-    items = ODOMETRY.convert_run([odom(0.0), odom(0.001), odom(1.0)], [c, c, c])
+    items = convert_run(ODOMETRY, [odom(0.0), odom(0.001), odom(1.0)], [c, c, c])
     by_path = {i.path: i for i in items if isinstance(i, ColumnsItem)}
     pose = by_path["/tb3/odom"]
     assert column(pose, "Transform3D:translation")[2] == [[1.0, 2.0, 0.0]]
@@ -161,7 +161,7 @@ def test_generic_fallback_plots_numbers_and_logs_text() -> None:
         cell_voltage=np.array([4.1, 4.2], dtype=np.float32),
         cell_temperature=np.array([], dtype=np.float32), location="slot", serial_number="A1",
     )
-    items = {i.path: i for i in convert_generic(msg, ctx("/battery"))}
+    items = {i.path: i for i in convert(convert_generic, msg, ctx("/battery"))}
     assert "/tb3/battery/header" not in items
     voltage = items["/tb3/battery/voltage"]
     assert isinstance(voltage, ColumnsItem)
@@ -207,46 +207,15 @@ def test_every_registered_type_has_a_converter_that_handles_a_default_message(ro
         pytest.skip(f"{row.msgtype} is a ROS 1 type (only ROS 1 bags carry it)")
     topic = "/robot_description" if row.topics is not None else "/topic"
     assert TABLE.row(row.msgtype, topic) is row
-    msg = _default_message(store, row.msgtype)
+    msg = default_message(store, row.msgtype)
     topic_state = AskedOptions(dataclasses.asdict(row.options()))
     context = make_ctx(topic, robot="tb3", times={"ros_time": 5, "log_time": 6}, topic_state=topic_state)
-    for spec in (row.spec, row.slow):
-        if spec is None:
+    for converter in (row.converter, row.slow):
+        if converter is None:
             continue
         try:
-            entries = spec.convert(msg, context)
+            entries = convert(converter, msg, context)
         except ConvertError:
             continue
         assert all(e.path.startswith("/tb3/") for e in entries)
     assert topic_state.asked <= {row.options}
-
-
-def _default_message(store: Any, msgtype: str) -> Any:
-    """A message of ``msgtype`` with zero/empty fields, built from the typestore's field table."""
-    from rosbags.interfaces import Nodetype
-
-    _, fields = store.fielddefs[msgtype]
-    values: dict[str, Any] = {}
-    for name, (kind, arg) in fields:
-        if kind == Nodetype.BASE:
-            values[name] = "" if arg[0] == "string" else 0
-        elif kind == Nodetype.NAME:
-            values[name] = _default_message(store, arg)
-        elif kind == Nodetype.ARRAY:
-            sub, count = arg
-            if sub[0] == Nodetype.BASE and sub[1][0] != "string":
-                values[name] = np.zeros(count, dtype=_dtype(sub[1][0]))
-            else:
-                values[name] = [_default_message(store, sub[1]) if sub[0] == Nodetype.NAME else ""
-                                for _ in range(count)]
-        else:  # SEQUENCE
-            sub = arg[0]
-            if sub[0] == Nodetype.BASE and sub[1][0] != "string":
-                values[name] = np.zeros(0, dtype=_dtype(sub[1][0]))
-            else:
-                values[name] = []
-    return store.types[msgtype](**values)
-
-
-def _dtype(ros_type: str) -> str:
-    return {"bool": "bool", "byte": "uint8", "char": "uint8", "octet": "uint8"}.get(ros_type, ros_type)

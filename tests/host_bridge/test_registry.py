@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from host_bridge.contract import ConverterSpec, per_message
+from host_bridge.contract import Converter, PerMessage, per_message
 from host_bridge.converters import (
     camera,
     generic,
@@ -35,7 +35,7 @@ RELAY_ONLY = {"sensor_msgs/msg/PointCloud"}
 
 
 @pytest.mark.parametrize(
-    ("msgtype", "spec"),
+    ("msgtype", "converter"),
     [
         ("sensor_msgs/msg/PointCloud2", pointcloud.SPEC),
         ("sensor_msgs/msg/Image", images.IMAGE),
@@ -55,8 +55,8 @@ RELAY_ONLY = {"sensor_msgs/msg/PointCloud"}
         ("trajectory_msgs/msg/JointTrajectory", joints.JOINT_TRAJECTORY),
     ],
 )
-def test_each_type_gets_its_converter(msgtype: str, spec: ConverterSpec) -> None:
-    assert TABLE.get(msgtype) is spec
+def test_each_type_gets_its_converter(msgtype: str, converter: Converter) -> None:
+    assert TABLE.get(msgtype) is converter
     assert msgtype in TABLE.types()
 
 
@@ -69,15 +69,15 @@ def test_special_cases_are_plain_rows() -> None:
     assert TABLE.row("std_msgs/msg/String", "/chatter").view is View.LOG
     # Service events: one type per service, a family rule.
     event = TABLE.row("lifecycle_msgs/srv/ChangeState_Event")
-    assert (event.spec, event.view) == (services.SPEC, View.LOG)
+    assert (event.converter, event.view) == (services.SPEC, View.LOG)
     assert TABLE.get("lifecycle_msgs/srv/ChangeState_Request") is generic.SPEC
     # JointState moves the model and is plotted: both converters, with a run form.
     joint_state = TABLE.row("sensor_msgs/msg/JointState")
     assert joint_state.view is View.JOINTS
-    assert not joint_state.spec.message_by_message
+    assert not isinstance(joint_state.converter, PerMessage)
     # Anything else: the generic converter.
     unknown = TABLE.row("acme_msgs/msg/Gauge")
-    assert (unknown.spec, unknown.view) == (generic.SPEC, View.CUSTOM)
+    assert (unknown.converter, unknown.view) == (generic.SPEC, View.CUSTOM)
     assert [t for t in TABLE.types() if set(t) & set("*?[")] == []
 
 

@@ -12,10 +12,13 @@ from host_bridge.converters.geo import SPEC
 from tests.host_bridge.sensor_test_support import (
     column_rows,
     columns_item,
+    convert,
+    convert_run,
     header,
     make_ctx,
     msg,
     read_topic,
+    reads_columns_only,
     stamp_ns,
 )
 
@@ -46,7 +49,7 @@ def test_real_track_first_fix_and_radii(shared_data: Path) -> None:
     msgs = list(read_topic(shared_data / "gps_fix_rviz_satellite" / "sample.bag", "/gps/fix"))
     assert len(msgs) == 151
     ctxs = [make_ctx("/gps/fix", stamp_ns=stamp_ns(m)) for m in msgs]
-    entries = SPEC.convert_run(msgs, ctxs)
+    entries = convert_run(SPEC, msgs, ctxs)
     points = columns_item(entries, "/r/gps/fix")
     positions = np.concatenate(column_rows(points, "GeoPoints:positions", 2))
     assert positions.shape == (151, 2)
@@ -71,7 +74,7 @@ def test_no_fix_and_nan_are_skipped_unknown_covariance_is_ui_points() -> None:
         fix(59.5, 18.3, alt=math.nan, covariance_type=0, stamp=4),
     ]
     ctxs = [make_ctx("/fix", {"radius": 7.0}, stamp_ns=i + 1) for i in range(4)]
-    entries = SPEC.convert_run(msgs, ctxs)
+    entries = convert_run(SPEC, msgs, ctxs)
     points = columns_item(entries, "/r/fix")
     np.testing.assert_allclose(
         np.concatenate(column_rows(points, "GeoPoints:positions", 2)), [[59.3, 18.0], [59.5, 18.3]]
@@ -87,7 +90,7 @@ def test_no_fix_and_nan_are_skipped_unknown_covariance_is_ui_points() -> None:
 
 
 def test_single_fix_and_no_fix_message() -> None:
-    entries = SPEC.convert(fix(40.0, -75.0, alt=3.5), make_ctx("/fix"))
+    entries = convert(SPEC, fix(40.0, -75.0, alt=3.5), make_ctx("/fix"))
     assert [e.path for e in entries] == ["/r/fix", "/r/fix/altitude"]
-    assert SPEC.convert(fix(40.0, -75.0, status=-1), make_ctx("/fix")) == []
-    assert SPEC.convert_columns is not None
+    assert convert(SPEC, fix(40.0, -75.0, status=-1), make_ctx("/fix")) == []
+    assert reads_columns_only(SPEC, [fix(40.0, -75.0, alt=3.5)] * 2, make_ctx("/fix"))

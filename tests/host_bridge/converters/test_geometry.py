@@ -29,7 +29,7 @@ from host_bridge.converters.geometry import (
 )
 from host_bridge.state import TopicState
 from tests.host_bridge.sensor_test_support import TYPES as T
-from tests.host_bridge.sensor_test_support import archetype, header, log_item, make_ctx
+from tests.host_bridge.sensor_test_support import archetype, convert, convert_run, header, log_item, make_ctx
 
 NS = 1_000_000_000
 
@@ -90,7 +90,7 @@ def test_pose_stamped_is_a_transform_under_the_header_frame() -> None:
         header=header("map", 5 * NS + 7),
         pose=_pose((1.0, 2.0, 3.0), (0.1, 0.2, 0.3, 0.9)),
     )
-    entries = POSE_STAMPED.convert(msg, _ctx(ns=5 * NS + 7))
+    entries = convert(POSE_STAMPED, msg, _ctx(ns=5 * NS + 7))
     (pose,) = _at(entries, "/tb3/goal")
     assert _column(pose, "Transform3D:translation") == [[[1.0, 2.0, 3.0]]]
     quaternion = _column(pose, "Transform3D:quaternion")
@@ -108,7 +108,7 @@ def test_pose_stamped_is_a_transform_under_the_header_frame() -> None:
 
 
 def test_pose_stamped_with_empty_frame_has_no_frame_names() -> None:
-    entries = POSE_STAMPED.convert(_pose_stamped((1.0, 0.0, 0.0), frame_id=""), _ctx())
+    entries = convert(POSE_STAMPED, _pose_stamped((1.0, 0.0, 0.0), frame_id=""), _ctx())
     (pose,) = _at(entries, "/tb3/goal")
     assert _column(pose, "Transform3D:parent_frame") is None
     assert _column(pose, "CoordinateFrame:frame") is None
@@ -122,7 +122,7 @@ def test_all_zero_quaternion_becomes_identity() -> None:
         header=header("map"),
         pose=_pose((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0)),
     )
-    (pose, _) = POSE_STAMPED.convert(msg, _ctx())
+    (pose, _) = convert(POSE_STAMPED, msg, _ctx())
     assert _column(pose, "Transform3D:quaternion") == [[[0.0, 0.0, 0.0, 1.0]]]
 
 
@@ -130,7 +130,7 @@ def test_trail_grows_only_when_the_pose_moved_more_than_1cm() -> None:
     state = TopicState()
     xs = [0.0, 0.005, 0.0105, 0.019, 0.5, 0.5]
     grown = [
-        _trail_rows(POSE_STAMPED.convert(_pose_stamped((x, 0.0, 0.0)), _ctx(state=state)))
+        _trail_rows(convert(POSE_STAMPED, _pose_stamped((x, 0.0, 0.0)), _ctx(state=state)))
         for x in xs
     ]
     assert [len(rows) for rows in grown] == [1, 0, 1, 0, 1, 0]
@@ -141,9 +141,9 @@ def test_trail_grows_only_when_the_pose_moved_more_than_1cm() -> None:
 def test_trail_keeps_the_last_trail_length_points_and_restarts_on_frame_change() -> None:
     state = TopicState({"trail_length": 3})
     for x in range(5):
-        entries = POSE_STAMPED.convert(_pose_stamped((float(x), 0.0, 0.0)), _ctx(state=state))
+        entries = convert(POSE_STAMPED, _pose_stamped((float(x), 0.0, 0.0)), _ctx(state=state))
     assert np.array(_trail_rows(entries)[0][0])[:, 0].tolist() == [2.0, 3.0, 4.0]
-    entries = POSE_STAMPED.convert(
+    entries = convert(POSE_STAMPED,
         _pose_stamped((9.0, 0.0, 0.0), frame_id="odom"), _ctx(state=state)
     )
     (trail,) = _at(entries, "/tb3/goal/trail")
@@ -152,7 +152,7 @@ def test_trail_keeps_the_last_trail_length_points_and_restarts_on_frame_change()
 
 
 def test_trail_length_zero_disables_the_trail() -> None:
-    entries = POSE_STAMPED.convert(
+    entries = convert(POSE_STAMPED,
         _pose_stamped((1.0, 0.0, 0.0)),
         _ctx(options={"trail_length": 0}),
     )
@@ -160,7 +160,6 @@ def test_trail_length_zero_disables_the_trail() -> None:
 
 
 def test_pose_run_splits_rows_by_frame_and_stamps_trail_rows() -> None:
-    assert not POSE_STAMPED.message_by_message
     frames = ("map", "", "", "map")
     msgs = [
         _pose_stamped((x, 0.0, 0.0), frame, i * NS)
@@ -168,7 +167,7 @@ def test_pose_run_splits_rows_by_frame_and_stamps_trail_rows() -> None:
     ]
     state = TopicState()
     ctxs = [_ctx(ns=i * NS, state=state) for i in range(1, len(msgs) + 1)]
-    entries = POSE_STAMPED.convert_run(msgs, ctxs)
+    entries = convert_run(POSE_STAMPED, msgs, ctxs)
     with_frame, without_frame = _at(entries, "/tb3/goal")
     assert isinstance(with_frame, ColumnsItem)
     assert isinstance(without_frame, ColumnsItem)
@@ -227,14 +226,14 @@ def _rotation(xyzw: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
 def test_diagonal_covariance_gives_sqrt_half_sizes_and_no_rotation() -> None:
     spec = POSE_WITH_COVARIANCE
     msg = _with_covariance((1.0, 2.0, 0.0), np.diag([4.0, 1.0, 0.25]))
-    entries = spec.convert(msg, _ctx())
+    entries = convert(spec, msg, _ctx())
     ellipsoid = _ellipsoid(entries)
     np.testing.assert_allclose(_values(ellipsoid.half_sizes), [[2.0, 1.0, 0.5]], rtol=1e-6)
     np.testing.assert_allclose(_values(ellipsoid.centers), [[1.0, 2.0, 0.0]])
     np.testing.assert_allclose(np.abs(_values(ellipsoid.quaternions)), [[0, 0, 0, 1]], atol=1e-7)
     # The pose itself is there too, with its trail.
     assert [e.path for e in entries] == ["/tb3/goal", "/tb3/goal/trail", "/tb3/goal/covariance"]
-    doubled = _ellipsoid(spec.convert(msg, _ctx(options={"sigma": 2.0})))
+    doubled = _ellipsoid(convert(spec, msg, _ctx(options={"sigma": 2.0})))
     np.testing.assert_allclose(_values(doubled.half_sizes), [[4.0, 2.0, 1.0]], rtol=1e-6)
 
 
@@ -246,7 +245,7 @@ def test_rotated_covariance_ellipsoid_reproduces_the_covariance() -> None:
     )
     cov = axes @ np.diag([9.0, 4.0, 1.0]) @ axes.T
     spec = POSE_WITH_COVARIANCE
-    ellipsoid = _ellipsoid(spec.convert(_with_covariance((0.0, 0.0, 0.0), cov), _ctx()))
+    ellipsoid = _ellipsoid(convert(spec, _with_covariance((0.0, 0.0, 0.0), cov), _ctx()))
     half = _values(ellipsoid.half_sizes)[0]
     np.testing.assert_allclose(half, [3.0, 2.0, 1.0], rtol=1e-5)
     rotation = _rotation(_values(ellipsoid.quaternions)[0])
@@ -258,7 +257,7 @@ def test_rotated_covariance_ellipsoid_reproduces_the_covariance() -> None:
 
 def test_non_finite_covariance_keeps_the_pose_without_ellipsoid() -> None:
     spec = POSE_WITH_COVARIANCE
-    entries = spec.convert(_with_covariance((1.0, 0.0, 0.0), np.full((3, 3), np.nan)), _ctx())
+    entries = convert(spec, _with_covariance((1.0, 0.0, 0.0), np.full((3, 3), np.nan)), _ctx())
     assert [e.path for e in entries] == ["/tb3/goal", "/tb3/goal/trail"]
 
 
@@ -295,7 +294,7 @@ def _twist(linear: Sequence[float], angular: Sequence[float], frame_id: str = "b
 
 def test_twist_stamped_arrows_and_per_component_scalars() -> None:
     spec = TWIST
-    entries = spec.convert(_twist((0.5, 0.0, 0.0), (0.0, 0.0, -0.25)), _ctx("/cmd"))
+    entries = convert(spec, _twist((0.5, 0.0, 0.0), (0.0, 0.0, -0.25)), _ctx("/cmd"))
     (arrows,) = _at(entries, "/tb3/cmd")
     frame = arrows
     assert _column(arrows, "Arrows3D:vectors") == [[[0.5, 0.0, 0.0], [0.0, 0.0, -0.25]]]
@@ -318,12 +317,12 @@ def test_wrench_and_vector3_use_their_field_names() -> None:
         header=header(""),
         wrench=T["geometry_msgs/msg/Wrench"](force=_vec((1, 2, 3)), torque=_vec((4, 5, 6))),
     )
-    entries = WRENCH.convert(wrench, _ctx("/ft"))
+    entries = convert(WRENCH, wrench, _ctx("/ft"))
     (arrows,) = _at(entries, "/tb3/ft")  # empty frame_id: no CoordinateFrame item
     assert _column(arrows, "Arrows3D:vectors") == [[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]]
     assert _column(_at(entries, "/tb3/ft/torque/y")[0], "Scalars:scalars") == [[5.0]]
     vector = T["geometry_msgs/msg/Vector3Stamped"](header=header("imu"), vector=_vec((0, -9.8, 0)))
-    entries = VECTOR3.convert(vector, _ctx("/g"))
+    entries = convert(VECTOR3, vector, _ctx("/g"))
     assert _column(_at(entries, "/tb3/g")[0], "Arrows3D:labels") == [["vector"]]
     assert _column(_at(entries, "/tb3/g/vector/y")[0], "Scalars:scalars") == [[pytest.approx(-9.8)]]
 
@@ -405,15 +404,11 @@ def test_real_location_and_velocity_convert_as_runs(
 ) -> None:
     location, velocity = amr_bag["/location"], amr_bag["/velocity"]
     assert (len(location), len(velocity)) == (5273, 5270)
-    pose_run = POSE_STAMPED.convert_run
-    twist_run = TWIST.convert_run
-    assert pose_run is not None
-    assert twist_run is not None
     started = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        poses = pose_run([m for _, m in location], _bag_ctxs("/location", location))
-        twists = twist_run([m for _, m in velocity], _bag_ctxs("/velocity", velocity))
+        poses = convert_run(POSE_STAMPED, [m for _, m in location], _bag_ctxs("/location", location))
+        twists = convert_run(TWIST, [m for _, m in velocity], _bag_ctxs("/velocity", velocity))
         _send([*poses, *twists])
     assert time.perf_counter() - started < 10.0  # run forms; per message takes ~8 s here
 

@@ -23,13 +23,12 @@ from host_bridge.contract import ColumnsItem, LogEntry, LogItem
 from host_bridge.converters.images import (
     MAX_DECODED_PIXELS,
     convert_compressed_image,
-    convert_compressed_image_run,
     convert_image,
 )
 from host_bridge.dispatch import Dispatcher
 from host_bridge.errors import ConvertError
 from robot_relay.wire import RawMessage
-from tests.host_bridge.sensor_test_support import make_ctx
+from tests.host_bridge.sensor_test_support import convert, convert_run, make_ctx
 from tests.host_bridge.test_config import RecordingSink
 from tests.reliability import Record
 
@@ -432,7 +431,8 @@ def make_compressed(fmt: str, data: bytes | npt.NDArray[np.uint8]) -> Any:
 
 
 def convert_compressed(msg: Any, **options: Any) -> Any:
-    entries = convert_compressed_image(msg, make_ctx(COMPRESSED_TOPIC, options, robot=ROBOT, times={}))
+    ctx = make_ctx(COMPRESSED_TOPIC, options, robot=ROBOT, times={})
+    entries = convert(convert_compressed_image, msg, ctx)
     return only_archetype(entries, f"/{ROBOT}{COMPRESSED_TOPIC}")
 
 
@@ -466,13 +466,17 @@ def test_jpeg_and_png_are_passed_through_undecoded(fmt: str, ext: str, media_typ
 
 
 def test_a_run_of_jpegs_keeps_each_message_on_its_own_times() -> None:
-    """The dispatcher logs a run's entries with the first message's times unless an entry
-    carries its own: each JPEG of a run must stay on its own stamp."""
+    """The dispatcher logs a run's entries with the last message's arrival times unless an
+    entry carries its own: each JPEG of a run must stay on its own stamp."""
     payload = encode(".jpg", random_pixels((H, W, 3), np.uint8))
     msgs = [make_compressed("jpeg", payload) for _ in range(3)]
-    ctxs = [make_ctx(COMPRESSED_TOPIC, stamp_ns=ns, robot=ROBOT) for ns in (10, 20, 30)]
-    entries = convert_compressed_image_run(msgs, ctxs)
-    assert [e.times for e in entries] == [{"ros_time": 10}, {"ros_time": 20}, {"ros_time": 30}]
+    for msg, ns in zip(msgs, (10, 20, 30), strict=True):
+        msg.header.stamp = T["builtin_interfaces/msg/Time"](sec=0, nanosec=ns)
+    ctxs = [make_ctx(COMPRESSED_TOPIC, robot=ROBOT, times={"log_time": ns + 1}) for ns in (10, 20, 30)]
+    entries = convert_run(convert_compressed_image, msgs, ctxs)
+    assert [e.times for e in entries] == [
+        {"ros_time": 10, "log_time": 11}, {"ros_time": 20, "log_time": 21}, {"ros_time": 30, "log_time": 31},
+    ]
     assert all(isinstance(e, LogItem) and isinstance(e.archetypes[0], rr.EncodedImage) for e in entries)
 
 
@@ -509,7 +513,7 @@ def test_compressed_images_carrying_video_become_video_stream_samples(
     this file checks real encoded streams); JPEG and PNG stay EncodedImages above."""
     payload = VIDEO_PAYLOADS[codec]
     ctx = make_ctx(COMPRESSED_TOPIC, robot=ROBOT, times={})
-    entries = convert_compressed_image(make_compressed(fmt, payload), ctx)
+    entries = convert(convert_compressed_image, make_compressed(fmt, payload), ctx)
     static, rows = entries
     assert isinstance(static, LogItem)
     assert static.static

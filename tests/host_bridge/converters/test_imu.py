@@ -17,11 +17,14 @@ from tests.host_bridge.sensor_test_support import (
     archetype,
     column_rows,
     columns_item,
+    convert,
+    convert_run,
     flat,
     header,
     make_ctx,
     msg,
     read_topic,
+    reads_columns_only,
     rgba,
     stamp_ns,
 )
@@ -69,7 +72,7 @@ def test_real_zero_quaternion_run_has_no_nan_and_keeps_scalars(
     assert all(m.orientation.w == 0.0 for m in msgs[:10])  # the bag's invalid orientation
     ctxs = [make_ctx("/imu/data_raw", stamp_ns=stamp_ns(m)) for m in msgs]
     started = time.perf_counter()
-    entries = IMU.convert_run(msgs, ctxs)
+    entries = convert_run(IMU, msgs, ctxs)
     assert time.perf_counter() - started < 5.0
     orientation = columns_item(entries, "/r/imu/data_raw/orientation")
     quaternions = np.concatenate(column_rows(orientation, "Transform3D:quaternion", 4))
@@ -103,8 +106,8 @@ def test_real_magnetic_field_run(phidgets: dict[str, list[Any]]) -> None:
     msgs = phidgets["/imu/mag"]
     ctxs = [make_ctx("/imu/mag", stamp_ns=stamp_ns(m)) for m in msgs]
     spec = MAGNETIC_FIELD
-    assert not spec.message_by_message
-    entries = spec.convert_run(msgs, ctxs)
+    assert reads_columns_only(spec, msgs[:4], make_ctx("/imu/mag"))
+    entries = convert_run(spec, msgs, ctxs)
     item = columns_item(entries, "/r/imu/mag")
     rows = np.stack(column_rows(item, "Scalars:scalars"))
     # Every other message of this magnetometer is NaN, NaN, NaN: "no new reading", not plotted.
@@ -122,7 +125,7 @@ def test_real_magnetic_field_run(phidgets: dict[str, list[Any]]) -> None:
 def test_valid_orientation_is_normalised_and_arrows_scaled() -> None:
     half = math.sqrt(0.5)
     ctx = make_ctx("/imu", {"acceleration_scale": 0.5, "angular_velocity_scale": 2.0})
-    entries = IMU.convert(imu((0.0, 0.0, 2 * half, 2 * half)), ctx)  # 90 deg yaw, norm 2
+    entries = convert(IMU, imu((0.0, 0.0, 2 * half, 2 * half)), ctx)  # 90 deg yaw, norm 2
     orientation = columns_item(entries, "/r/imu/orientation")
     (q,) = column_rows(orientation, "Transform3D:quaternion", 4)
     np.testing.assert_allclose(q, [[0.0, 0.0, half, half]], rtol=1e-6)
@@ -140,7 +143,7 @@ def test_valid_orientation_is_normalised_and_arrows_scaled() -> None:
     assert rgba(flat(arrow_style.colors)).tolist() == [[255, 170, 0, 255], [170, 80, 255, 255]]
     assert arrow_style.vectors is None
     # Legends and axes are sent once per topic, not with every message.
-    again = IMU.convert(imu((0.0, 0.0, 0.0, 1.0)), ctx)
+    again = convert(IMU, imu((0.0, 0.0, 0.0, 1.0)), ctx)
     assert not [e for e in again if isinstance(e, LogItem)]
     assert all(isinstance(e, ColumnsItem) for e in again)
 
@@ -157,7 +160,7 @@ def test_valid_orientation_is_normalised_and_arrows_scaled() -> None:
 def test_missing_orientation_becomes_identity_not_nan(
     q: tuple[float, float, float, float], covariance0: float
 ) -> None:
-    entries = IMU.convert(imu(q, covariance0=covariance0), make_ctx("/imu"))
+    entries = convert(IMU, imu(q, covariance0=covariance0), make_ctx("/imu"))
     orientation = columns_item(entries, "/r/imu/orientation")
     (quaternion,) = column_rows(orientation, "Transform3D:quaternion", 4)
     np.testing.assert_array_equal(quaternion, [[0.0, 0.0, 0.0, 1.0]])
@@ -170,7 +173,7 @@ def test_run_with_mixed_orientations_and_empty_frame_id() -> None:
         imu((0.0, 0.0, 0.0, 0.0), frame_id="", stamp=1),
         imu((0.0, 1.0, 0.0, 0.0), frame_id="", stamp=2),
     ]
-    entries = IMU.convert_run(msgs, [make_ctx("/imu", stamp_ns=1), make_ctx("/imu", stamp_ns=2)])
+    entries = convert_run(IMU, msgs, [make_ctx("/imu", stamp_ns=1), make_ctx("/imu", stamp_ns=2)])
     orientation = columns_item(entries, "/r/imu/orientation")
     quaternions = np.concatenate(column_rows(orientation, "Transform3D:quaternion", 4))
     np.testing.assert_array_equal(quaternions, [[0, 0, 0, 1], [0, 1, 0, 0]])
@@ -188,8 +191,8 @@ def test_magnetic_field_without_a_reading_logs_nothing() -> None:
         return msg("sensor_msgs/msg/MagneticField", header=header("imu"),
                    magnetic_field=vector(x, y, z), magnetic_field_covariance=np.zeros(9))
 
-    entries = spec.convert(field(nan, nan, nan), make_ctx("/imu/mag"))
+    entries = convert(spec, field(nan, nan, nan), make_ctx("/imu/mag"))
     assert [e for e in entries if not (isinstance(e, LogItem) and e.static)] == []
-    partial = spec.convert(field(1e-5, nan, 3e-5), make_ctx("/imu/mag"))
+    partial = convert(spec, field(1e-5, nan, 3e-5), make_ctx("/imu/mag"))
     (item,) = [e for e in partial if isinstance(e, ColumnsItem)]
     np.testing.assert_array_equal(column_rows(item, "Scalars:scalars"), [[1e-5, nan, 3e-5]])

@@ -22,7 +22,7 @@ from host_bridge.converters.urdf import description, kinematics
 from host_bridge.errors import ConvertError, PartialConvertError
 from host_bridge.resources import ResourceResolver
 from host_bridge.state import RobotState
-from tests.host_bridge.sensor_test_support import header, make_ctx, msg
+from tests.host_bridge.sensor_test_support import convert, convert_run, header, make_ctx, msg
 
 
 @pytest.fixture
@@ -96,7 +96,7 @@ def frames(item: LogItem) -> tuple[str, str]:
 def test_wheel_angle_matches_yourdfpy_and_rerun(burger_file: Path) -> None:
     ctx = joints_ctx("tb1", burger_file.read_text())
     items = by_path(
-        joints.JOINT_STATE.convert(joint_state(["wheel_left_joint", "wheel_right_joint"], [0.7, -0.3]), ctx)
+        convert(joints.JOINT_STATE, joint_state(["wheel_left_joint", "wheel_right_joint"], [0.7, -0.3]), ctx)
     )
     assert sorted(items) == [
         "/tb1/robot_model/joints/wheel_left_joint",
@@ -165,7 +165,7 @@ def rotation_about(angle: float, axis: list[float], translation: list[float]) ->
 
 def test_prismatic_and_mimic_match_yourdfpy() -> None:
     ctx = joints_ctx("arm1", ARM)
-    items = by_path(joints.JOINT_STATE.convert(joint_state(["shoulder", "lift"], [0.4, 0.05]), ctx))
+    items = by_path(convert(joints.JOINT_STATE, joint_state(["shoulder", "lift"], [0.4, 0.05]), ctx))
     assert len(items) == 4
     reference = yourdfpy.URDF.load(io.StringIO(ARM), load_meshes=False)
     reference.update_cfg({"lift": 0.05, "shoulder": 0.4})
@@ -217,7 +217,7 @@ def test_model_stands_at_zero_with_mimic_chains_at_their_offsets() -> None:
 
 def test_published_mimic_value_is_overridden_by_its_driver() -> None:
     ctx = joints_ctx("arm1", ARM)
-    items = by_path(joints.JOINT_STATE.convert(joint_state(["shoulder", "grip"], [0.4, 2.0]), ctx))
+    items = by_path(convert(joints.JOINT_STATE, joint_state(["shoulder", "grip"], [0.4, 2.0]), ctx))
     grip = transform_matrix(items["/arm1/robot_model/joints/grip"])
     np.testing.assert_allclose(grip, rotation_about(-0.7, [1, 0, 0], [0.3, 0, 0]), atol=1e-6)
 
@@ -226,10 +226,10 @@ def test_unknown_joints_reported_once_known_ones_still_logged(burger_file: Path)
     ctx = joints_ctx("tb1", burger_file.read_text())
     message = joint_state(["wheel_left_joint", "gripper_joint"], [0.1, 0.2])
     with pytest.raises(PartialConvertError, match=r"\['gripper_joint'\]") as caught:
-        joints.JOINT_STATE.convert(message, ctx)
+        convert(joints.JOINT_STATE, message, ctx)
     assert "wheel_left_joint" not in str(caught.value).split("it has")[0]
     assert sorted(by_path(caught.value.items)) == ["/tb1/robot_model/joints/wheel_left_joint"]
-    again = joints.JOINT_STATE.convert(message, ctx)
+    again = convert(joints.JOINT_STATE, message, ctx)
     assert sorted(by_path(again)) == ["/tb1/robot_model/joints/wheel_left_joint"]
 
 
@@ -237,18 +237,18 @@ def test_joints_on_tf_are_left_to_tf(burger_file: Path) -> None:
     ctx = joints_ctx("tb1", burger_file.read_text())
     message = joint_state(["wheel_left_joint", "wheel_right_joint"], [0.1, 0.2])
     ctx.robot_state.tf_children = {"wheel_left_link"}
-    assert sorted(by_path(joints.JOINT_STATE.convert(message, ctx))) == [
+    assert sorted(by_path(convert(joints.JOINT_STATE, message, ctx))) == [
         "/tb1/robot_model/joints/wheel_right_joint"
     ]
     ctx.robot_state.tf_children = {"tb1/wheel_left_link", "tb1/wheel_right_link"}
-    assert joints.JOINT_STATE.convert(message, ctx) == []
+    assert convert(joints.JOINT_STATE, message, ctx) == []
 
 
 def test_two_robots_same_urdf_are_prefixed(burger_file: Path) -> None:
     xml = burger_file.read_text()
     message = joint_state(["wheel_left_joint"], [0.7])
-    first = by_path(joints.JOINT_STATE.convert(message, joints_ctx("tb1", xml)))
-    second = by_path(joints.JOINT_STATE.convert(message, joints_ctx("tb2", xml)))
+    first = by_path(convert(joints.JOINT_STATE, message, joints_ctx("tb1", xml)))
+    second = by_path(convert(joints.JOINT_STATE, message, joints_ctx("tb2", xml)))
     assert frames(first["/tb1/robot_model/joints/wheel_left_joint"]) == (
         "tb1/base_link",
         "tb1/wheel_left_link",
@@ -266,16 +266,16 @@ def test_two_robots_same_urdf_are_prefixed(burger_file: Path) -> None:
 def test_without_a_model_messages_are_refused() -> None:
     ctx = make_ctx("/joint_states", robot="tb1", times={})
     with pytest.raises(ConvertError, match="no robot model"):
-        joints.JOINT_STATE.convert(joint_state(["a"], [0.0]), ctx)
+        convert(joints.JOINT_STATE, joint_state(["a"], [0.0]), ctx)
 
 
 def test_position_count_must_match_names() -> None:
     ctx = joints_ctx("arm1", ARM)
     with pytest.raises(ConvertError, match="2 values for 1 joint names"):
-        joints.JOINT_STATE.convert(joint_state(["shoulder"], [0.1, 0.2]), ctx)
+        convert(joints.JOINT_STATE, joint_state(["shoulder"], [0.1, 0.2]), ctx)
     # Velocity-only states and NaN positions move nothing.
-    assert joints.JOINT_STATE.convert(joint_state(["shoulder"], []), ctx) == []
-    assert joints.JOINT_STATE.convert(joint_state(["shoulder"], [float("nan")]), ctx) == []
+    assert convert(joints.JOINT_STATE, joint_state(["shoulder"], []), ctx) == []
+    assert convert(joints.JOINT_STATE, joint_state(["shoulder"], [float("nan")]), ctx) == []
 
 
 def test_run_form_matches_single_messages() -> None:
@@ -285,7 +285,7 @@ def test_run_form_matches_single_messages() -> None:
         joint_state(["shoulder", "lift"], [0.3, 0.03], 300),
     ]
     ctxs = [joints_ctx("arm1", ARM, stamp=stamp) for stamp in (100, 200, 300)]
-    items = {item.path: item for item in joints.JOINT_STATE.convert_run(messages, ctxs)}
+    items = {item.path: item for item in convert_run(joints.JOINT_STATE, messages, ctxs)}
     assert all(isinstance(item, ColumnsItem) for item in items.values())
     shoulder = items["/arm1/robot_model/joints/shoulder"]
     lift = items["/arm1/robot_model/joints/lift"]
@@ -298,7 +298,7 @@ def test_run_form_matches_single_messages() -> None:
     quaternions = np.asarray(columns["Transform3D:quaternion"].as_arrow_array().to_pylist())
     assert columns["Transform3D:parent_frame"].as_arrow_array().to_pylist() == [["arm1/slider"]] * 2
     for row, (message, ctx) in enumerate(((messages[0], ctxs[0]), (messages[2], ctxs[2]))):
-        single = by_path(joints.JOINT_STATE.convert(message, ctx))["/arm1/robot_model/joints/shoulder"]
+        single = by_path(convert(joints.JOINT_STATE, message, ctx))["/arm1/robot_model/joints/shoulder"]
         np.testing.assert_allclose(
             matrix(translations[row][0], quaternions[row][0]), transform_matrix(single), atol=1e-7
         )
@@ -310,7 +310,7 @@ def test_trajectory_uses_its_first_point() -> None:
     trajectory = SimpleNamespace(joint_names=["shoulder"], points=[point, later])
     ctx = joints_ctx("arm1", ARM, topic="/arm_controller/joint_trajectory")
     items = by_path(joints.convert_joint_trajectory(trajectory, ctx))
-    state = by_path(joints.JOINT_STATE.convert(joint_state(["shoulder"], [0.4]), ctx))
+    state = by_path(convert(joints.JOINT_STATE, joint_state(["shoulder"], [0.4]), ctx))
     assert (
         sorted(items)
         == sorted(state)

@@ -21,6 +21,7 @@ from tests.host_bridge.sensor_test_support import (
     archetype,
     column_rows,
     columns_item,
+    convert_run,
     flat,
     header,
     log_item,
@@ -155,13 +156,13 @@ def run_of_scans() -> list[Any]:
     """Scans as a bag holds them: one geometry, then a changed one, a shorter scan, a scan with
     no valid return, and intensities on some scans only."""
     rng = np.random.default_rng(4)
-    scans = [scan(noisy_ranges(720, seed=k), stamp_ns=k * 100_000_000) for k in range(5)]
+    scans = [scan(noisy_ranges(720, seed=k), stamp_ns=(k + 1) * 100_000_000) for k in range(5)]
     scans.append(scan(noisy_ranges(720, seed=5), angle_min=0.0, increment=math.pi / 720,
-                      stamp_ns=500_000_000))
-    scans.append(scan(noisy_ranges(400, seed=6), stamp_ns=600_000_000))
-    scans.append(scan(np.full(720, np.inf), stamp_ns=700_000_000))
+                      stamp_ns=600_000_000))
+    scans.append(scan(noisy_ranges(400, seed=6), stamp_ns=700_000_000))
+    scans.append(scan(np.full(720, np.inf), stamp_ns=800_000_000))
     scans.append(scan(noisy_ranges(720, seed=8), intensities=rng.uniform(0, 9, 720),
-                      range_min=0.5, range_max=8.0, stamp_ns=800_000_000))
+                      range_min=0.5, range_max=8.0, stamp_ns=900_000_000))
     return scans
 
 
@@ -171,7 +172,7 @@ def test_run_of_scans_gives_each_scan_what_it_gives_alone(color_by: str) -> None
     state = TopicState({"color_by": color_by, "radius": 0.05})
     ctxs = [make_ctx("/scan", stamp_ns=m.header.stamp.nanosec + m.header.stamp.sec * 10**9,
                      topic_state=state) for m in scans]
-    item = columns_item(SPEC.convert_run(scans, ctxs), "/r/scan")
+    item = columns_item(convert_run(SPEC, scans, ctxs), "/r/scan")
     positions = column_rows(item, "Points3D:positions", 3)
     colors = column_rows(item, "Points3D:colors")
     assert len(positions) == len(colors) == len(scans)
@@ -185,7 +186,7 @@ def test_run_of_scans_gives_each_scan_what_it_gives_alone(color_by: str) -> None
         np.testing.assert_allclose(row_positions.reshape(-1, 3), np.reshape(expected_points, (-1, 3)),
                                    rtol=1e-6, atol=1e-6)
         np.testing.assert_array_equal(rgba(row_colors), np.reshape(expected_colors, (-1, 4)))
-    assert item.times["ros_time"].tolist() == [k * 100_000_000 for k in range(len(scans))]
+    assert item.times["ros_time"].tolist() == [(k + 1) * 100_000_000 for k in range(len(scans))]
     radii = column_rows(item, "Points3D:radii")
     assert [r.tolist() for r in radii] == [[float(np.float32(0.05))]] * len(scans)
     frames = column_rows(item, "CoordinateFrame:frame")
@@ -194,10 +195,10 @@ def test_run_of_scans_gives_each_scan_what_it_gives_alone(color_by: str) -> None
 
 def test_run_in_rays_mode_or_with_and_without_frame_ids_goes_scan_by_scan() -> None:
     scans = run_of_scans()[:3]
-    rays = SPEC.convert_run(scans, [make_ctx("/scan", {"mode": "both"}) for _ in scans])
+    rays = convert_run(SPEC, scans, [make_ctx("/scan", {"mode": "both"}) for _ in scans])
     assert [e.path for e in rays] == ["/r/scan", "/r/scan/rays"] * 3
     scans[1].header.frame_id = ""
-    mixed = SPEC.convert_run(scans, [make_ctx("/scan") for _ in scans])
+    mixed = convert_run(SPEC, scans, [make_ctx("/scan") for _ in scans])
     kinds = [[type(a) for a in e.archetypes] if isinstance(e, LogItem) else None for e in mixed]
     with_frame = [rr.Points3D, rr.CoordinateFrame]
     assert kinds == [with_frame, [rr.Points3D], with_frame]

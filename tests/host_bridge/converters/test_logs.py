@@ -8,10 +8,10 @@ from typing import Any
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry
+from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, PerMessage
 from host_bridge.converters.logs import ROS1_LOG, ROS2_LOG, STRING
 from tests.host_bridge.sensor_test_support import TYPES as ROS2
-from tests.host_bridge.sensor_test_support import make_ctx, read_topic
+from tests.host_bridge.sensor_test_support import convert, convert_run, make_ctx, read_topic
 
 ROS1 = get_typestore(Stores.ROS1_NOETIC).types
 NS = 1_000_000_000
@@ -76,7 +76,8 @@ def _ros1_log(level: int, name: str = "/talker", text: str = "hello") -> Any:
     ],
 )
 def test_ros2_log_levels_and_text(level: int, expected: str) -> None:
-    (item,) = ROS2_LOG.convert(
+    (item,) = convert(
+        ROS2_LOG,
         _ros2_log(level, "talker", "Publishing: 'Hello World: 1'", ns=7 * NS + 5),
         _ctx(ns=99),
     )
@@ -95,22 +96,22 @@ def test_ros2_log_levels_and_text(level: int, expected: str) -> None:
     [(1, "DEBUG"), (2, "INFO"), (4, "WARN"), (8, "ERROR"), (16, "CRITICAL"), (0, "TRACE")],
 )
 def test_ros1_log_levels(level: int, expected: str) -> None:
-    (item,) = ROS1_LOG.convert(_ros1_log(level), _ctx(ns=5))
+    (item,) = convert(ROS1_LOG, _ros1_log(level), _ctx(ns=5))
     rows = _rows(item)
     assert rows["TextLog:level"] == [expected]
     assert rows["TextLog:text"] == ["[/talker] hello"]
     assert isinstance(item, ColumnsItem)
-    assert item.times["ros_time"].tolist() == [5]  # the dispatcher's header time stays
+    assert item.times["ros_time"].tolist() == [NS]  # its header stamp
 
 
 def test_rosout_run_is_one_column_with_a_row_per_line() -> None:
     spec = ROS2_LOG
-    assert not spec.message_by_message
+    assert not isinstance(spec, PerMessage)
     msgs = [
         _ros2_log(level, f"node{level}", f"line {level}", ns=level * NS)
         for level in (20, 30, 40, 10)
     ]
-    (item,) = spec.convert_run(msgs, [_ctx(ns=i) for i in range(len(msgs))])
+    (item,) = convert_run(spec, msgs, [_ctx(ns=i) for i in range(len(msgs))])
     rows = _rows(item)
     assert rows["TextLog:level"] == ["INFO", "WARN", "ERROR", "DEBUG"]
     assert rows["TextLog:text"] == [
@@ -122,7 +123,6 @@ def test_rosout_run_is_one_column_with_a_row_per_line() -> None:
     assert isinstance(item, ColumnsItem)
     assert item.times["ros_time"].tolist() == [20 * NS, 30 * NS, 40 * NS, 10 * NS]
     assert item.times["receive_time"].tolist() == [1, 2, 3, 4]
-    assert spec.convert_run([], []) == []
 
 
 @pytest.mark.parametrize(
@@ -135,12 +135,12 @@ def test_real_string_topics_become_info_lines(
     run = list(read_topic(shared_data / "tb3_nav_sim_paths_amr" / "rosbag_demo.bag", topic))
     assert len(run) == count
     spec = STRING
-    assert not spec.message_by_message
-    (item,) = spec.convert_run(run, [_ctx(topic, ns=i) for i in range(count)])
+    assert not isinstance(spec, PerMessage)
+    (item,) = convert_run(spec, run, [_ctx(topic, ns=i) for i in range(count)])
     assert item.path == f"/tb3{topic}"
     rows = _rows(item)
     assert rows["TextLog:text"] == [m.data for m in run]
     assert rows["TextLog:text"][0] == first
     assert rows["TextLog:level"] == ["INFO"] * count
-    (single,) = spec.convert(run[0], _ctx(topic))
+    (single,) = convert(spec, run[0], _ctx(topic))
     assert _rows(single) == {"TextLog:text": [first], "TextLog:level": ["INFO"]}

@@ -8,25 +8,28 @@ from typing import Any
 import numpy as np
 import pytest
 
-from host_bridge.contract import ColumnsItem, ConvertContext, ConverterSpec, LogEntry, LogItem
+from host_bridge.contract import ColumnsItem, ConvertContext, Converter, LogEntry, PerMessage
 from host_bridge.converters import scalars
 from host_bridge.errors import ConvertError
 from host_bridge.registry import default_registry
+from host_bridge.schemas import base_typestore
 from tests.host_bridge.sensor_test_support import (
     column_rows,
     columns_item,
+    default_message,
     header,
-    log_item,
     make_ctx,
     msg,
     read_topic,
-    scalars_of,
+    reads_columns_only,
 )
+from tests.host_bridge.sensor_test_support import convert as convert_one
+from tests.host_bridge.sensor_test_support import convert_run as convert_messages
 
 REGISTRY = default_registry()
 
 
-def spec_of(msgtype: str) -> ConverterSpec:
+def converter_of(msgtype: str) -> Converter:
     """The type's row in the table; JointState's plots only (its row also moves the model)."""
     if msgtype == "sensor_msgs/msg/JointState":
         return scalars.JOINT_STATE
@@ -34,13 +37,11 @@ def spec_of(msgtype: str) -> ConverterSpec:
 
 
 def convert(msgtype: str, message: Any, ctx: ConvertContext) -> list[LogEntry]:
-    return spec_of(msgtype).convert(message, ctx)
+    return convert_one(converter_of(msgtype), message, ctx)
 
 
 def convert_run(msgtype: str, msgs: list[Any], ctxs: list[ConvertContext]) -> list[LogEntry]:
-    run = spec_of(msgtype).convert_run
-    assert run is not None, f"{msgtype} has no run form"
-    return run(msgs, ctxs)
+    return convert_messages(converter_of(msgtype), msgs, ctxs)
 
 
 @pytest.mark.parametrize(
@@ -90,8 +91,8 @@ def test_multiarray_is_multi_series_and_runs_allow_varying_length() -> None:
         for values in ([1, -2, 3], [4, 5, 6], [7, 8])
     ]
     (item,) = convert(msgtype, msgs[0], make_ctx("/arr"))
-    assert isinstance(item, LogItem)
-    np.testing.assert_array_equal(scalars_of(item), [1.0, -2.0, 3.0])
+    assert isinstance(item, ColumnsItem)
+    assert [r.tolist() for r in column_rows(item, "Scalars:scalars")] == [[1.0, -2.0, 3.0]]
     ctxs = [make_ctx("/arr", stamp_ns=t) for t in (1, 2, 3)]
     rows = column_rows(columns_item(convert_run(msgtype, msgs, ctxs), "/r/arr"), "Scalars:scalars")
     assert [r.tolist() for r in rows] == [[1.0, -2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0]]
@@ -150,7 +151,7 @@ def test_battery_state_scalars_and_cells() -> None:
         "sensor_msgs/msg/BatteryState", battery(12.5, [4.0, 4.25, 4.25]), make_ctx("/battery")
     )
     values = {
-        name: scalars_of(log_item(entries, f"/r/battery/{name}")).tolist()
+        name: column_rows(columns_item(entries, f"/r/battery/{name}"), "Scalars:scalars")[0].tolist()
         for name in ("voltage", "current", "charge", "percentage", "temperature", "cell_voltage")
     }
     assert values == {
@@ -244,16 +245,19 @@ def test_joint_state_length_mismatch_names_topic() -> None:
         convert("sensor_msgs/msg/JointState", bad, make_ctx("/js"))
 
 
-def test_every_type_has_a_run_form_and_the_fixed_layouts_a_columnar_one() -> None:
-    plotted = [row for row in REGISTRY.rows() if row.spec in (
+def test_every_type_converts_a_run_at_once_and_the_fixed_layouts_read_columns() -> None:
+    plotted = [row for row in REGISTRY.rows() if row.converter in (
         scalars.NUMBER, scalars.NUMBER_ARRAY, scalars.SECONDS, scalars.TEMPERATURE,
         scalars.FLUID_PRESSURE, scalars.ILLUMINANCE, scalars.RELATIVE_HUMIDITY, scalars.BATTERY,
     )]
     assert len(plotted) == 13 + 11 + 2 + 4 + 1  # numbers, arrays, times, sensors, battery
-    assert not any(row.spec.message_by_message for row in plotted)
-    # MultiArrays vary in length and BatteryState differs between ROS 1 and 2: messages.
-    message_path = {row.msgtype for row in plotted if row.spec.convert_columns is None}
-    assert message_path == {row.msgtype for row in plotted if row.msgtype.endswith("MultiArray")} | {
+    assert not any(isinstance(row.converter, PerMessage) for row in plotted)
+    # MultiArrays vary in length and BatteryState differs between ROS 1 and 2: decoded.
+    store = base_typestore()
+    decoded = {row.msgtype for row in plotted if not reads_columns_only(
+        row.converter, [default_message(store, row.msgtype)] * 3, make_ctx("/plot"))}
+    assert decoded == {row.msgtype for row in plotted if row.msgtype.endswith("MultiArray")} | {
         "sensor_msgs/msg/BatteryState"
     }
-    assert scalars.JOINT_STATE.convert_columns is not None
+    message = joint_state(["a"], [1.0], [2.0], [])
+    assert reads_columns_only(scalars.JOINT_STATE, [message] * 3, make_ctx("/joint_states"))

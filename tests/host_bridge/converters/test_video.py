@@ -8,6 +8,7 @@ exactly; AV1/VP8/VP9 are lossy here and are checked on bytes and keyframes only.
 
 from __future__ import annotations
 
+import dataclasses
 import fractions
 import functools
 import logging
@@ -29,13 +30,12 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from host_bridge.blueprint import TopicEntry, build_blueprint
 from host_bridge.cli import main as host_main
 from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
-from host_bridge.converters.images import convert_compressed_image, convert_compressed_image_run
+from host_bridge.converters.images import convert_compressed_image
 from host_bridge.converters.video import (
     COMPRESSED_VIDEO,
     VideoTopic,
     VideoTopicState,
     convert_compressed_video,
-    convert_compressed_video_run,
     video_codec,
 )
 from host_bridge.destinations import SinkOptions
@@ -46,7 +46,7 @@ from host_bridge.schemas import base_typestore
 from host_bridge.sink import RerunSink
 from host_bridge.state import TopicState
 from robot_relay.wire import RawMessage
-from tests.host_bridge.sensor_test_support import flat, make_ctx
+from tests.host_bridge.sensor_test_support import convert, convert_run, flat, make_ctx
 from tests.rrd import entity_rows
 
 STORE = base_typestore()  # ROS 2 Humble plus the bundled foxglove_msgs definition
@@ -135,17 +135,12 @@ def compressed_video(fmt: str, data: bytes, ns: int) -> Any:
     )
 
 
-def contexts(topic: str, stamps: Sequence[int], *, header: bool = True) -> list[ConvertContext]:
-    """One context per message of one topic, sharing the topic's state as the dispatcher does;
-    ros_time comes from the header (a CompressedVideo has none: the converter supplies it)."""
+def contexts(topic: str, stamps: Sequence[int]) -> list[ConvertContext]:
+    """One context per message of one topic, sharing the topic's state as the dispatcher does,
+    each logged 5 ns after its stamp; ros_time is the message's stamp (its header's, or a
+    CompressedVideo's timestamp)."""
     state = TopicState()
-    return [
-        make_ctx(
-            topic, robot=ROBOT, topic_state=state,
-            times={"ros_time": ns, "log_time": ns + 5} if header else {"log_time": ns + 5},
-        )
-        for ns in stamps
-    ]
+    return [make_ctx(topic, robot=ROBOT, topic_state=state, times={"log_time": ns + 5}) for ns in stamps]
 
 
 @dataclass(frozen=True)
@@ -189,7 +184,7 @@ def test_h26x_compressed_images_become_a_video_stream(codec: rr.VideoCodec, fmt:
     stream = encode(codec)
     assert stream.keyframes == every_gop_start()
     messages = [compressed_image(fmt, p, ns) for p, ns in zip(stream.packets, STAMPS, strict=True)]
-    entries = convert_compressed_image_run(messages, contexts("/camera/image/ffmpeg", STAMPS))
+    entries = convert_run(convert_compressed_image, messages, contexts("/camera/image/ffmpeg", STAMPS))
     got = logged(entries, f"/{ROBOT}/camera/image/ffmpeg")
     assert got.codecs == [codec.value]
     assert got.samples == stream.packets  # byte for byte, never decoded or re-encoded
@@ -206,7 +201,7 @@ def test_foxglove_compressed_video_of_every_codec(codec: rr.VideoCodec) -> None:
     stream = encode(codec)
     fmt = codec.name.lower()  # Foxglove's spelling: h264, h265, av1, vp8, vp9
     messages = [compressed_video(fmt, p, ns) for p, ns in zip(stream.packets, STAMPS, strict=True)]
-    entries = convert_compressed_video_run(messages, contexts("/camera/video", STAMPS, header=False))
+    entries = convert_run(convert_compressed_video, messages, contexts("/camera/video", STAMPS))
     got = logged(entries, f"/{ROBOT}/camera/video")
     assert got.codecs == [codec.value]
     assert got.samples == stream.packets
@@ -218,10 +213,10 @@ def test_foxglove_compressed_video_of_every_codec(codec: rr.VideoCodec) -> None:
 
 def test_message_by_message_equals_the_run_and_logs_the_codec_once() -> None:
     stream = encode(H264)
-    ctxs = contexts("/camera/video", STAMPS, header=False)
+    ctxs = contexts("/camera/video", STAMPS)
     entries = [
         e for p, ns, c in zip(stream.packets, STAMPS, ctxs, strict=True)
-        for e in convert_compressed_video(compressed_video("H264", p, ns), c)
+        for e in convert(convert_compressed_video, compressed_video("H264", p, ns), c)
     ]
     got = logged(entries, f"/{ROBOT}/camera/video")
     assert got.codecs == [H264.value]
@@ -231,12 +226,12 @@ def test_message_by_message_equals_the_run_and_logs_the_codec_once() -> None:
 
 
 def test_restamped_video_keeps_the_receive_based_ros_time() -> None:
-    """``restamp: true`` puts ros_time into the context; it wins over the message's timestamp."""
+    """``restamp: true`` makes ros_time the arrival time; it wins over the message's timestamp."""
     stream = encode(H264)
-    ctx = contexts("/camera/video", [1], header=False)[0]
-    restamped = make_ctx(ctx.topic, stamp_ns=42, robot=ROBOT)
-    entries = convert_compressed_video(compressed_video("h264", stream.packets[0], T0_NS), restamped)
-    assert logged(entries, ctx.entity_path).times == {"ros_time": [42]}
+    restamped = make_ctx("/camera/video", robot=ROBOT, times={"receive_time": 42})
+    restamped = dataclasses.replace(restamped, restamp=True)
+    entries = convert(convert_compressed_video, compressed_video("h264", stream.packets[0], T0_NS), restamped)
+    assert logged(entries, restamped.entity_path).times == {"ros_time": [42], "receive_time": [42]}
 
 
 # --- parameter sets, keyframes ------------------------------------------------------------------
@@ -276,7 +271,7 @@ def test_parameter_sets_sent_once_go_in_front_of_every_random_access_picture(
     payloads = [sets, *stripped]
     stamps = [T0_NS - PERIOD_NS, *STAMPS]
     messages = [compressed_image(codec.name, p, ns) for p, ns in zip(payloads, stamps, strict=True)]
-    got = logged(convert_compressed_image_run(messages, contexts("/cam", stamps)), f"/{ROBOT}/cam")
+    got = logged(convert_run(convert_compressed_image, messages, contexts("/cam", stamps)), f"/{ROBOT}/cam")
     assert got.times["ros_time"] == STAMPS  # the parameter sets alone give no sample
     assert got.keyframes == every_gop_start()
     for i, (sample, sent) in enumerate(zip(got.samples, stripped, strict=True)):
@@ -297,7 +292,7 @@ def test_an_idr_without_any_known_parameter_sets_is_logged_as_is_and_not_a_keyfr
     stream = encode(H264)
     stripped = [split_parameter_sets(H264, p)[1] for p in stream.packets]
     messages = [compressed_image("h264", p, ns) for p, ns in zip(stripped, STAMPS, strict=True)]
-    got = logged(convert_compressed_image_run(messages, contexts("/cam", STAMPS)), f"/{ROBOT}/cam")
+    got = logged(convert_run(convert_compressed_image, messages, contexts("/cam", STAMPS)), f"/{ROBOT}/cam")
     assert got.samples == stripped
     assert got.keyframes == [False] * FRAMES
 
@@ -306,9 +301,9 @@ def test_length_prefixed_avcc_samples_are_refused_naming_the_topic() -> None:
     units = nal_units(encode(H264).packets[0])
     avcc = b"".join(len(u).to_bytes(4, "big") + u for u in units)
     msg = compressed_video("h264", avcc, T0_NS)
-    ctx = contexts("/camera/video", [T0_NS], header=False)[0]
+    ctx = contexts("/camera/video", [T0_NS])[0]
     with pytest.raises(ConvertError) as caught:
-        convert_compressed_video(msg, ctx)
+        convert(convert_compressed_video, msg, ctx)
     assert str(caught.value) == (
         f"/camera/video: H264 sample of {len(avcc)} bytes does not start with an Annex B start "
         "code (00 00 01); Rerun needs Annex B, not the length-prefixed AVCC/HVCC form of MP4 "
@@ -320,15 +315,15 @@ def test_length_prefixed_avcc_samples_are_refused_naming_the_topic() -> None:
 def test_a_codec_change_is_refused_and_a_failed_run_leaves_the_topic_state_as_it_was() -> None:
     h264, h265 = encode(H264).packets[0], encode(H265).packets[0]
     messages = [compressed_video("h264", h264, STAMPS[0]), compressed_video("h265", h265, STAMPS[1])]
-    ctxs = contexts("/camera/video", STAMPS[:2], header=False)
+    ctxs = contexts("/camera/video", STAMPS[:2])
     with pytest.raises(ConvertError):
-        convert_compressed_video_run(messages, ctxs)
+        convert_run(convert_compressed_video, messages, ctxs)
     # The dispatcher retries message by message from here: the state is as the topic started.
     assert ctxs[0].state(VideoTopic).committed == VideoTopicState()
-    first = logged(convert_compressed_video(messages[0], ctxs[0]), "/bot/camera/video")
+    first = logged(convert(convert_compressed_video, messages[0], ctxs[0]), "/bot/camera/video")
     assert (first.codecs, first.samples) == ([H264.value], [h264])
     with pytest.raises(ConvertError) as caught:
-        convert_compressed_video(messages[1], ctxs[1])
+        convert(convert_compressed_video, messages[1], ctxs[1])
     assert str(caught.value) == (
         "/camera/video: video codec changed from H264 to H265; Rerun decodes one codec per "
         "entity, so the H265 samples are dropped (publish the new stream on its own topic)"
@@ -338,18 +333,18 @@ def test_a_codec_change_is_refused_and_a_failed_run_leaves_the_topic_state_as_it
 
 @pytest.mark.parametrize("codec", [H264, rr.VideoCodec.VP9], ids=lambda c: c.name)
 def test_an_empty_message_is_refused(codec: rr.VideoCodec) -> None:
-    ctx = contexts("/camera/video", [T0_NS], header=False)[0]
+    ctx = contexts("/camera/video", [T0_NS])[0]
     with pytest.raises(ConvertError) as caught:
-        convert_compressed_video(compressed_video(codec.name, b"", T0_NS), ctx)
+        convert(convert_compressed_video, compressed_video(codec.name, b"", T0_NS), ctx)
     assert str(caught.value) == (
         f"/camera/video: {codec.name} message holds no data; there is no picture to show"
     )
 
 
 def test_unknown_compressed_video_format_is_refused() -> None:
-    ctx = contexts("/camera/video", [T0_NS], header=False)[0]
+    ctx = contexts("/camera/video", [T0_NS])[0]
     with pytest.raises(ConvertError) as caught:
-        convert_compressed_video(compressed_video("mjpeg", b"\xff\xd8\xff", T0_NS), ctx)
+        convert(convert_compressed_video, compressed_video("mjpeg", b"\xff\xd8\xff", T0_NS), ctx)
     assert str(caught.value) == (
         "/camera/video: CompressedVideo format 'mjpeg' is not a codec Rerun decodes "
         "(h264/avc, h265/hevc, av1, vp8, vp9); its frames are dropped"
@@ -374,7 +369,7 @@ def test_format_spellings(fmt: str, codec: rr.VideoCodec | None) -> None:
 
 
 def test_registered_and_shown_in_a_2d_view() -> None:
-    assert default_registry().get(COMPRESSED_VIDEO).single is convert_compressed_video
+    assert default_registry().get(COMPRESSED_VIDEO) is convert_compressed_video
     topic = TopicEntry(ROBOT, "/camera/video", COMPRESSED_VIDEO, f"/{ROBOT}/camera/video")
     blueprint = build_blueprint([topic])
     found: list[rrb.View] = []
@@ -391,7 +386,7 @@ def test_registered_and_shown_in_a_2d_view() -> None:
 def test_single_message_compressed_image_path_is_the_run_of_one() -> None:
     stream = encode(H265)
     ctx = contexts("/cam", STAMPS[:1])[0]
-    entries = convert_compressed_image(compressed_image("hevc", stream.packets[0], T0_NS), ctx)
+    entries = convert(convert_compressed_image, compressed_image("hevc", stream.packets[0], T0_NS), ctx)
     got = logged(entries, "/bot/cam")
     assert (got.codecs, got.samples, got.keyframes) == ([H265.value], stream.packets[:1], [True])
 
