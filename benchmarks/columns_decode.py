@@ -1,4 +1,4 @@
-"""Columnar CDR decode (host_bridge/columns.py) against rosbags' ``deserialize_cdr`` per message.
+"""Columnar CDR decode (host_bridge/core/columns.py) against rosbags' ``deserialize_cdr`` per message.
 
 Three runs of ``--count`` messages (default 100k) serialized with rosbags, every message with its
 own stamp and values: Imu (frame ``imu_link``), JointState (6 joints, frame ``base_link``) and
@@ -31,7 +31,7 @@ import numpy.typing as npt
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
-from host_bridge.columns import Columns, read_columns
+from host_bridge.core.columns import Columns, read_columns
 
 BAG_RUN = 2048  # host_bridge/inputs/bag.py's run_size
 JOINTS = ["shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3"]

@@ -19,7 +19,7 @@ Baselines, timed in the same run on the same messages (``struct`` on the same bu
   colouring), then ``rr.Points3D``: the same output as ours. Ours is timed on a run of 100
   scans (one ``Points3D`` column partitioned by scan, as the dispatcher converts a bag's run of
   scans or a live backlog), which is judged against the target: a converter takes runs (the
-  contract, host_bridge/contract.py). A run of one scan (one ``Points3D``, what a live scan
+  contract, host_bridge/core/contract.py). A run of one scan (one ``Points3D``, what a live scan
   that arrives by itself costs) is printed for comparison: its
   fixed cost per call (building the points for one scan, its colours, the archetype, ~0.1 ms)
   is what the run form spreads over its scans.
@@ -55,9 +55,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # tests/ for ma
 
 from walls_4000 import RESOLUTION, SIZE, floor_plan
 
-from host_bridge.colormap import apply_colormap
-from host_bridge.contract import ConvertContext
-from host_bridge.registry import default_registry
+from host_bridge.core.colormap import apply_colormap
+from host_bridge.core.contract import ConvertContext
+from host_bridge.table.registry import default_registry
 from tests.host_bridge.sensor_test_support import convert, convert_run, header, make_ctx, msg
 
 BUDGET_SECONDS = 180

@@ -69,6 +69,7 @@ if str(ROOT) not in sys.path:
 from live_capacity import received_ns  # noqa: E402  (beside this script)
 
 from host_bridge.app import HostOptions, open_input  # noqa: E402
+from host_bridge.core.destinations import SinkOptions  # noqa: E402
 from host_bridge.demo.run import (  # noqa: E402
     DEMO_ROBOT,
     demo_robot_names,
@@ -76,13 +77,12 @@ from host_bridge.demo.run import (  # noqa: E402
     relay_bag,
     write_bags,
 )
-from host_bridge.destinations import SinkOptions  # noqa: E402
-from host_bridge.dispatch import Dispatcher  # noqa: E402
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun  # noqa: E402
 from host_bridge.inputs.live import LiveInput  # noqa: E402
 from host_bridge.inputs.queues import HeavyTopicsThinnedError  # noqa: E402
-from host_bridge.registry import Lane, Registry, default_registry  # noqa: E402
-from host_bridge.sink import RerunSink  # noqa: E402
+from host_bridge.outputs.sink import RerunSink  # noqa: E402
+from host_bridge.pipeline.dispatch import Dispatcher  # noqa: E402
+from host_bridge.table.registry import Lane, Registry, default_registry  # noqa: E402
 from robot_relay.session import ZenohOptions  # noqa: E402
 from robot_relay.wire import RawMessage  # noqa: E402
 
@@ -269,8 +269,8 @@ def run_phase(
         dispatcher = Dispatcher(sink, registry=registry)
         closing.callback(dispatcher.close)
         if slam:
-            from host_bridge.config import HostConfig
             from host_bridge.slam.feeder import SlamTap
+            from host_bridge.table.config import HostConfig
 
             config = HostConfig.builtin(registry)
             slam_tap = SlamTap(dispatcher, lambda robot: config.slam_settings(robot, True),

@@ -74,13 +74,13 @@ from bag_conversion import (  # noqa: E402  (beside this script)
 from converters import laser_scan, pcl_cloud  # noqa: E402
 
 from host_bridge.app import HostOptions, open_input  # noqa: E402
-from host_bridge.destinations import SinkOptions  # noqa: E402
-from host_bridge.dispatch import Dispatcher  # noqa: E402
+from host_bridge.core.destinations import SinkOptions  # noqa: E402
 from host_bridge.inputs.base import InputItem, MessageRun  # noqa: E402
 from host_bridge.inputs.live import LiveInput  # noqa: E402
-from host_bridge.offload import HeavyProcess  # noqa: E402
-from host_bridge.registry import default_registry  # noqa: E402
-from host_bridge.sink import RerunSink  # noqa: E402
+from host_bridge.outputs.sink import RerunSink  # noqa: E402
+from host_bridge.pipeline.dispatch import Dispatcher  # noqa: E402
+from host_bridge.pipeline.offload import HeavyProcess  # noqa: E402
+from host_bridge.table.registry import default_registry  # noqa: E402
 from robot_relay.session import ZenohOptions  # noqa: E402
 from robot_relay.wire import RawMessage  # noqa: E402
 from tests.integration.procs import free_port, listening, saving_viewer  # noqa: E402
@@ -151,7 +151,7 @@ def received_ns(run: Sequence[InputItem]) -> npt.NDArray[np.int64]:
 def host_pipeline(closing: ExitStack, viewer: str | None = None) -> tuple[Dispatcher, TimedDelivery]:
     """The host's dispatcher and a Rerun sink saving to /dev/null; with ``viewer``, logging to
     that viewer instead, heavy topics converted in a process of their own as ``swanky-host
-    --rerun-addr`` does (host_bridge/offload.py)."""
+    --rerun-addr`` does (host_bridge/pipeline/offload.py)."""
     sink = RerunSink(SinkOptions(save=Path("/dev/null")) if viewer is None else SinkOptions(connect=viewer))
     closing.callback(sink.close)
     dispatcher = Dispatcher(sink, registry=default_registry())

@@ -1,4 +1,4 @@
-"""Rerun's private calls (host_bridge/rerun_private.py) against the public ones they replace, on
+"""Rerun's private calls (host_bridge/core/rerun_private.py) against the public ones they replace, on
 the installed Rerun: whether they still earn their place after an upgrade.
 
 Each message is what a live Imu message of one row gives the sink: a Transform3D (its rotation
@@ -36,8 +36,8 @@ import pyarrow as pa
 import rerun as rr
 from rerun.chunk import RrdReader
 
-from host_bridge.contract import component_columns, repeated_texts
-from host_bridge.rerun_private import column_values, log_row, native, set_times
+from host_bridge.core.contract import component_columns, repeated_texts
+from host_bridge.core.rerun_private import column_values, log_row, native, set_times
 
 BUDGET_SECONDS = 90
 T0 = 1_700_000_000_000_000_000

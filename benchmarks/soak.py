@@ -6,7 +6,7 @@ and /map; 30 Hz /odom, 10 Hz /scan, 15 Hz 160x120 rgb8 images: 10x that is 550 m
 5.9 MB a second), looped by ``swanky-relay --bag --loop --rate 10`` on loopback into
 ``swanky-host --save soak.rrd`` in a temporary directory (deleted afterwards), which goes on in a
 new file every ``--save-split`` seconds (default 120; Rerun holds a file's index of its chunks in
-memory until the file closes, host_bridge/sink.py ``SavedFile``). Printed: each side's peak RSS
+memory until the file closes, host_bridge/outputs/sink.py ``SavedFile``). Printed: each side's peak RSS
 in the first and in the last window (5 minutes, or a third of a shorter run) and last / first,
 the figure that says "flat" (1.00) or "growing" (target: the host's within 10 %); the host's
 converted count from its closing summary; the files saved and ``rerun rrd verify`` of every one
@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run as a script: the project's packages and tests' helpers
     sys.path.insert(0, str(ROOT))
 
-from host_bridge.sink import split_path  # noqa: E402
+from host_bridge.outputs.sink import split_path  # noqa: E402
 from tests.integration.proc_sampler import Sampler  # noqa: E402
 from tests.integration.procs import free_port, rerun_binary  # noqa: E402
 from tests.integration.robot_traffic import Traffic, write_traffic_bag  # noqa: E402

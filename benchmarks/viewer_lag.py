@@ -2,7 +2,7 @@
 10 robots): ``swanky-host --demo --robots N --rerun-addr URL`` into Rerun's native viewer with
 software GL, against the same host in the same run with its pacing held.
 
-- baseline: host_bridge.thinning.BEHIND_S set to infinity before the host starts: the viewers'
+- baseline: host_bridge.pipeline.thinning.BEHIND_S set to infinity before the host starts: the viewers'
   stream flushed every 0.2 s, every heavy message sent (what the host did before issue 24, but
   for its pacer's waits, which held the robots back);
 - paced: the host as shipped (thinning.py: heavy topics latest-only at an adapted interval,
@@ -61,7 +61,7 @@ JOIN_TIMEOUT_S = 300.0
 ASK_EVERY_S = 0.5
 TARGET_S = 1.0
 XVFB_SCREEN = "1280x800x24"
-HELD = "import host_bridge.thinning as t; t.BEHIND_S = float('inf'); "
+HELD = "import host_bridge.pipeline.thinning as t; t.BEHIND_S = float('inf'); "
 HOST = "import sys; from host_bridge.cli import main; sys.exit(main(sys.argv[1:]))"
 LAG_LINE = re.compile(r"viewer lag: (\d+) ms at most in the last second")
 THINNED_LINE = re.compile(r"^\[(\S+)\] (\S+): (\d+)$", re.M)

@@ -24,7 +24,6 @@ import numpy.typing as npt
 import rerun as rr
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.contract import ConvertContext
 from host_bridge.converters import walls
 from host_bridge.converters.occupancy import grid_from_msg
 from host_bridge.converters.segments import (
@@ -35,8 +34,9 @@ from host_bridge.converters.segments import (
     occupied_mask,
     segments_to_mesh,
 )
-from host_bridge.options import GridOptions
-from host_bridge.state import RobotState, TopicState
+from host_bridge.core.contract import ConvertContext
+from host_bridge.core.options import GridOptions
+from host_bridge.core.state import RobotState, TopicState
 
 SIZE = 4000
 RESOLUTION = 0.05

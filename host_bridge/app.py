@@ -19,23 +19,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from host_bridge.blueprint import BlueprintFollower, check_blueprint_file
-from host_bridge.config import HostConfig
-from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import Dispatcher
+from host_bridge.core.destinations import SinkOptions
+from host_bridge.core.resources import ResourceResolver, RobotFetch, parse_package_path
 from host_bridge.errors import PartialConvertError, SinkError, relay_errors
 from host_bridge.inputs.base import Input
-from host_bridge.recorder import McapRecorder, RawOutput, may_hold_several_robots
-from host_bridge.registry import default_registry
-from host_bridge.resources import ResourceResolver, RobotFetch, parse_package_path
-from host_bridge.robot_files import RobotFiles
-from host_bridge.sink import APPLICATION_ID, RerunSink
+from host_bridge.inputs.robot_files import RobotFiles
+from host_bridge.outputs.blueprint import BlueprintFollower, check_blueprint_file
+from host_bridge.outputs.recorder import McapRecorder, RawOutput, may_hold_several_robots
+from host_bridge.outputs.sink import APPLICATION_ID, RerunSink
+from host_bridge.pipeline.dispatch import Dispatcher
+from host_bridge.table.config import HostConfig
+from host_bridge.table.registry import default_registry
 from robot_relay.session import ZenohOptions, close_session
 from robot_relay.wire import check_robot_name
 
 if TYPE_CHECKING:
     from host_bridge.demo.run import DemoPlan
-    from host_bridge.offload import HeavyProcess
+    from host_bridge.pipeline.offload import HeavyProcess
     from host_bridge.slam.feeder import SlamTap
 
 log = logging.getLogger("swanky.host")
@@ -117,8 +117,8 @@ def resolver(package_path: tuple[str, ...], robot_fetch: RobotFetch | None = Non
 def log_urdf_file(robot: str, urdf: Path, dispatcher: Dispatcher) -> None:
     """The --urdf model of robot --robot, logged once (static) before any data; the robot's
     /robot_description is then not drawn."""
-    from host_bridge.contract import ConvertContext
     from host_bridge.converters.urdf.description import model_items_from_file
+    from host_bridge.core.contract import ConvertContext
 
     ctx = ConvertContext(
         robot=robot, topic="/robot_description", entity_path=f"/{robot}/robot_model",
@@ -149,7 +149,7 @@ def open_input(
 ) -> Input:
     """The input the options name, with the taps that go with it; ``closing`` closes what was
     opened (the input first, the Zenoh session last)."""
-    from host_bridge.stats import StatsTap
+    from host_bridge.outputs.stats import StatsTap
 
     if options.bag is not None:
         from host_bridge.inputs.bag import BagInput
@@ -270,12 +270,12 @@ def run(
     viewer = sink.shared_viewer()
     # The converter process gets its end of a socket pair by file descriptor (POSIX).
     if live and viewer is not None and os.name == "posix":
-        from host_bridge.offload import HeavyProcess
+        from host_bridge.pipeline.offload import HeavyProcess
 
         dispatcher.offload = outputs.offload = HeavyProcess(
             dispatcher, viewer, sink.recording_id, give_up)
     if sink.viewer_lag is not None:
-        from host_bridge.thinning import ViewerThinning
+        from host_bridge.pipeline.thinning import ViewerThinning
 
         if outputs.offload is not None:
             heavy = outputs.offload
@@ -287,7 +287,7 @@ def run(
     progress = None
     extent = None
     if options.bag is not None:
-        from host_bridge.progress import Progress, bag_extent
+        from host_bridge.outputs.progress import Progress, bag_extent
 
         extent = bag_extent(options.bag)
         progress = Progress(extent)

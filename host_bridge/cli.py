@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from host_bridge.destinations import LOOPBACK, SAVE_SPLIT_S, SinkOptions
+from host_bridge.core.destinations import LOOPBACK, SAVE_SPLIT_S, SinkOptions
 from host_bridge.errors import HostError
 from robot_relay.session import add_zenoh_arguments, zenoh_options
 

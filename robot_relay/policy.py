@@ -52,7 +52,7 @@ SENSOR = TrafficClass("data", "drop")
 VIDEO = TrafficClass("data_low", "block")
 
 # The types forwarded other than DEFAULT_TRAFFIC: a copy of the traffic column of the host's type
-# table (host_bridge/registry.py), which the robot does not have; tests/host_bridge/test_registry.py
+# table (host_bridge/table/registry.py), which the robot does not have; tests/host_bridge/test_registry.py
 # checks the two agree.
 TRAFFIC: Mapping[str, TrafficClass] = {
     "tf2_msgs/msg/TFMessage": FRAMES,

@@ -10,7 +10,7 @@
   its reason.
 - The type table's module imports no converter at module level: the command line imports it
   and must start without them.
-- Only ``host_bridge/rerun_private.py`` uses Rerun's private API (:data:`RERUN_PRIVATE_NAMES`).
+- Only ``host_bridge/core/rerun_private.py`` uses Rerun's private API (:data:`RERUN_PRIVATE_NAMES`).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ HOST_MAY_IMPORT: dict[str, tuple[str, str]] = {
     "robot_relay.files": ("host_bridge", "--package-path NAME=DIR is parsed alike on both commands"),
     "robot_relay.relay": ("host_bridge.demo", "the demo is a simulated robot: it runs a relay"),
     "robot_relay.policy": (
-        "host_bridge.registry", "a row names the relay's traffic class of its type (TrafficClass), "
+        "host_bridge.table.registry", "a row names the relay's traffic class of its type (TrafficClass), "
         "checked against the relay's own table",
     ),
     "robot_relay.sources.mcap": (
@@ -52,19 +52,13 @@ HOST_MAY_IMPORT: dict[str, tuple[str, str]] = {
 # the longest prefix naming it.
 LAYERS: list[tuple[str, list[str]]] = [
     ("errors", ["host_bridge.errors"]),
-    ("core: records, contract, decoding, frame names", [
-        "host_bridge.options", "host_bridge.resources", "host_bridge.schemas", "host_bridge.decode",
-        "host_bridge.columns", "host_bridge.state", "host_bridge.contract", "host_bridge.counters",
-        "host_bridge.colormap", "host_bridge.rvl", "host_bridge.destinations",
-        "host_bridge.frames", "host_bridge.rerun_private",
-    ]),
+    ("core: records, contract, decoding, frame names", ["host_bridge.core"]),
     ("converters", ["host_bridge.converters"]),
     ("slam", ["host_bridge.slam"]),
-    ("the type table and the configuration", ["host_bridge.registry", "host_bridge.config"]),
-    ("inputs", ["host_bridge.inputs", "host_bridge.robot_files"]),
-    ("outputs", ["host_bridge.sink", "host_bridge.blueprint", "host_bridge.recorder", "host_bridge.stats",
-                 "host_bridge.progress", "host_bridge.viewer_lag"]),
-    ("pipeline", ["host_bridge.dispatch", "host_bridge.offload", "host_bridge.thinning"]),
+    ("the type table and the configuration", ["host_bridge.table"]),
+    ("inputs", ["host_bridge.inputs"]),
+    ("outputs", ["host_bridge.outputs"]),
+    ("pipeline", ["host_bridge.pipeline"]),
     ("app", ["host_bridge", "host_bridge.app", "host_bridge.cli", "host_bridge.listing",
              "host_bridge.demo"]),
 ]
@@ -188,10 +182,10 @@ def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
 def test_the_imports_are_found() -> None:
     """The scan itself: known imports of each kind are seen as what they are."""
     seen = {(i.importer, i.imported, i.when) for i in ALL_IMPORTS}
-    assert ("host_bridge.blueprint", "host_bridge.registry", "module") in seen
-    assert ("host_bridge.registry", "host_bridge.converters.laser", "function") in seen
-    assert ("host_bridge.stats", "host_bridge.sink", "typing") in seen
-    assert ("host_bridge.dispatch", "robot_relay.wire", "module") in seen
+    assert ("host_bridge.outputs.blueprint", "host_bridge.table.registry", "module") in seen
+    assert ("host_bridge.table.registry", "host_bridge.converters.laser", "function") in seen
+    assert ("host_bridge.outputs.stats", "host_bridge.outputs.sink", "typing") in seen
+    assert ("host_bridge.pipeline.dispatch", "robot_relay.wire", "module") in seen
 
 
 def host_graph(*when: str) -> dict[str, set[str]]:
@@ -227,8 +221,8 @@ def test_host_modules_import_only_their_layer_and_the_ones_below() -> None:
 
 
 def test_the_layer_check_sees_an_upward_import() -> None:
-    assert layer_of("host_bridge.converters.laser") > layer_of("host_bridge.contract")
-    assert layer_of("host_bridge.dispatch") > layer_of("host_bridge.sink")
+    assert layer_of("host_bridge.converters.laser") > layer_of("host_bridge.core.contract")
+    assert layer_of("host_bridge.pipeline.dispatch") > layer_of("host_bridge.outputs.sink")
 
 
 def test_cycle_finder_finds_a_cycle() -> None:
@@ -268,14 +262,14 @@ def test_host_imports_only_the_robot_modules_it_is_allowed() -> None:
 
 
 def test_the_type_table_imports_no_converter_at_module_level() -> None:
-    table = [i for i in ALL_IMPORTS if i.importer == "host_bridge.registry" and i.module_level]
+    table = [i for i in ALL_IMPORTS if i.importer == "host_bridge.table.registry" and i.module_level]
     assert [where(i) for i in table if in_package(i.imported, "host_bridge.converters")] == []
 
 
 # Rerun's private API: its native module, its private modules (``rerun._log``), and the private or
 # undocumented attributes Swanky has used. Only RERUN_PRIVATE may use them (its docstring says why
 # each, and tests/host_bridge/test_rerun_private.py checks them on the installed Rerun).
-RERUN_PRIVATE = "host_bridge.rerun_private"
+RERUN_PRIVATE = "host_bridge.core.rerun_private"
 RERUN_PRIVATE_NAMES = frozenset({"to_native", "component_batch", "_offsets"})
 CHECKED_FOR_RERUN = ("host_bridge", "robot_relay", "benchmarks", "scripts", "tests")
 
@@ -329,3 +323,16 @@ def test_the_rerun_scan_sees_each_kind_of_private_use(tmp_path: Path) -> None:
         "column.component_batch", "from rerun._log import log", "getattr(column, '_offsets')",
         "import rerun_bindings", "rr._send_columns", "stream.to_native",
     ]
+
+
+def test_every_package_is_installed_by_a_non_editable_install() -> None:
+    """pyproject.toml lists the packages setuptools installs: a folder missing there is missing
+    from ``pip install .`` (the README's demo command), though an editable install finds it."""
+    import tomllib
+
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    folders = {
+        ".".join(init.parent.relative_to(ROOT).parts)
+        for package in PACKAGES for init in (ROOT / package).rglob("__init__.py")
+    }
+    assert folders == listed - {"swanky_schemas"}

@@ -9,8 +9,8 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.columns import Columns
-from host_bridge.contract import ConvertContext
+from host_bridge.core.columns import Columns
+from host_bridge.core.contract import ConvertContext
 
 # A block's number columns (columns.Block.numbers): read directly where a run's blocks differ in
 # shape (TF messages of one and of two transforms).

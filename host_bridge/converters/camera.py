@@ -34,8 +34,8 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components, header_frame
+from host_bridge.core.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.errors import ConvertError
 
 

@@ -14,7 +14,7 @@ from typing import Any
 
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
+from host_bridge.core.contract import ConvertContext, LogEntry, LogItem, per_message
 
 _OK, _WARN, _ERROR = 0, 1, 2
 _LEVELS = {

@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, LogEntry, LogItem, Run
+from host_bridge.core.contract import ColumnsItem, LogEntry, LogItem, Run
+from host_bridge.core.options import GenericOptions
 from host_bridge.errors import PartialConvertError
-from host_bridge.options import GenericOptions
 
 _TIME_TYPES = ("builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration")
 MAX_SEQUENCE_MESSAGES = 16

@@ -12,10 +12,10 @@ from __future__ import annotations
 import numpy as np
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, LogEntry, Run
 from host_bridge.converters._common import stamps_ns
 from host_bridge.converters.scalars import scalar_columns
-from host_bridge.options import NavSatFixOptions
+from host_bridge.core.contract import ColumnsItem, LogEntry, Run
+from host_bridge.core.options import NavSatFixOptions
 
 STATUS_NO_FIX = -1
 COVARIANCE_TYPE_UNKNOWN = 0

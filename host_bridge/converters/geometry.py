@@ -6,7 +6,7 @@ naming a child frame would collide with /tf publishing the same frame. Everythin
 carries along (trail, covariance) is drawn in the *header* frame, so it stays put while the
 pose moves.
 
-Options (:class:`~host_bridge.options.PoseOptions` and its kin): ``trail_length`` (points,
+Options (:class:`~host_bridge.core.options.PoseOptions` and its kin): ``trail_length`` (points,
 0 = off; a point is added once the pose moved more than 1 cm), ``axis_length`` (m),
 ``arrow_length`` (PoseArray, m), ``sigma`` (covariance ellipsoid scale in standard deviations).
 """
@@ -21,8 +21,9 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.columns import Columns
-from host_bridge.contract import (
+from host_bridge.converters._common import frame_components, stamps_ns, vectors
+from host_bridge.core.columns import Columns
+from host_bridge.core.contract import (
     ColumnsItem,
     ConvertContext,
     Converter,
@@ -32,8 +33,7 @@ from host_bridge.contract import (
     TopicContext,
     per_message,
 )
-from host_bridge.converters._common import frame_components, stamps_ns, vectors
-from host_bridge.options import PoseArrayOptions, PoseCovarianceOptions, PoseOptions
+from host_bridge.core.options import PoseArrayOptions, PoseCovarianceOptions, PoseOptions
 
 Float64Array = npt.NDArray[np.float64]
 RowIndex = npt.NDArray[np.intp]

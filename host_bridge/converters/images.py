@@ -23,7 +23,7 @@ Why it is built this way:
   names a video codec (``h264``, ``hevc``, ...) become ``VideoStream`` samples, also undecoded
   (see :mod:`host_bridge.converters.video`). ``compressedDepth``
   (image_transport's compressed_depth plugin: PNG or RVL after a 12-byte config header; the RVL
-  codec is :mod:`host_bridge.rvl`) is decoded here into a ``DepthImage``, because a 32FC1 payload
+  codec is :mod:`host_bridge.core.rvl`) is decoded here into a ``DepthImage``, because a 32FC1 payload
   holds inverse-quantized values only the host-side formula turns back into metres.
 * Images carry no ``CoordinateFrame``: they must stay in the implicit frame of their entity path
   so that they land in the image plane of the pinhole the CameraInfo converter logs at the camera
@@ -44,11 +44,11 @@ import numpy.typing as npt
 import pyarrow as pa
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, LogEntry, LogItem, Run, header_stamp, per_message
 from host_bridge.converters.video import CODEC_SPELLINGS, VideoFrame, video_codec, video_entries
+from host_bridge.core.contract import ConvertContext, LogEntry, LogItem, Run, header_stamp, per_message
+from host_bridge.core.options import ImageOptions, converter_choices
+from host_bridge.core.rvl import rvl_decode
 from host_bridge.errors import ConvertError
-from host_bridge.options import ImageOptions, converter_choices
-from host_bridge.rvl import rvl_decode
 from robot_relay.wire import MAX_DECOMPRESSED_BYTES
 
 _MODES = converter_choices(ImageOptions)

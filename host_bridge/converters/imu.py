@@ -10,7 +10,7 @@ drivers (the phidgets bag) send the all-zero quaternion instead. Both become the
 rotation, never a normalised NaN, so the arrows stay attached to the sensor frame and the
 scalars are unaffected. A MagneticField of three NaNs (no new sample) is skipped.
 
-Options (:class:`~host_bridge.options.ImuOptions`): ``acceleration_scale`` (m of arrow per
+Options (:class:`~host_bridge.core.options.ImuOptions`): ``acceleration_scale`` (m of arrow per
 m/s^2), ``angular_velocity_scale`` (m per rad/s), ``axis_length`` (m).
 """
 
@@ -23,15 +23,6 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.columns import Columns
-from host_bridge.contract import (
-    ColumnsItem,
-    LogEntry,
-    LogItem,
-    Run,
-    component_columns,
-    repeated_texts,
-)
 from host_bridge.converters._common import stamps_ns, vectors
 from host_bridge.converters.scalars import (
     SubPath,
@@ -39,7 +30,16 @@ from host_bridge.converters.scalars import (
     scalar_columns,
     series_names_once,
 )
-from host_bridge.options import ImuOptions
+from host_bridge.core.columns import Columns
+from host_bridge.core.contract import (
+    ColumnsItem,
+    LogEntry,
+    LogItem,
+    Run,
+    component_columns,
+    repeated_texts,
+)
+from host_bridge.core.options import ImuOptions
 
 XYZ = ("x", "y", "z")
 _VECTORS = ("linear_acceleration", "angular_velocity")

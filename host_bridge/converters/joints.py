@@ -38,7 +38,14 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import (
+from host_bridge.converters._common import stamps_ns
+from host_bridge.converters.urdf.kinematics import (
+    MOVABLE_TYPES,
+    FloatArray,
+    follow_drivers,
+    joint_motion,
+)
+from host_bridge.core.contract import (
     ColumnsItem,
     ConvertContext,
     LogEntry,
@@ -47,15 +54,8 @@ from host_bridge.contract import (
     TopicContext,
     per_message,
 )
-from host_bridge.converters._common import stamps_ns
-from host_bridge.converters.urdf.kinematics import (
-    MOVABLE_TYPES,
-    FloatArray,
-    follow_drivers,
-    joint_motion,
-)
+from host_bridge.core.state import JointModel, RobotModel
 from host_bridge.errors import ConvertError, PartialConvertError
-from host_bridge.state import JointModel, RobotModel
 
 
 def joint_entity_path(robot: str, joint: str) -> str:

@@ -25,8 +25,9 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.colormap import colormap_packed
-from host_bridge.contract import (
+from host_bridge.converters._common import frame_components, header_frame
+from host_bridge.core.colormap import colormap_packed
+from host_bridge.core.contract import (
     ColumnsItem,
     ConvertContext,
     LogEntry,
@@ -35,9 +36,8 @@ from host_bridge.contract import (
     TopicContext,
     per_message,
 )
-from host_bridge.converters._common import frame_components, header_frame
+from host_bridge.core.options import LaserScanOptions, converter_choices
 from host_bridge.errors import ConvertError
-from host_bridge.options import LaserScanOptions, converter_choices
 
 _MODES = converter_choices(LaserScanOptions)
 

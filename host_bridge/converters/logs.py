@@ -13,8 +13,8 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, Converter, LogEntry, Run
 from host_bridge.converters._common import stamp_ns
+from host_bridge.core.contract import ColumnsItem, Converter, LogEntry, Run
 
 # Rerun levels from least to most severe; a ROS level at or above threshold i maps to entry i+1.
 _RR_LEVELS = np.array(

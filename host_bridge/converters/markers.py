@@ -38,8 +38,8 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import stamp_ns, xyz, xyzw
+from host_bridge.core.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.errors import ConvertError
 
 (ARROW, CUBE, SPHERE, CYLINDER, LINE_STRIP, LINE_LIST, CUBE_LIST, SPHERE_LIST, POINTS,

@@ -1,6 +1,6 @@
 """nav_msgs: planned paths and grid cells (costmap obstacles, frontiers) in their header frame.
 
-Path options (:class:`~host_bridge.options.PathOptions`): ``arrows`` (draw each pose's heading
+Path options (:class:`~host_bridge.core.options.PathOptions`): ``arrows`` (draw each pose's heading
 too), ``arrow_length`` (m).
 """
 
@@ -11,10 +11,10 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components
 from host_bridge.converters.geometry import points_array, pose_arrays, pose_arrows
-from host_bridge.options import PathOptions
+from host_bridge.core.contract import ConvertContext, LogEntry, LogItem, per_message
+from host_bridge.core.options import PathOptions
 
 # GridCells are flat squares in RViz; a box this thin reads as a tile without z-fighting the map.
 _CELL_THICKNESS_M = 0.01

@@ -46,11 +46,11 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components, xyz, xyzw
+from host_bridge.core.contract import ConvertContext, LogEntry, LogItem, per_message
+from host_bridge.core.options import CostmapUpdateOptions, GridDrawingOptions, GridOptions, GridUpdateOptions
+from host_bridge.core.state import Grid
 from host_bridge.errors import ConvertError
-from host_bridge.options import CostmapUpdateOptions, GridDrawingOptions, GridOptions, GridUpdateOptions
-from host_bridge.state import Grid
 
 UPDATES_SUFFIX = "_updates"
 

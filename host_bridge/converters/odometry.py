@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, LogEntry, Run
 from host_bridge.converters._common import stamps_ns, vectors
 from host_bridge.converters.geometry import pose_columns
+from host_bridge.core.contract import ColumnsItem, LogEntry, Run
 
 TWIST_SERIES = ("linear/x", "linear/y", "linear/z", "angular/x", "angular/y", "angular/z")
 

@@ -23,11 +23,11 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.colormap import colormap_packed
-from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components
+from host_bridge.core.colormap import colormap_packed
+from host_bridge.core.contract import ConvertContext, LogEntry, LogItem, per_message
+from host_bridge.core.options import PointCloudOptions
 from host_bridge.errors import ConvertError
-from host_bridge.options import PointCloudOptions
 
 # PointField.datatype -> numpy type code (byte order is added per cloud).
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}

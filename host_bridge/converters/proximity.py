@@ -20,8 +20,8 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components
+from host_bridge.core.contract import ConvertContext, LogEntry, LogItem, per_message
 
 _RIM_SEGMENTS = 32
 _EDGES = 4

@@ -18,8 +18,9 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.columns import Columns
-from host_bridge.contract import (
+from host_bridge.converters._common import stamps_ns
+from host_bridge.core.columns import Columns
+from host_bridge.core.contract import (
     ColumnsItem,
     Converter,
     LogEntry,
@@ -28,7 +29,6 @@ from host_bridge.contract import (
     TopicContext,
     component_columns,
 )
-from host_bridge.converters._common import stamps_ns
 from host_bridge.errors import ConvertError
 
 SubPath = tuple[str, ...]

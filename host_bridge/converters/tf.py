@@ -15,8 +15,9 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.columns import Block, Columns
-from host_bridge.contract import (
+from host_bridge.converters._common import stamps_ns, vectors
+from host_bridge.core.columns import Block, Columns
+from host_bridge.core.contract import (
     ColumnsItem,
     LogEntry,
     LogItem,
@@ -25,9 +26,8 @@ from host_bridge.contract import (
     component_columns,
     repeated_texts,
 )
-from host_bridge.converters._common import stamps_ns, vectors
-from host_bridge.options import TfOptions
-from host_bridge.state import static_transform_path
+from host_bridge.core.options import TfOptions
+from host_bridge.core.state import static_transform_path
 
 
 def _is_static(ctx: TopicContext) -> bool:

@@ -40,7 +40,7 @@ import numpy.typing as npt
 import pyarrow as pa
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, LogEntry, LogItem, RowIndex, Run
+from host_bridge.core.contract import ColumnsItem, LogEntry, LogItem, RowIndex, Run
 from host_bridge.errors import ConvertError
 
 COMPRESSED_VIDEO = "foxglove_msgs/msg/CompressedVideo"

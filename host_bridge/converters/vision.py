@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components, xyz, xyzw
+from host_bridge.core.contract import ConvertContext, LogEntry, LogItem, per_message
 
 _MAX_CLASS_ID = 0xFFFF  # Rerun class ids are u16
 

@@ -31,7 +31,7 @@ entity already shows yields no items, so a re-published static map costs one has
 (``robot_state.wall_digests``, keyed by wall entity: a grid and its updates draw the same
 walls). A grid without walls yields a ``Clear`` of the wall entity.
 
-Options (the grid topic's :class:`~host_bridge.options.GridOptions`, which holds the fixed
+Options (the grid topic's :class:`~host_bridge.core.options.GridOptions`, which holds the fixed
 defaults; a nav2 costmap's record has none, and it no walls; lengths in metres): ``walls``
 (default: on for topics whose last name part is ``map``), ``wall_height``, ``wall_thickness``
 (default one cell but at least 0.05),
@@ -57,7 +57,6 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters._common import frame_components
 from host_bridge.converters.occupancy import grid_for_update, grid_from_msg
 from host_bridge.converters.segments import (
@@ -70,9 +69,10 @@ from host_bridge.converters.segments import (
     occupied_mask,
     segments_to_mesh,
 )
+from host_bridge.core.contract import ConvertContext, LogEntry, LogItem, per_message
+from host_bridge.core.options import GridOptions, GridUpdateOptions
+from host_bridge.core.state import Grid, RobotState
 from host_bridge.errors import ConvertError
-from host_bridge.options import GridOptions, GridUpdateOptions
-from host_bridge.state import Grid, RobotState
 
 WALLS_CHILD = "walls"
 

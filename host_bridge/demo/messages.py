@@ -22,6 +22,8 @@ from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
 from host_bridge.converters.urdf.kinematics import joint_motion
+from host_bridge.core.options import GridOptions
+from host_bridge.core.state import JointModel
 from host_bridge.demo.driver import LOGGER_NAME, Driver, Step
 from host_bridge.demo.robot import (
     BASE_FOOTPRINT_FRAME,
@@ -59,8 +61,6 @@ from host_bridge.demo.sensors import (
     imu_acceleration,
 )
 from host_bridge.demo.world import WALLS
-from host_bridge.options import GridOptions
-from host_bridge.state import JointModel
 
 Xyzw = tuple[float, float, float, float]
 

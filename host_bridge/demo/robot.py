@@ -25,8 +25,8 @@ from importlib import resources
 import numpy as np
 
 from host_bridge.converters.urdf.kinematics import robot_kinematics
+from host_bridge.core.state import JointModel
 from host_bridge.demo.world import WAYPOINTS, FloatArray
-from host_bridge.state import JointModel
 
 Xyz = tuple[float, float, float]
 

@@ -15,7 +15,7 @@ import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from host_bridge.columns import PackedPayloads
+from host_bridge.core.columns import PackedPayloads
 from host_bridge.errors import InputError
 from host_bridge.inputs.base import Deliver, MessageRun
 from robot_relay.errors import SourceError

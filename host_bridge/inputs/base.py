@@ -3,7 +3,7 @@
 An input (a bag, the robots reached over Zenoh, the demo) turns what it reads into runs of
 :data:`InputItem`: RawMessages, the problems it met on the way (a sample it could not parse) and
 robots joining or leaving. ``host_bridge/app.py`` starts one with
-:meth:`Dispatcher.take <host_bridge.dispatch.Dispatcher.take>` as the place to put them, waits
+:meth:`Dispatcher.take <host_bridge.pipeline.dispatch.Dispatcher.take>` as the place to put them, waits
 until it ends (a bag) or the host stops (live), and closes it. Push, not pull: live inputs
 receive on Zenoh's threads and convert each robot on a thread of its own (inputs/queues.py), so
 one slow robot delays only itself; a bag reads on its own thread and pushes its runs the same
@@ -20,8 +20,8 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.columns import PackedPayloads
-from host_bridge.contract import TIMELINE_RECEIVE, LogItem
+from host_bridge.core.columns import PackedPayloads
+from host_bridge.core.contract import TIMELINE_RECEIVE, LogItem
 from robot_relay.wire import MessageDefinition, RawMessage
 
 PRESENCE_PATH = "/_swanky/robots"

@@ -65,14 +65,14 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from host_bridge.contract import STATS_ROOT
+from host_bridge.core.contract import STATS_ROOT
 from host_bridge.errors import HostError
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun
-from host_bridge.registry import Lane
+from host_bridge.table.registry import Lane
 from robot_relay.wire import RawMessage
 
 if TYPE_CHECKING:
-    from host_bridge.registry import Registry
+    from host_bridge.table.registry import Registry
 
 log = logging.getLogger("swanky.host")
 
@@ -150,7 +150,7 @@ class TypeLanes:
         found = self._known.get(key)
         if found is None:
             if self._registry is None:
-                from host_bridge.registry import default_registry
+                from host_bridge.table.registry import default_registry
 
                 self._registry = default_registry()
             found = self._known[key] = self._registry.row(raw.msgtype, raw.topic).lane

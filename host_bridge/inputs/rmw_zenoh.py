@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import zenoh
 from zenoh import ext
 
+from host_bridge.core.schemas import BundledDefinitions
 from host_bridge.errors import GraphError, UnknownTypeError
 from host_bridge.inputs.base import InputProblem, RobotEvent
 from host_bridge.inputs.queues import RobotQueues
@@ -45,7 +46,6 @@ from host_bridge.inputs.rmw_keys import (
     rmw_liveliness_selector,
 )
 from host_bridge.inputs.zenoh import check_robot_pattern, robot_matches
-from host_bridge.schemas import BundledDefinitions
 from robot_relay.wire import ROBOT_NAME_PATTERN, MessageDefinition, RawMessage
 
 log = logging.getLogger("swanky.host")

@@ -27,7 +27,7 @@ import numpy as np
 import zenoh
 from zenoh import ext
 
-from host_bridge.columns import PackedPayloads
+from host_bridge.core.columns import PackedPayloads
 from host_bridge.errors import ConfigError, TypeMismatchError
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun, RobotEvent
 from host_bridge.inputs.clocks import RelayClocks

@@ -41,7 +41,11 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import (
+from host_bridge.converters._common import frame_components, stamp_ns
+from host_bridge.converters.occupancy import grid_items
+from host_bridge.converters.segments import TileCache
+from host_bridge.converters.walls import grid_wall_items
+from host_bridge.core.contract import (
     STATS_ROOT,
     TIMELINE_LOG,
     TIMELINE_RECEIVE,
@@ -49,11 +53,9 @@ from host_bridge.contract import (
     LogEntry,
     LogItem,
 )
-from host_bridge.converters._common import frame_components, stamp_ns
-from host_bridge.converters.occupancy import grid_items
-from host_bridge.converters.segments import TileCache
-from host_bridge.converters.walls import grid_wall_items
-from host_bridge.decode import Decoder
+from host_bridge.core.decode import Decoder
+from host_bridge.core.options import GridOptions
+from host_bridge.core.state import Grid, RobotState
 from host_bridge.errors import (
     HostError,
     NoLaserTransformError,
@@ -64,13 +66,11 @@ from host_bridge.errors import (
     SparseScanError,
     StampBackwardsError,
 )
-from host_bridge.options import GridOptions
 from host_bridge.slam.engine import Slam, Update
 from host_bridge.slam.files import TRAJECTORY, write_map, write_trajectory
 from host_bridge.slam.pose import Pose2, between, compose, inverse, pose2, quaternion_of, yaw_of
 from host_bridge.slam.scan import Scan, finite_scan_geometry, scan_from_msg
 from host_bridge.slam.settings import NO_ODOMETRY, ODOMETRY_FROM_TF, SlamSettings
-from host_bridge.state import Grid, RobotState
 from robot_relay.wire import RawMessage
 
 log = logging.getLogger("swanky.host")

@@ -26,7 +26,7 @@ from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from rosbags.interfaces import Nodetype
 
-from host_bridge.schemas import base_typestore
+from host_bridge.core.schemas import base_typestore
 
 FUZZ = settings(
     derandomize=True,

@@ -16,11 +16,11 @@ from typing import Any, cast
 import pytest
 from hypothesis import given, settings
 
-from host_bridge.config import HostConfig
-from host_bridge.contract import WARNINGS_PATH, ColumnsItem, LogEntry, LogItem
-from host_bridge.decode import Decoder
-from host_bridge.dispatch import Dispatcher
-from host_bridge.registry import Row, default_registry
+from host_bridge.core.contract import WARNINGS_PATH, ColumnsItem, LogEntry, LogItem
+from host_bridge.core.decode import Decoder
+from host_bridge.pipeline.dispatch import Dispatcher
+from host_bridge.table.config import HostConfig
+from host_bridge.table.registry import Row, default_registry
 from robot_relay.wire import RawMessage
 from tests.fuzz.fuzzing import FUZZ, STORE, payloads
 from tests.reliability import Record

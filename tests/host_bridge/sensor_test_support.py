@@ -15,8 +15,8 @@ from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Nodetype
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.columns import Columns, columns_of_messages
-from host_bridge.contract import (
+from host_bridge.core.columns import Columns, columns_of_messages
+from host_bridge.core.contract import (
     ColumnsItem,
     ConvertContext,
     Converter,
@@ -25,7 +25,7 @@ from host_bridge.contract import (
     Run,
     message_run,
 )
-from host_bridge.state import RobotState, TopicState
+from host_bridge.core.state import RobotState, TopicState
 
 ROBOT = "r"
 TYPES = get_typestore(Stores.ROS2_HUMBLE).types

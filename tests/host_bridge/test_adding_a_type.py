@@ -13,13 +13,13 @@ import rerun as rr
 import rerun.blueprint as rrb
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from host_bridge.blueprint import BlueprintFollower, TopicEntry, build_blueprint
-from host_bridge.contract import ColumnsItem, LogEntry, Run
 from host_bridge.converters._common import stamps_ns
-from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import Dispatcher
-from host_bridge.registry import Registry, Row, View, default_registry
-from host_bridge.sink import RerunSink
+from host_bridge.core.contract import ColumnsItem, LogEntry, Run
+from host_bridge.core.destinations import SinkOptions
+from host_bridge.outputs.blueprint import BlueprintFollower, TopicEntry, build_blueprint
+from host_bridge.outputs.sink import RerunSink
+from host_bridge.pipeline.dispatch import Dispatcher
+from host_bridge.table.registry import Registry, Row, View, default_registry
 from robot_relay.wire import MessageDefinition, RawMessage
 from tests.rrd import entity_rows
 

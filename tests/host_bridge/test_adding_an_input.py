@@ -16,8 +16,8 @@ import pytest
 from rosbags.typesys import Stores, get_typestore
 
 from host_bridge import app, cli
-from host_bridge.dispatch import Dispatcher
 from host_bridge.inputs.base import Deliver, Input, RobotEvent
+from host_bridge.pipeline.dispatch import Dispatcher
 from robot_relay.wire import RawMessage
 from tests.rrd import entity_rows
 

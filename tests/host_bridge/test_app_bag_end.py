@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from host_bridge import app
-from host_bridge.destinations import SinkOptions
+from host_bridge.core.destinations import SinkOptions
 from host_bridge.errors import InputError
 from host_bridge.inputs.bag import BagInput
 from host_bridge.inputs.base import Deliver, InputItem

@@ -14,13 +14,13 @@ import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from host_bridge.blueprint import BlueprintFollower, TopicEntry, build_blueprint
 from host_bridge.cli import main as host_main
+from host_bridge.core.destinations import SinkOptions
 from host_bridge.demo.bag import write_demo_bag
-from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import Dispatcher
-from host_bridge.registry import default_registry
-from host_bridge.sink import APPLICATION_ID, RerunSink
+from host_bridge.outputs.blueprint import BlueprintFollower, TopicEntry, build_blueprint
+from host_bridge.outputs.sink import APPLICATION_ID, RerunSink
+from host_bridge.pipeline.dispatch import Dispatcher
+from host_bridge.table.registry import default_registry
 from robot_relay.wire import RawMessage
 from tests.host_bridge.sensor_test_support import convert, make_ctx
 from tests.host_bridge.test_dispatch import float_cdr, string_cdr

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from host_bridge import cli
-from host_bridge.sink import VIEWER_PORT
+from host_bridge.outputs.sink import VIEWER_PORT
 from robot_relay import cli as relay_cli
 from tests.integration.procs import free_port
 from tests.integration.robot_bags import Entry, joint_state, tf_message, transform, write_bag

@@ -16,16 +16,16 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.columns import PackedPayloads
-from host_bridge.config import HostConfig
-from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, message_run
-from host_bridge.decode import Decoder
-from host_bridge.dispatch import Dispatcher
+from host_bridge.core.columns import PackedPayloads
+from host_bridge.core.contract import ColumnsItem, ConvertContext, LogEntry, message_run
+from host_bridge.core.decode import Decoder
+from host_bridge.core.frames import frames_logged
+from host_bridge.core.state import RobotState, TopicState
 from host_bridge.errors import PartialConvertError
-from host_bridge.frames import frames_logged
 from host_bridge.inputs.base import MessageRun
-from host_bridge.registry import default_registry
-from host_bridge.state import RobotState, TopicState
+from host_bridge.pipeline.dispatch import Dispatcher
+from host_bridge.table.config import HostConfig
+from host_bridge.table.registry import default_registry
 from robot_relay.wire import RawMessage
 from tests.host_bridge.converters.test_joints import ARM, joints_ctx
 

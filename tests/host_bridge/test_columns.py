@@ -1,4 +1,4 @@
-"""Columns of a run of CDR payloads (host_bridge/columns.py) equal rosbags' per-message decode:
+"""Columns of a run of CDR payloads (host_bridge/core/columns.py) equal rosbags' per-message decode:
 every field of every message, bitwise for floats, on messages rosbags serializes (every type of
 the bundled store, both byte orders, NaN and infinities, varied string and sequence lengths), on
 bytes real rclpy (Jazzy) serialized, and on the real bags in ../shared/data; and a run rosbags
@@ -19,9 +19,9 @@ from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
-from host_bridge.columns import MESSAGES_PER_BLOCK, Columns, PackedPayloads, read_columns
-from host_bridge.decode import Decoder
-from host_bridge.schemas import base_typestore
+from host_bridge.core.columns import MESSAGES_PER_BLOCK, Columns, PackedPayloads, read_columns
+from host_bridge.core.decode import Decoder
+from host_bridge.core.schemas import base_typestore
 from robot_relay.sources.bag import BagSource
 
 HUMBLE = get_typestore(Stores.ROS2_HUMBLE)

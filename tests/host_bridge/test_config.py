@@ -15,14 +15,14 @@ import yaml
 from rosbags.typesys import Stores, get_typestore
 
 from host_bridge import cli
-from host_bridge.config import HostConfig, TopicConfig
-from host_bridge.contract import WARNINGS_PATH, LogEntry, LogItem
-from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import Dispatcher
+from host_bridge.core.contract import WARNINGS_PATH, LogEntry, LogItem
+from host_bridge.core.destinations import SinkOptions
+from host_bridge.core.schemas import base_typestore
 from host_bridge.errors import ConfigError
-from host_bridge.registry import default_registry
-from host_bridge.schemas import base_typestore
-from host_bridge.sink import RerunSink
+from host_bridge.outputs.sink import RerunSink
+from host_bridge.pipeline.dispatch import Dispatcher
+from host_bridge.table.config import HostConfig, TopicConfig
+from host_bridge.table.registry import default_registry
 from robot_relay.wire import RawMessage
 from tests.host_bridge.test_custom_types import costmap
 from tests.rrd import entity_rows

@@ -10,14 +10,14 @@ import pytest
 import rerun as rr
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from host_bridge.contract import ColumnsItem, LogItem, PerMessage, per_message
 from host_bridge.converters import occupancy
 from host_bridge.converters.generic import convert_generic
 from host_bridge.converters.services import event_text
-from host_bridge.decode import Decoder
+from host_bridge.core.contract import ColumnsItem, LogItem, PerMessage, per_message
+from host_bridge.core.decode import Decoder
+from host_bridge.core.schemas import base_typestore
 from host_bridge.errors import PartialConvertError, UnknownTypeError
-from host_bridge.registry import default_registry
-from host_bridge.schemas import base_typestore
+from host_bridge.table.registry import default_registry
 from robot_relay.wire import MessageDefinition, RawMessage
 from tests.host_bridge.sensor_test_support import archetype, column_rows, convert, log_item, make_ctx
 from tests.host_bridge.test_user_bags import CHANGE_STATE_DEFINITION, CHANGE_STATE_EVENTS, GID

@@ -1,4 +1,4 @@
-"""The decoder (host_bridge/decode.py): custom types from the definitions a robot's catalog
+"""The decoder (host_bridge/core/decode.py): custom types from the definitions a robot's catalog
 carries, one typestore per definition, and errors that name the type."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from host_bridge.decode import Decoder
+from host_bridge.core.decode import Decoder
 from host_bridge.errors import DecodeError, UnknownTypeError
 from robot_relay.wire import Catalog, MessageDefinition, RawMessage, TopicInfo
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import Dispatcher
+from host_bridge.core.destinations import SinkOptions
 from host_bridge.errors import DecodeError
-from host_bridge.sink import RerunSink
+from host_bridge.outputs.sink import RerunSink
+from host_bridge.pipeline.dispatch import Dispatcher
 from robot_relay.wire import MessageDefinition, RawMessage
 from tests.rrd import entity_rows
 

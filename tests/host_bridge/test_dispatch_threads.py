@@ -9,8 +9,8 @@ from collections.abc import Mapping, Sequence
 
 import rerun as rr
 
-from host_bridge.contract import LogEntry, LogItem
-from host_bridge.dispatch import Dispatcher
+from host_bridge.core.contract import LogEntry, LogItem
+from host_bridge.pipeline.dispatch import Dispatcher
 
 TIMES = {"ros_time": 1_700_000_000_000_000_000}
 

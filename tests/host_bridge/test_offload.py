@@ -1,4 +1,4 @@
-"""Heavy topics converted in a process of their own (host_bridge/offload.py), logging into the
+"""Heavy topics converted in a process of their own (host_bridge/pipeline/offload.py), logging into the
 host's recording at a real Rerun viewer (the ``rerun`` binary saving what it receives)."""
 
 from __future__ import annotations
@@ -11,12 +11,12 @@ import pytest
 from rerun.chunk import RrdReader
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.config import HostConfig
-from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import Dispatcher
-from host_bridge.offload import HeavyProcess
-from host_bridge.registry import default_registry
-from host_bridge.sink import RerunSink
+from host_bridge.core.destinations import SinkOptions
+from host_bridge.outputs.sink import RerunSink
+from host_bridge.pipeline.dispatch import Dispatcher
+from host_bridge.pipeline.offload import HeavyProcess
+from host_bridge.table.config import HostConfig
+from host_bridge.table.registry import default_registry
 from robot_relay.wire import RawMessage
 from tests.host_bridge.test_dispatch import grid_cdr
 from tests.integration.procs import saving_viewer

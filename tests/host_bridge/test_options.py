@@ -1,4 +1,4 @@
-"""Converter options: each type's row in the table names its record (host_bridge/options.py),
+"""Converter options: each type's row in the table names its record (host_bridge/core/options.py),
 the only place a default is written; the schema describes exactly that record's fields for the
 type, --print-config shows its defaults, and a topic's configured values become it."""
 
@@ -17,9 +17,7 @@ import pytest
 import yaml
 
 from host_bridge import cli
-from host_bridge.config import HostConfig
-from host_bridge.errors import ConvertError
-from host_bridge.options import (
+from host_bridge.core.options import (
     CONVERTER_OPTION,
     GridOptions,
     GridUpdateOptions,
@@ -31,7 +29,9 @@ from host_bridge.options import (
     option_names,
     options_from,
 )
-from host_bridge.registry import Row, default_registry
+from host_bridge.errors import ConvertError
+from host_bridge.table.config import HostConfig
+from host_bridge.table.registry import Row, default_registry
 from tests.host_bridge.sensor_test_support import make_ctx
 
 SCHEMA = json.loads((files("swanky_schemas") / "host.schema.json").read_text())

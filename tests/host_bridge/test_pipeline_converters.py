@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.contract import ColumnsItem, ConvertContext, LogItem
 from host_bridge.converters.generic import convert_generic
 from host_bridge.converters.laser import convert_scan
 from host_bridge.converters.odometry import SPEC as ODOMETRY
 from host_bridge.converters.tf import SPEC as TF
-from host_bridge.options import Options
-from host_bridge.registry import Row, default_registry
-from host_bridge.state import TopicState
+from host_bridge.core.contract import ColumnsItem, ConvertContext, LogItem
+from host_bridge.core.options import Options
+from host_bridge.core.state import TopicState
+from host_bridge.table.registry import Row, default_registry
 from tests.host_bridge.sensor_test_support import convert, convert_run, default_message, make_ctx
 
 T = get_typestore(Stores.ROS2_HUMBLE).types
@@ -199,8 +199,8 @@ def test_every_registered_type_has_a_converter_that_handles_a_default_message(ro
     default-constructed message of its type (or refuses it with a ConvertError, never another
     exception), and reads its options as the row's record, the one the configuration checks a
     file against (given every option of it, as a config may set them all)."""
+    from host_bridge.core.schemas import base_typestore
     from host_bridge.errors import ConvertError
-    from host_bridge.schemas import base_typestore
 
     store = base_typestore()
     if row.msgtype not in store.types:

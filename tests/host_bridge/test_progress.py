@@ -5,11 +5,11 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
-from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import Dispatcher
+from host_bridge.core.destinations import SinkOptions
 from host_bridge.inputs.bag import bag_runs
-from host_bridge.progress import LOG_PERIOD_S, BagExtent, Progress, bag_extent, render_progress
-from host_bridge.sink import RerunSink
+from host_bridge.outputs.progress import LOG_PERIOD_S, BagExtent, Progress, bag_extent, render_progress
+from host_bridge.outputs.sink import RerunSink
+from host_bridge.pipeline.dispatch import Dispatcher
 from robot_relay.wire import RawMessage
 
 EXTENT = BagExtent(messages=8197, topics=4, start_ns=10**18, end_ns=10**18 + 97_400_000_000)

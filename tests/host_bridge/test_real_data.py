@@ -18,12 +18,12 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from host_bridge.contract import WARNINGS_PATH
-from host_bridge.counters import TopicCounters
-from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import Dispatcher
+from host_bridge.core.contract import WARNINGS_PATH
+from host_bridge.core.counters import TopicCounters
+from host_bridge.core.destinations import SinkOptions
 from host_bridge.inputs.bag import bag_runs
-from host_bridge.sink import RerunSink
+from host_bridge.outputs.sink import RerunSink
+from host_bridge.pipeline.dispatch import Dispatcher
 from tests.host_bridge.sensor_test_support import ROBOT, read_topic, rgba
 from tests.rrd import entity_rows
 
@@ -285,7 +285,7 @@ def test_tf_every_transform_is_logged(converted: Callable[[str], Conversion], na
                 for t in static_message.transforms}
     parents = static_parents(result.rrd, entity("/tf_static/"))
     # Frames no transform names as a child (map, odom) sit at the robot's root on their own
-    # /tf_static entity, so the 3D view reaches them (host_bridge/frames.py).
+    # /tf_static entity, so the 3D view reaches them (host_bridge/core/frames.py).
     roots = {path for path, parent in parents.items() if parent == f"tf#/{ROBOT}"}
     assert roots
     assert not roots & expected.keys()

@@ -18,7 +18,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.cli import main as host_main
 from host_bridge.inputs.bag import bag_runs
-from host_bridge.recorder import McapRecorder, may_hold_several_robots
+from host_bridge.outputs.recorder import McapRecorder, may_hold_several_robots
 from robot_relay.wire import RawMessage
 from tests.rrd import entity_rows
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import pytest
 
-from host_bridge.contract import Converter, PerMessage, per_message
 from host_bridge.converters import (
     camera,
     generic,
@@ -22,9 +21,10 @@ from host_bridge.converters import (
     walls,
 )
 from host_bridge.converters.urdf import description
+from host_bridge.core.contract import Converter, PerMessage, per_message
+from host_bridge.core.options import GenericOptions
 from host_bridge.errors import RegistryError
-from host_bridge.options import GenericOptions
-from host_bridge.registry import CATCH_ALL, Lane, Registry, Row, View, default_registry
+from host_bridge.table.registry import CATCH_ALL, Lane, Registry, Row, View, default_registry
 from robot_relay.policy import DEFAULT_TRAFFIC, TRAFFIC
 
 TABLE = default_registry()

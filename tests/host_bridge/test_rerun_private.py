@@ -1,4 +1,4 @@
-"""host_bridge/rerun_private.py on the installed Rerun: the version it was checked against, and
+"""host_bridge/core/rerun_private.py on the installed Rerun: the version it was checked against, and
 each private call exercised for real (rows logged through it into a file, read back with Rerun's
 own reader), so a Rerun upgrade that changes one fails here under that call's name."""
 
@@ -11,8 +11,8 @@ import numpy as np
 import pyarrow as pa
 import rerun as rr
 
-from host_bridge.contract import component_columns
-from host_bridge.rerun_private import CHECKED_VERSIONS, column_values, log_row, native, set_times
+from host_bridge.core.contract import component_columns
+from host_bridge.core.rerun_private import CHECKED_VERSIONS, column_values, log_row, native, set_times
 from tests.rrd import entity_rows
 
 
@@ -21,7 +21,7 @@ def test_the_installed_rerun_is_one_rerun_private_was_checked_against() -> None:
     major_minor = tuple(int(part) for part in installed.split(".")[:2])
     low, high = CHECKED_VERSIONS
     assert low <= major_minor < high, (
-        f"rerun-sdk {installed} is not one host_bridge/rerun_private.py was checked against "
+        f"rerun-sdk {installed} is not one host_bridge/core/rerun_private.py was checked against "
         f"({'.'.join(map(str, low))} up to, not including, {'.'.join(map(str, high))}). Re-check "
         "each of its calls in the new Rerun's source: rerun_bindings.reset_time, "
         "set_time_timestamp_nanos_since_epoch and log_arrow_msg (rerun_bindings.pyi), "

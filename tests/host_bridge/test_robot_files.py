@@ -1,4 +1,4 @@
-"""Meshes the PC lacks, fetched from the robot's relay (host_bridge/robot_files.py) through the
+"""Meshes the PC lacks, fetched from the robot's relay (host_bridge/inputs/robot_files.py) through the
 resource resolver, against the relay's real file server in one local Zenoh session."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import rerun as rr
 import trimesh
 import zenoh
 
+from host_bridge.core.resources import ResourceResolver
 from host_bridge.errors import ConvertError, PartialConvertError
-from host_bridge.resources import ResourceResolver
-from host_bridge.robot_files import RobotFiles
+from host_bridge.inputs.robot_files import RobotFiles
 from robot_relay.files import serve_files
 from tests.host_bridge.converters.test_urdf import (
     archetype,

@@ -15,9 +15,8 @@ import numpy as np
 import pytest
 
 import host_bridge.inputs.queues as queues_module
-from host_bridge.contract import WARNINGS_PATH
-from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import Dispatcher
+from host_bridge.core.contract import WARNINGS_PATH
+from host_bridge.core.destinations import SinkOptions
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun, RobotEvent
 from host_bridge.inputs.queues import (
     GIL_SWITCH_INTERVAL_S,
@@ -27,9 +26,10 @@ from host_bridge.inputs.queues import (
     RobotQueues,
     TypeLanes,
 )
-from host_bridge.registry import Lane
-from host_bridge.sink import RerunSink
-from host_bridge.stats import StatsTracker, topic_stats_items
+from host_bridge.outputs.sink import RerunSink
+from host_bridge.outputs.stats import StatsTracker, topic_stats_items
+from host_bridge.pipeline.dispatch import Dispatcher
+from host_bridge.table.registry import Lane
 from robot_relay.wire import RawMessage
 from tests.host_bridge.inputs.received import TIMEOUT_S, Received
 from tests.rrd import entity_rows

@@ -22,11 +22,11 @@ import pytest
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
-from host_bridge.contract import WARNINGS_PATH
-from host_bridge.decode import Decoder
-from host_bridge.dispatch import Dispatcher
-from host_bridge.registry import CATCH_ALL, Registry, Row, default_registry
-from host_bridge.schemas import base_typestore
+from host_bridge.core.contract import WARNINGS_PATH
+from host_bridge.core.decode import Decoder
+from host_bridge.core.schemas import base_typestore
+from host_bridge.pipeline.dispatch import Dispatcher
+from host_bridge.table.registry import CATCH_ALL, Registry, Row, default_registry
 from robot_relay.wire import MessageDefinition, RawMessage
 from tests.host_bridge.converters.test_joints import ARM, joints_ctx
 from tests.host_bridge.converters.test_laser import noisy_ranges, scan

@@ -1,4 +1,4 @@
-"""The RVL codec (:mod:`host_bridge.rvl`) against a reference encoder written from
+"""The RVL codec (:mod:`host_bridge.core.rvl`) against a reference encoder written from
 image_transport's RvlCodec, driven through compressedDepth ``rvl`` CompressedImages: every run
 and code length round-trips, and a 32FC1 payload's de-quantized depth is exact."""
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.schemas import BundledDefinitions
+from host_bridge.core.schemas import BundledDefinitions
 
 HUMBLE = get_typestore(Stores.ROS2_HUMBLE)
 JAZZY = get_typestore(Stores.ROS2_JAZZY)

@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, component_columns, repeated_texts
-from host_bridge.destinations import SinkOptions
-from host_bridge.sink import FEW_ROWS, RerunSink
+from host_bridge.core.contract import ColumnsItem, component_columns, repeated_texts
+from host_bridge.core.destinations import SinkOptions
+from host_bridge.outputs.sink import FEW_ROWS, RerunSink
 from tests.rrd import entity_rows
 
 

@@ -1,7 +1,7 @@
 """``--save`` files end with Rerun's footer, so ``rerun rrd verify`` accepts them and
 ``RrdReader(path).store()`` opens them: a bag conversion's one file, and a live host's files,
 split every ``--save-split`` seconds because Rerun holds a file's index in memory until it
-closes (host_bridge/sink.py, :class:`~host_bridge.sink.SavedFile`)."""
+closes (host_bridge/outputs/sink.py, :class:`~host_bridge.outputs.sink.SavedFile`)."""
 
 from __future__ import annotations
 
@@ -19,10 +19,10 @@ import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
 from host_bridge.cli import main as host_main
-from host_bridge.contract import LogItem
+from host_bridge.core.contract import LogItem
+from host_bridge.core.destinations import SinkOptions
 from host_bridge.demo.bag import write_demo_bag
-from host_bridge.destinations import SinkOptions
-from host_bridge.sink import RerunSink, split_path
+from host_bridge.outputs.sink import RerunSink, split_path
 from tests.integration.procs import free_port
 from tests.rrd import entity_rows, verify
 

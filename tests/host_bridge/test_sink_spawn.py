@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from host_bridge import sink
-from host_bridge.contract import LogItem
-from host_bridge.destinations import SinkOptions
+from host_bridge.core.contract import LogItem
+from host_bridge.core.destinations import SinkOptions
 from host_bridge.errors import SinkError
+from host_bridge.outputs import sink
 from tests.integration.procs import headless_viewer
 from tests.rrd import entity_rows
 

@@ -12,9 +12,9 @@ import trimesh
 from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.converters import markers
-from host_bridge.dispatch import Dispatcher
-from host_bridge.resources import ResourceResolver
-from host_bridge.state import TopicState
+from host_bridge.core.resources import ResourceResolver
+from host_bridge.core.state import TopicState
+from host_bridge.pipeline.dispatch import Dispatcher
 from robot_relay.wire import RawMessage
 from tests.host_bridge.converters.test_markers import marker
 from tests.host_bridge.sensor_test_support import make_ctx

@@ -8,14 +8,14 @@ from typing import Any
 import numpy as np
 import pytest
 
-from host_bridge.columns import PackedPayloads
-from host_bridge.contract import TIMELINE_LOG, TIMELINE_RECEIVE
-from host_bridge.counters import TopicCounters, sequence_gap, sequence_gaps
-from host_bridge.destinations import SinkOptions
+from host_bridge.core.columns import PackedPayloads
+from host_bridge.core.contract import TIMELINE_LOG, TIMELINE_RECEIVE
+from host_bridge.core.counters import TopicCounters, sequence_gap, sequence_gaps
+from host_bridge.core.destinations import SinkOptions
 from host_bridge.inputs.base import MessageRun
 from host_bridge.inputs.clocks import ClockEstimate
-from host_bridge.sink import RerunSink
-from host_bridge.stats import (
+from host_bridge.outputs.sink import RerunSink
+from host_bridge.outputs.stats import (
     HostDrops,
     RelayRates,
     StatsTap,

@@ -1,4 +1,4 @@
-"""What a viewer that falls behind is sent (host_bridge/thinning.py): Pace's arithmetic, and
+"""What a viewer that falls behind is sent (host_bridge/pipeline/thinning.py): Pace's arithmetic, and
 heavy runs routed to the viewer (a real ``rerun`` binary saving what it receives), to the
 ``--save`` file only, or nowhere."""
 
@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge import thinning
-from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import Dispatcher
-from host_bridge.sink import RerunSink
-from host_bridge.thinning import Pace, ViewerThinning
-from host_bridge.viewer_lag import LONGEST_PERIOD_S, SHORTEST_PERIOD_S
+from host_bridge.core.destinations import SinkOptions
+from host_bridge.outputs.sink import RerunSink
+from host_bridge.outputs.viewer_lag import LONGEST_PERIOD_S, SHORTEST_PERIOD_S
+from host_bridge.pipeline import thinning
+from host_bridge.pipeline.dispatch import Dispatcher
+from host_bridge.pipeline.thinning import Pace, ViewerThinning
 from robot_relay.wire import RawMessage
 from tests.integration.procs import saving_viewer
 from tests.rrd import entity_rows

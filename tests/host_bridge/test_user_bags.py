@@ -21,9 +21,9 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from host_bridge.cli import main as host_main
-from host_bridge.contract import WARNINGS_PATH
-from host_bridge.progress import BagExtent, bag_extent
-from host_bridge.schemas import base_typestore
+from host_bridge.core.contract import WARNINGS_PATH
+from host_bridge.core.schemas import base_typestore
+from host_bridge.outputs.progress import BagExtent, bag_extent
 from robot_relay.cli import main as relay_main
 from robot_relay.errors import SourceError
 from robot_relay.sources.bag import BagSource, bag_paths

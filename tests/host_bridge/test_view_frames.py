@@ -22,10 +22,10 @@ import rerun as rr
 from rerun.chunk import RrdReader
 
 from host_bridge.cli import main as host_main
-from host_bridge.contract import ColumnsItem, LogItem, repeated_texts
 from host_bridge.converters.urdf.kinematics import robot_model
-from host_bridge.frames import RobotFrames, frames_logged
-from host_bridge.state import RobotState
+from host_bridge.core.contract import ColumnsItem, LogItem, repeated_texts
+from host_bridge.core.frames import RobotFrames, frames_logged
+from host_bridge.core.state import RobotState
 from tests.host_bridge.user_robot import (
     FINGER_RIGHT_XYZ,
     MIMIC_MULTIPLIER,
@@ -187,7 +187,7 @@ def test_model_without_joint_states_is_one_tree_from_its_root(tmp_path: Path) ->
     recording = convert(tmp_path, BagContent(description=user_urdf(meshes)))
 
     assert recording.view_origin == ORIGIN
-    assert recording.view_target is None  # the data names it, see host_bridge/frames.py
+    assert recording.view_target is None  # the data names it, see host_bridge/core/frames.py
     assert recording.target() == f"{ROBOT}/base_footprint"
     assert visual_links(recording) == ["base_link", "finger_left", "finger_right", "upper_arm", "wheel"]
     assert recording.entity_frames[f"{ORIGIN}/scan"] == f"{ROBOT}/base_link"

@@ -71,8 +71,8 @@ def saving_viewer(received: Path, startup_s: float = 60.0) -> Iterator[tuple[str
 
 
 def converter_processes(host: int) -> list[int]:
-    """The children of process ``host`` that convert its heavy topics (host_bridge/offload.py)."""
-    from host_bridge.offload import CHILD_MAIN
+    """The children of process ``host`` that convert its heavy topics (host_bridge/pipeline/offload.py)."""
+    from host_bridge.pipeline.offload import CHILD_MAIN
 
     found = subprocess.run(["ps", "-ww", "-o", "pid=,args=", "--ppid", str(host)],
                            capture_output=True, text=True, check=False).stdout

@@ -17,8 +17,8 @@ def main(argv: Sequence[str]) -> int:
     seconds_text, robot, queue_text, *host_argv = argv
     seconds, queue = float(seconds_text), int(queue_text)
     from host_bridge.cli import main as host_main
-    from host_bridge.dispatch import Dispatcher
     from host_bridge.inputs.queues import RobotQueues
+    from host_bridge.pipeline.dispatch import Dispatcher
 
     dispatch = Dispatcher.dispatch
     make_queues = RobotQueues.__init__

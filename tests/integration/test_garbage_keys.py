@@ -14,7 +14,7 @@ import pytest
 import zenoh
 
 from host_bridge.cli import main as host_main
-from host_bridge.registry import default_registry
+from host_bridge.table.registry import default_registry
 from robot_relay.session import close_session
 from robot_relay.wire import Attachment, cdr_encoding, data_key
 from tests.fuzz.fuzzing import STORE, Seeded, bad_payload

@@ -1,5 +1,5 @@
 """``swanky-host --rerun-addr`` (a viewer its one destination) converts heavy topics in a second
-process (host_bridge/offload.py): the viewer gets one recording with every message the host's
+process (host_bridge/pipeline/offload.py): the viewer gets one recording with every message the host's
 summary says it converted, heavy and small alike, and the second process ends with the host."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from rerun.chunk import RrdReader
 
-from host_bridge.sink import DISCONNECT_TIMEOUT_S
+from host_bridge.outputs.sink import DISCONNECT_TIMEOUT_S
 from tests.integration.procs import (
     alive,
     command,

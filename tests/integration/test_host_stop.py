@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from host_bridge.sink import DISCONNECT_TIMEOUT_S
+from host_bridge.outputs.sink import DISCONNECT_TIMEOUT_S
 from robot_relay.session import close_session
 from tests.integration.procs import command, free_port, headless_viewer, open_loopback
 from tests.integration.robot_bags import (

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from host_bridge.contract import WARNINGS_PATH
+from host_bridge.core.contract import WARNINGS_PATH
 from tests.host_bridge.test_user_bags import convert, humble_bag, texts
 from tests.integration.procs import command, free_port, running
 from tests.rrd import entity_rows

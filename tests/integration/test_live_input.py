@@ -12,12 +12,12 @@ import pytest
 import zenoh
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import Dispatcher
+from host_bridge.core.destinations import SinkOptions
 from host_bridge.inputs.base import InputItem, InputProblem
 from host_bridge.inputs.live import LiveInput
 from host_bridge.inputs.zenoh import ZenohInput
-from host_bridge.sink import RerunSink
+from host_bridge.outputs.sink import RerunSink
+from host_bridge.pipeline.dispatch import Dispatcher
 from robot_relay.relay import Relay
 from robot_relay.wire import (
     Attachment,

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from rerun.chunk import RrdReader
 
-from host_bridge.sink import split_path
+from host_bridge.outputs.sink import split_path
 from tests.integration.procs import command, free_port, running, wait_listening
 from tests.integration.robot_bags import Lines
 from tests.integration.robot_traffic import ODOM_HZ, SCAN_HZ, Traffic, write_traffic_bag

@@ -32,7 +32,7 @@ import numpy as np
 import pytest
 
 from host_bridge.demo.robot import WHEEL_RADIUS
-from host_bridge.sink import VIEWER_PORT
+from host_bridge.outputs.sink import VIEWER_PORT
 from tests.rrd import entity_rows
 
 pytestmark = pytest.mark.integration

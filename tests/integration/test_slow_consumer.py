@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from host_bridge.contract import TIMELINE_RECEIVE
+from host_bridge.core.contract import TIMELINE_RECEIVE
 from tests.integration.proc_sampler import Sampler
 from tests.integration.procs import command, free_port, running
 from tests.integration.robot_bags import Lines

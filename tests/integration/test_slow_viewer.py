@@ -1,10 +1,10 @@
 """A viewer slower than the data (issues 14, 24): a relay replays camera images of random noise
 (nothing compresses them) on loopback to a host logging to a ``rerun --port N --save`` viewer
 that is frozen (SIGSTOP) for FROZEN_S, then resumes. Rerun's gRPC client alone would buffer all
-of it. The images are logged by the host's converter process (host_bridge/offload.py); the host
-sees the viewer fall behind (that process's round trip to it, host_bridge/viewer_lag.py), sends
-it fewer images (host_bridge/thinning.py: those are not converted at all) and, once it is more
-than 5 s behind, none (host_bridge/sink.py's SUSPEND_S, in the converter process too), so both
+of it. The images are logged by the host's converter process (host_bridge/pipeline/offload.py); the host
+sees the viewer fall behind (that process's round trip to it, host_bridge/outputs/viewer_lag.py), sends
+it fewer images (host_bridge/pipeline/thinning.py: those are not converted at all) and, once it is more
+than 5 s behind, none (host_bridge/outputs/sink.py's SUSPEND_S, in the converter process too), so both
 processes' memory stays bounded without holding anything back, and the resumed viewer gets the
 newest images. The viewer saves what it receives, so the test reads what it got."""
 
@@ -22,7 +22,7 @@ import pytest
 from rerun.chunk import RrdReader
 from rosbags.rosbag2 import Writer
 
-from host_bridge.contract import TIMELINE_RECEIVE
+from host_bridge.core.contract import TIMELINE_RECEIVE
 from tests.integration.proc_sampler import Sampler
 from tests.integration.procs import (
     command,

@@ -14,11 +14,11 @@ import pytest
 import zenoh
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.destinations import SinkOptions
+from host_bridge.core.destinations import SinkOptions
 from host_bridge.inputs.base import InputItem
 from host_bridge.inputs.live import LiveInput
-from host_bridge.sink import RerunSink
-from host_bridge.stats import StatsTap
+from host_bridge.outputs.sink import RerunSink
+from host_bridge.outputs.stats import StatsTap
 from robot_relay.relay import Relay
 from robot_relay.wire import Catalog, RawMessage, TopicInfo, stats_key
 from tests.integration.procs import command, free_port, running

@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import Writer
 
-from host_bridge.thinning import LAG_PATH
+from host_bridge.pipeline.thinning import LAG_PATH
 from tests.integration.procs import command, free_port, rendering_viewer, running, saving_viewer
 from tests.integration.robot_bags import START_NS, STORE, Lines
 from tests.integration.robot_traffic import (

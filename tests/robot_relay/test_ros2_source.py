@@ -14,7 +14,7 @@ from typing import Any, cast
 import pytest
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from host_bridge.decode import Decoder
+from host_bridge.core.decode import Decoder
 from robot_relay.config import DEFAULT_DENY
 from robot_relay.relay import Relay
 from robot_relay.sources.base import topic_filter

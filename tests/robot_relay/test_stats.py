@@ -50,7 +50,7 @@ def test_report_carries_drops_per_topic_and_reads_reports_without_them() -> None
 
 
 def test_host_logs_the_drops_since_the_previous_report() -> None:
-    from host_bridge.stats import RelayRates
+    from host_bridge.outputs.stats import RelayRates
 
     rates = RelayRates()
 

@@ -20,7 +20,7 @@ instance pose rather than a Transform3D so the frame graph holds only the robot'
 
 Every joint is a static ``Transform3D(parent_frame, child_frame)`` on the entity /tf_static uses
 for its child frame (``/<robot>/tf_static/<child>``, see
-:func:`host_bridge.state.static_transform_path`), so a joint robot_state_publisher also
+:func:`host_bridge.core.state.static_transform_path`), so a joint robot_state_publisher also
 broadcasts sits on one entity, as Rerun requires. Movable joints stand at
 :func:`~host_bridge.converters.urdf.kinematics.zero_positions` (mimic joints at their offset), as
 in RViz and Rerun's own URDF loader: without them a model whose /joint_states never came falls
@@ -49,7 +49,6 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, LogEntry, LogItem, per_message
 from host_bridge.converters.joints import joint_transform, link_frame, tf_carries
 from host_bridge.converters.urdf.kinematics import (
     kinematics_of,
@@ -59,8 +58,9 @@ from host_bridge.converters.urdf.kinematics import (
 )
 from host_bridge.converters.urdf.meshes import missing_files, visual_geometry
 from host_bridge.converters.urdf.parse import listed, parse
+from host_bridge.core.contract import ConvertContext, LogEntry, LogItem, per_message
+from host_bridge.core.state import static_transform_path
 from host_bridge.errors import ConvertError, MissingResourceError, PartialConvertError
-from host_bridge.state import static_transform_path
 
 if TYPE_CHECKING:
     import yourdfpy  # imported by parse.py where a model is built: it takes about a second

@@ -1,5 +1,5 @@
 """The robot model's kinematics, without Rerun or a converter's context: the joint table of a
-URDF (:class:`~host_bridge.state.RobotModel`) and the motion of its joints. The URDF converter
+URDF (:class:`~host_bridge.core.state.RobotModel`) and the motion of its joints. The URDF converter
 (description.py), the joint-state converter (joints.py) and the demo robot share it.
 
 The table stays one tree per root whatever the file says: a joint naming a link no ``<link>``
@@ -25,7 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from host_bridge.converters.urdf.parse import listed, parse
-from host_bridge.state import JointModel, MimicModel, RobotModel
+from host_bridge.core.state import JointModel, MimicModel, RobotModel
 
 if TYPE_CHECKING:
     import yourdfpy  # imported by parse.py where a model is built: it takes about a second

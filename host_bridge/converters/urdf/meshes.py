@@ -1,7 +1,7 @@
 """The visuals' geometry: a URDF ``<box>``, ``<cylinder>``, ``<sphere>`` or ``<mesh>`` -> one
 Rerun archetype, with the URDF material's colour.
 
-Mesh files are read through the robot's :class:`~host_bridge.resources.ResourceResolver`
+Mesh files are read through the robot's :class:`~host_bridge.core.resources.ResourceResolver`
 (``package://`` from ``--package-path``, the ROS paths or the robot's file server; ``file://``;
 paths relative to the ``--urdf`` file), the files beside a mesh (OBJ .mtl, textures) through the
 same resolver, and loaded by trimesh (STL, OBJ, DAE, glTF, PLY...). Mesh scale is applied to the
@@ -28,8 +28,8 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
+from host_bridge.core.resources import ResourceResolver
 from host_bridge.errors import ConvertError, MissingResourceError
-from host_bridge.resources import ResourceResolver
 
 if TYPE_CHECKING:
     # Imported where a model is built: trimesh (with scipy) and yourdfpy take about a second to

@@ -12,8 +12,8 @@ import numpy.typing as npt
 import pytest
 import rerun as rr
 
-from host_bridge.contract import LogItem
 from host_bridge.converters.camera import convert_camera_info
+from host_bridge.core.contract import LogItem
 from host_bridge.errors import ConvertError
 from tests.host_bridge.converters.test_images import ROBOT, T, first_message, header, pylist
 from tests.host_bridge.sensor_test_support import make_ctx

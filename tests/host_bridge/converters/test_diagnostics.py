@@ -6,8 +6,8 @@ from typing import Any
 
 import rerun as rr
 
-from host_bridge.contract import LogItem
 from host_bridge.converters.diagnostics import SPEC
+from host_bridge.core.contract import LogItem
 from tests.host_bridge.sensor_test_support import TYPES as T
 from tests.host_bridge.sensor_test_support import header, make_ctx
 

@@ -16,7 +16,6 @@ import rerun as rr
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry
 from host_bridge.converters.geometry import (
     POINT,
     POLYGON,
@@ -27,7 +26,8 @@ from host_bridge.converters.geometry import (
     VECTOR3,
     WRENCH,
 )
-from host_bridge.state import TopicState
+from host_bridge.core.contract import ColumnsItem, ConvertContext, LogEntry
+from host_bridge.core.state import TopicState
 from tests.host_bridge.sensor_test_support import TYPES as T
 from tests.host_bridge.sensor_test_support import archetype, convert, convert_run, header, log_item, make_ctx
 

@@ -19,14 +19,14 @@ import rerun as rr
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.contract import ColumnsItem, LogEntry, LogItem
 from host_bridge.converters.images import (
     MAX_DECODED_PIXELS,
     convert_compressed_image,
     convert_image,
 )
-from host_bridge.dispatch import Dispatcher
+from host_bridge.core.contract import ColumnsItem, LogEntry, LogItem
 from host_bridge.errors import ConvertError
+from host_bridge.pipeline.dispatch import Dispatcher
 from robot_relay.wire import RawMessage
 from tests.host_bridge.sensor_test_support import convert, convert_run, make_ctx
 from tests.host_bridge.test_config import RecordingSink

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, LogItem
 from host_bridge.converters.imu import IMU, MAGNETIC_FIELD
+from host_bridge.core.contract import ColumnsItem, LogItem
 from tests.host_bridge.sensor_test_support import (
     archetype,
     column_rows,

@@ -16,12 +16,12 @@ import trimesh
 import yourdfpy
 from rerun.urdf import UrdfTree
 
-from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
 from host_bridge.converters import joints
 from host_bridge.converters.urdf import description, kinematics
+from host_bridge.core.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
+from host_bridge.core.resources import ResourceResolver
+from host_bridge.core.state import RobotState
 from host_bridge.errors import ConvertError, PartialConvertError
-from host_bridge.resources import ResourceResolver
-from host_bridge.state import RobotState
 from tests.host_bridge.sensor_test_support import convert, convert_run, header, make_ctx, msg
 
 

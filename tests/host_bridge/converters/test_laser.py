@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from host_bridge.colormap import colormap_table
-from host_bridge.contract import LogItem
 from host_bridge.converters.laser import SPEC, convert_scan, scan_points
-from host_bridge.state import TopicState
+from host_bridge.core.colormap import colormap_table
+from host_bridge.core.contract import LogItem
+from host_bridge.core.state import TopicState
 from tests.host_bridge.sensor_test_support import (
     archetype,
     column_rows,

@@ -8,8 +8,8 @@ from typing import Any
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, PerMessage
 from host_bridge.converters.logs import ROS1_LOG, ROS2_LOG, STRING
+from host_bridge.core.contract import ColumnsItem, ConvertContext, LogEntry, PerMessage
 from tests.host_bridge.sensor_test_support import TYPES as ROS2
 from tests.host_bridge.sensor_test_support import convert, convert_run, make_ctx, read_topic
 

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from host_bridge.contract import ConvertContext, LogEntry, LogItem
 from host_bridge.converters import markers
+from host_bridge.core.contract import ConvertContext, LogEntry, LogItem
+from host_bridge.core.resources import ResourceResolver
+from host_bridge.core.state import RobotState, TopicState
 from host_bridge.errors import ConvertError
-from host_bridge.resources import ResourceResolver
-from host_bridge.state import RobotState, TopicState
 from tests.host_bridge.sensor_test_support import ROBOT, archetype, header, log_item, make_ctx, msg
 
 TOPIC = "/viz"

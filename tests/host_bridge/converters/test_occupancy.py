@@ -12,8 +12,8 @@ import pytest
 import rerun as rr
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from host_bridge.contract import ConvertContext
 from host_bridge.converters import occupancy
+from host_bridge.core.contract import ConvertContext
 from host_bridge.errors import ConvertError
 from tests.host_bridge.sensor_test_support import (
     archetype,

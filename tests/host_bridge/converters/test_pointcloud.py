@@ -15,11 +15,11 @@ import pytest
 import rerun as rr
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.colormap import apply_colormap
-from host_bridge.contract import LogItem
 from host_bridge.converters.pointcloud import convert_pointcloud2
-from host_bridge.dispatch import Dispatcher
+from host_bridge.core.colormap import apply_colormap
+from host_bridge.core.contract import LogItem
 from host_bridge.errors import ConvertError
+from host_bridge.pipeline.dispatch import Dispatcher
 from robot_relay.wire import RawMessage
 from tests.host_bridge.sensor_test_support import (
     archetype,

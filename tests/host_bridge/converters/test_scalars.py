@@ -8,11 +8,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from host_bridge.contract import ColumnsItem, ConvertContext, Converter, LogEntry, PerMessage
 from host_bridge.converters import scalars
+from host_bridge.core.contract import ColumnsItem, ConvertContext, Converter, LogEntry, PerMessage
+from host_bridge.core.schemas import base_typestore
 from host_bridge.errors import ConvertError
-from host_bridge.registry import default_registry
-from host_bridge.schemas import base_typestore
+from host_bridge.table.registry import default_registry
 from tests.host_bridge.sensor_test_support import (
     column_rows,
     columns_item,

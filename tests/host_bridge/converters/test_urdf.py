@@ -14,11 +14,11 @@ import trimesh
 import trimesh.transformations as tra
 from PIL import Image
 
-from host_bridge.contract import ConvertContext, LogEntry, LogItem
 from host_bridge.converters.urdf import description
+from host_bridge.core.contract import ConvertContext, LogEntry, LogItem
+from host_bridge.core.resources import ResourceResolver, parse_package_path
+from host_bridge.core.state import RobotModel, RobotState
 from host_bridge.errors import ConfigError, ConvertError, PartialConvertError
-from host_bridge.resources import ResourceResolver, parse_package_path
-from host_bridge.state import RobotModel, RobotState
 from tests.host_bridge.sensor_test_support import make_ctx
 from tests.host_bridge.user_robot import (
     ARM_DARK,

@@ -26,11 +26,11 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.cli import main as host_main
-from host_bridge.contract import WARNINGS_PATH, ColumnsItem, LogItem
 from host_bridge.converters.urdf import kinematics
-from host_bridge.dispatch import Dispatcher
+from host_bridge.core.contract import WARNINGS_PATH, ColumnsItem, LogItem
+from host_bridge.core.resources import ResourceResolver
 from host_bridge.errors import ConvertError
-from host_bridge.resources import ResourceResolver
+from host_bridge.pipeline.dispatch import Dispatcher
 from robot_relay.wire import RawMessage
 from tests.host_bridge.test_config import RecordingSink
 from tests.reliability import Record
@@ -459,7 +459,7 @@ def test_a_relay_reply_over_the_size_limit_is_refused_not_kept(
     and its bytes are not cached for the host's lifetime."""
     import zenoh
 
-    from host_bridge.robot_files import RobotFiles
+    from host_bridge.inputs.robot_files import RobotFiles
     from robot_relay.files import serve_files
 
     big = trimesh.creation.icosphere(subdivisions=3).export(file_type="stl")

@@ -27,9 +27,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-from host_bridge.blueprint import TopicEntry, build_blueprint
 from host_bridge.cli import main as host_main
-from host_bridge.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
 from host_bridge.converters.images import convert_compressed_image
 from host_bridge.converters.video import (
     COMPRESSED_VIDEO,
@@ -38,13 +36,15 @@ from host_bridge.converters.video import (
     convert_compressed_video,
     video_codec,
 )
-from host_bridge.destinations import SinkOptions
-from host_bridge.dispatch import Dispatcher
+from host_bridge.core.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
+from host_bridge.core.destinations import SinkOptions
+from host_bridge.core.schemas import base_typestore
+from host_bridge.core.state import TopicState
 from host_bridge.errors import ConvertError
-from host_bridge.registry import default_registry
-from host_bridge.schemas import base_typestore
-from host_bridge.sink import RerunSink
-from host_bridge.state import TopicState
+from host_bridge.outputs.blueprint import TopicEntry, build_blueprint
+from host_bridge.outputs.sink import RerunSink
+from host_bridge.pipeline.dispatch import Dispatcher
+from host_bridge.table.registry import default_registry
 from robot_relay.wire import RawMessage
 from tests.host_bridge.sensor_test_support import convert, convert_run, flat, make_ctx
 from tests.rrd import entity_rows

@@ -13,7 +13,7 @@ from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
 from host_bridge.converters import vision
-from host_bridge.schemas import extra_typesdict
+from host_bridge.core.schemas import extra_typesdict
 from tests.host_bridge.sensor_test_support import ROBOT, archetype, header, log_item, make_ctx
 
 TOPIC = "/detections"

@@ -15,10 +15,10 @@ import pytest
 import rerun as rr
 import yaml
 
-from host_bridge.contract import LogItem
 from host_bridge.converters import occupancy, walls
-from host_bridge.options import GridOptions
-from host_bridge.state import Grid
+from host_bridge.core.contract import LogItem
+from host_bridge.core.options import GridOptions
+from host_bridge.core.state import Grid
 from tests.host_bridge.converters.test_occupancy import grid_msg, shared_contexts, update_msg
 from tests.host_bridge.sensor_test_support import archetype, flat, log_item, make_ctx
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from host_bridge.columns import PackedPayloads
+from host_bridge.core.columns import PackedPayloads
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun, gathered
 from robot_relay.errors import WireError
 from robot_relay.wire import MessageDefinition, RawMessage

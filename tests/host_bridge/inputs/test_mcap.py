@@ -21,7 +21,7 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.rosbag2 import Writer as BagWriter
 from rosbags.typesys import Stores, get_typestore
 
-from host_bridge.columns import PackedPayloads, read_columns
+from host_bridge.core.columns import PackedPayloads, read_columns
 from host_bridge.inputs.bag import bag_runs, message_run
 from host_bridge.inputs.base import MessageRun
 from robot_relay.sources.bag import BagSource

@@ -10,12 +10,12 @@ from typing import Any
 
 import pytest
 
-from host_bridge.contract import LogEntry
-from host_bridge.decode import Decoder
+from host_bridge.core.contract import LogEntry
+from host_bridge.core.decode import Decoder
+from host_bridge.core.state import RobotState
 from host_bridge.slam import engine
 from host_bridge.slam.feeder import SlamTap
 from host_bridge.slam.settings import SlamSettings
-from host_bridge.state import RobotState
 from robot_relay.wire import RawMessage
 from tests.host_bridge.slam.robot_logs import LaserLog, messages, simulate
 

@@ -35,11 +35,11 @@ import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
-from host_bridge.contract import ColumnsItem, LogEntry, LogItem, RowsColumn
-from host_bridge.destinations import LOOPBACK, SinkOptions
+from host_bridge.core.contract import ColumnsItem, LogEntry, LogItem, RowsColumn
+from host_bridge.core.destinations import LOOPBACK, SinkOptions
+from host_bridge.core.rerun_private import NativeStream, column_values, log_row, native, set_times
 from host_bridge.errors import SinkError
-from host_bridge.rerun_private import NativeStream, column_values, log_row, native, set_times
-from host_bridge.viewer_lag import BATCHER_TICK_S, LaggingViewer, ViewerLag
+from host_bridge.outputs.viewer_lag import BATCHER_TICK_S, LaggingViewer, ViewerLag
 
 log = logging.getLogger("swanky.host")
 

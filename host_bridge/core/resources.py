@@ -4,7 +4,7 @@ A URDF from a robot names meshes by ROS package or by the robot's own absolute p
 means anything on the PC until it is mapped. The order is: an explicit ``--package-path
 NAME=DIR``, then search paths laid out like ``ROS_PACKAGE_PATH`` (``<dir>/<pkg>``) or like an
 ament prefix (``<dir>/share/<pkg>``), then ``fetch``, which asks the robot's file server
-(robot_relay/files.py; host_bridge/robot_files.py on this side). A robot-side absolute path
+(robot_relay/files.py; host_bridge/inputs/robot_files.py on this side). A robot-side absolute path
 ``.../share/<pkg>/<rest>`` (what xacro's ``$(find-pkg-share ...)`` produces) is retried as
 ``package://<pkg>/<rest>`` when the path does not exist here, so those URDFs resolve the same way.
 

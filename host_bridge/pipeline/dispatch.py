@@ -1,7 +1,7 @@
 """RawMessage runs -> taps -> decode -> convert -> sink, with the error policy and per-topic
 counters (counters.py).
 
-One path: a topic's run is handed to its converter whole (:class:`~host_bridge.contract.Run`:
+One path: a topic's run is handed to its converter whole (:class:`~host_bridge.core.contract.Run`:
 messages decoded, or columns read, on demand); a run its converter fails on is converted again
 message by message, so only a bad message is lost. A bad message never stops the host: it is
 counted, warned about once per (robot, topic, error kind) and shown in Rerun under
@@ -27,9 +27,8 @@ from typing import Any, Protocol
 import numpy as np
 import rerun as rr
 
-from host_bridge.columns import Columns, columns_of_messages, read_columns
-from host_bridge.config import HostConfig
-from host_bridge.contract import (
+from host_bridge.core.columns import Columns, columns_of_messages, read_columns
+from host_bridge.core.contract import (
     TIMELINE_RECEIVE,
     WARNINGS_PATH,
     Converter,
@@ -39,10 +38,12 @@ from host_bridge.contract import (
     PerMessage,
     Run,
 )
-from host_bridge.counters import TopicCounters, summary_table
-from host_bridge.decode import Decoder
+from host_bridge.core.counters import TopicCounters, summary_table
+from host_bridge.core.decode import Decoder
+from host_bridge.core.frames import RobotFrames
+from host_bridge.core.resources import ResourceResolver
+from host_bridge.core.state import RobotState, TopicState
 from host_bridge.errors import ConfigError, HostError, PartialConvertError, TypeChangeError
-from host_bridge.frames import RobotFrames
 from host_bridge.inputs.base import (
     InputItem,
     InputProblem,
@@ -50,10 +51,9 @@ from host_bridge.inputs.base import (
     RobotEvent,
     presence_items,
 )
-from host_bridge.registry import Registry, default_registry
-from host_bridge.resources import ResourceResolver
-from host_bridge.sink import Sink
-from host_bridge.state import RobotState, TopicState
+from host_bridge.outputs.sink import Sink
+from host_bridge.table.config import HostConfig
+from host_bridge.table.registry import Registry, default_registry
 from robot_relay.wire import RawMessage
 
 log = logging.getLogger("swanky.host")
@@ -156,7 +156,7 @@ def _arrivals(raws: Sequence[RawMessage]) -> tuple[Int64Array | None, Int64Array
 
 def _continues(run: Sequence[RawMessage], raw: RawMessage) -> bool:
     """Whether ``raw`` may join its topic's last ``run``: the same type and definition, and the
-    same arrival timelines, as the messages of one :class:`~host_bridge.contract.Run` have."""
+    same arrival timelines, as the messages of one :class:`~host_bridge.core.contract.Run` have."""
     first = run[0]
     return (
         raw.msgtype == first.msgtype

@@ -5,7 +5,7 @@ for it), the lane the dispatcher converts it in, and how the relay forwards it.
 One :class:`Row` per type, written out in :func:`default_registry` with the full type name, so a
 new type is one converter module and one line there (CONTRIBUTING.md). Nothing registers itself
 on import and a type registered twice is an error. The contract converters follow is
-:mod:`host_bridge.contract`; the configuration (:mod:`host_bridge.config`) takes each type's
+:mod:`host_bridge.core.contract`; the configuration (:mod:`host_bridge.table.config`) takes each type's
 option names, converter choices and defaults from its row. The relay keeps its own copy of the
 traffic column, ``robot_relay.policy.TRAFFIC`` (the robot has no host code), and
 ``tests/host_bridge/test_registry.py`` checks it against the rows.
@@ -22,9 +22,9 @@ from enum import Enum
 from fnmatch import fnmatchcase
 from typing import Any
 
-from host_bridge.contract import Converter, combine
+from host_bridge.core.contract import Converter, combine
+from host_bridge.core.options import NoOptions
 from host_bridge.errors import RegistryError
-from host_bridge.options import NoOptions
 from robot_relay.policy import DEFAULT_TRAFFIC, TrafficClass
 
 CATCH_ALL = "*"
@@ -32,7 +32,7 @@ _GLOB_CHARS = frozenset("*?[")
 
 
 class View(Enum):
-    """Where Swanky's layout (:mod:`host_bridge.blueprint`) shows a type's topics, besides the
+    """Where Swanky's layout (:mod:`host_bridge.outputs.blueprint`) shows a type's topics, besides the
     robot's 3D view, which holds everything under ``/<robot>``."""
 
     SPATIAL = "the 3D view only (scans, clouds, maps, markers, poses, the robot model)"
@@ -73,8 +73,8 @@ class Row:
     after the exact names in table order; ``*`` is the catch-all. ``topics`` limits the row to
     the topics it accepts, tried before the type's other row (std_msgs/String on
     /robot_description is a robot model, elsewhere text). ``options``: the record the
-    converters read with ``ctx.options`` (:mod:`host_bridge.options`), which is what a config
-    file may set for the type. ``converter``: see :mod:`host_bridge.contract`. ``lane``: see
+    converters read with ``ctx.options`` (:mod:`host_bridge.core.options`), which is what a config
+    file may set for the type. ``converter``: see :mod:`host_bridge.core.contract`. ``lane``: see
     :class:`Lane`. ``slow``: a second converter too slow for the receive path (wall meshes of a
     map), run after ``converter`` in a worker that keeps only the newest message. ``traffic``:
     the relay's share of the link for the type (its own table, ``robot_relay.policy.TRAFFIC``,
@@ -181,7 +181,7 @@ def default_registry() -> Registry:
         walls,
     )
     from host_bridge.converters.urdf import description
-    from host_bridge.options import (
+    from host_bridge.core.options import (
         CostmapUpdateOptions,
         GenericOptions,
         GridDrawingOptions,

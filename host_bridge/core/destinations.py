@@ -1,6 +1,6 @@
 """Where a recording goes (``--spawn``, ``--rerun-addr``, ``--save``, ``--serve-web``), as a
 record :mod:`host_bridge.cli` fills without importing Rerun: ``swanky-host --help`` must not pay
-for loading the SDK. :mod:`host_bridge.sink` opens what it names."""
+for loading the SDK. :mod:`host_bridge.outputs.sink` opens what it names."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 LOOPBACK = "127.0.0.1"
 SAVE_SPLIT_S = 120.0
 """How long a live ``--save`` file runs before the next one starts (``--save-split``): Rerun
-keeps the index it ends a file with in memory until then (:class:`host_bridge.sink.SavedFile`)."""
+keeps the index it ends a file with in memory until then (:class:`host_bridge.outputs.sink.SavedFile`)."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,7 +1,7 @@
 """Meshes from the robot: asks a relay's file server (robot_relay/files.py, schemas/wire.md) for
 the ``package://`` files the PC does not have, and keeps what it got.
 
-It is the :data:`host_bridge.resources.RobotFetch` of a live host. The session is attached once
+It is the :data:`host_bridge.core.resources.RobotFetch` of a live host. The session is attached once
 the host has opened it. Fetches run on the host's converting thread, so each is bounded by
 ``timeout``, and a robot that let one run out is not asked again for ``quiet`` seconds: a dead
 relay costs one timeout per model, not one per mesh. A reply over ``max_bytes`` (the relay's own
@@ -16,8 +16,8 @@ import time
 
 import zenoh
 
+from host_bridge.core.resources import PACKAGE_SCHEME, split_package_uri
 from host_bridge.errors import ConvertError
-from host_bridge.resources import PACKAGE_SCHEME, split_package_uri
 from robot_relay.files import DEFAULT_MAX_BYTES
 from robot_relay.wire import files_key
 

@@ -21,8 +21,8 @@ from rosbags.interfaces import Nodetype
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
+from host_bridge.core.schemas import base_typestore
 from host_bridge.errors import DecodeError, UnknownTypeError
-from host_bridge.schemas import base_typestore
 from robot_relay.wire import MessageDefinition, RawMessage
 
 IDL_SEPARATOR = "=" * 80 + "\n"

@@ -2,10 +2,10 @@
 what it returns (log items or columns); it never calls ``rr.log``, the sink does.
 
 One form: a converter is a function ``(run) -> list[LogEntry]``. The run gives the messages
-decoded, or their fields as numpy columns (:mod:`host_bridge.columns`, no Python per message),
+decoded, or their fields as numpy columns (:mod:`host_bridge.core.columns`, no Python per message),
 each on demand, and the one rule of every timeline (:meth:`Run.times`). A converter written for
 one message at a time is made one by :func:`per_message`. Kept apart from
-:mod:`host_bridge.registry` (the type table) so converters, the sink, queues and the layout
+:mod:`host_bridge.table.registry` (the type table) so converters, the sink, queues and the layout
 import the contract without importing every converter.
 """
 
@@ -21,9 +21,9 @@ import numpy.typing as npt
 import pyarrow as pa
 import rerun as rr
 
+from host_bridge.core.options import Options
+from host_bridge.core.state import RobotState, State, TopicState
 from host_bridge.errors import ConvertError, HostError, PartialConvertError
-from host_bridge.options import Options
-from host_bridge.state import RobotState, State, TopicState
 
 TIMELINE_ROS = "ros_time"
 TIMELINE_RECEIVE = "receive_time"
@@ -34,7 +34,7 @@ STATS_ROOT = "/_stats"
 """Root of the health series (stats.py) and of SLAM's (slam/feeder.py)."""
 
 if TYPE_CHECKING:
-    from host_bridge.columns import Columns
+    from host_bridge.core.columns import Columns
 
 Int64Array = npt.NDArray[np.int64]
 RowIndex = npt.NDArray[np.intp]
@@ -298,7 +298,7 @@ class Run(TopicContext):
         return self._messages
 
     def columns(self) -> Columns:
-        """The messages' fields as columns (:mod:`host_bridge.columns`), read from their
+        """The messages' fields as columns (:mod:`host_bridge.core.columns`), read from their
         payloads without decoding them; a HostError when the run cannot be read so (a payload
         that does not decode, nested sequences of differing lengths)."""
         if self._columns is None:
@@ -431,7 +431,7 @@ class _Decoded:
         return self.messages[row]
 
     def columns(self) -> Columns:
-        from host_bridge.columns import columns_of_messages
+        from host_bridge.core.columns import columns_of_messages
 
         return columns_of_messages(self.messages, self.topic)
 

@@ -55,9 +55,9 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
-from host_bridge.columns import PackedPayloads
-from host_bridge.contract import STATS_ROOT, TIMELINE_LOG, TIMELINE_RECEIVE, LogItem
-from host_bridge.counters import TopicCounters, sequence_gap, sequence_gaps
+from host_bridge.core.columns import PackedPayloads
+from host_bridge.core.contract import STATS_ROOT, TIMELINE_LOG, TIMELINE_RECEIVE, LogItem
+from host_bridge.core.counters import TopicCounters, sequence_gap, sequence_gaps
 from host_bridge.inputs.base import MessageRun
 from host_bridge.inputs.clocks import ClockEstimate, RelayClocks
 from robot_relay.errors import WireError
@@ -66,7 +66,7 @@ from robot_relay.wire import RawMessage, RelayReport, parse_robot_key, stats_sel
 if TYPE_CHECKING:
     import zenoh
 
-    from host_bridge.sink import Sink
+    from host_bridge.outputs.sink import Sink
 
 log = logging.getLogger("swanky.host")
 

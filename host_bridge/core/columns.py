@@ -579,7 +579,7 @@ def read_columns(
 
 @functools.cache
 def _message_store() -> Typestore:
-    from host_bridge.schemas import base_typestore
+    from host_bridge.core.schemas import base_typestore
 
     return base_typestore()
 

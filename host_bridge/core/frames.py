@@ -8,7 +8,7 @@ it. :class:`RobotFrames` watches what a robot's converters log and keeps its fra
 
 * Every named frame of robot ``R`` (``R/<frame>``) that no relation names as a child is placed
   at the robot's entity root (``tf#/R``) by a static identity ``Transform3D`` on the entity
-  /tf_static would use for it (:func:`~host_bridge.state.static_transform_path`). A real
+  /tf_static would use for it (:func:`~host_bridge.core.state.static_transform_path`). A real
   relation that comes later replaces it: from /tf_static or the URDF on that very entity, from
   /tf or joint states from their first stamp on (Rerun lets a temporal entity win over a static
   one for the same frame). Entities without a named frame (``tf#/R/...``) hang from ``tf#/R``
@@ -34,9 +34,9 @@ import numpy.typing as npt
 import pyarrow as pa
 import rerun as rr
 
-from host_bridge.contract import ColumnsItem, LogEntry, LogItem
-from host_bridge.rerun_private import column_values
-from host_bridge.state import RobotModel, RobotState, static_transform_path
+from host_bridge.core.contract import ColumnsItem, LogEntry, LogItem
+from host_bridge.core.rerun_private import column_values
+from host_bridge.core.state import RobotModel, RobotState, static_transform_path
 
 log = logging.getLogger("swanky.host")
 

@@ -20,7 +20,7 @@ What stays here: everything about a heavy run but its conversion: the taps (``/_
 ``--record-mcap``), the topic's settings (entity path, options, the layout's views), its
 counters and sequence gaps, the robot's frame tree. The converter process gets the run's
 payloads and the topic's settings, decodes, converts and logs the run with a
-:class:`~host_bridge.dispatch.Conversion` of its own (whose slow lane runs the slow converters,
+:class:`~host_bridge.pipeline.dispatch.Conversion` of its own (whose slow lane runs the slow converters,
 walls, too), and answers with what the run's counters gained and the frames its entries named.
 The placements those frames call for are logged here (frames.py): a placement shares its
 entity with /tf_static's transform of the frame and must never be written after it, which only
@@ -58,13 +58,13 @@ from typing import TYPE_CHECKING, Any
 
 from host_bridge.errors import ConvertError, HostError
 from host_bridge.inputs.queues import HEAVY_NICENESS, TypeLanes
-from host_bridge.registry import Lane
+from host_bridge.table.registry import Lane
 from robot_relay.wire import MessageDefinition, RawMessage
 
 if TYPE_CHECKING:
-    from host_bridge.contract import LogEntry
-    from host_bridge.counters import TopicCounters
-    from host_bridge.dispatch import Dispatcher, TopicBinding
+    from host_bridge.core.contract import LogEntry
+    from host_bridge.core.counters import TopicCounters
+    from host_bridge.pipeline.dispatch import Dispatcher, TopicBinding
 
 log = logging.getLogger("swanky.host")
 
@@ -72,7 +72,7 @@ READY_TIMEOUT_S = 30.0
 """How long the first heavy run waits for the child to import Rerun and reach the viewer."""
 POLL_S = 0.5
 """How often a wait for the child looks whether it is still alive."""
-CHILD_MAIN = "import sys; from host_bridge.offload import main; sys.exit(main(sys.argv[1:]))"
+CHILD_MAIN = "import sys; from host_bridge.pipeline.offload import main; sys.exit(main(sys.argv[1:]))"
 """The child's program: :func:`main` of this module by its name (as ``__main__`` the records it
 sends back would be unpickled as the host's ``__main__``'s)."""
 ROUND_TRIP_VALID_S = 1.0
@@ -300,7 +300,7 @@ class _FrameNotes:
         self._pending = Outcome()
 
     def add(self, robot: str, entries: Sequence[LogEntry]) -> None:
-        from host_bridge.frames import frames_logged
+        from host_bridge.core.frames import frames_logged
 
         relations, frames = frames_logged(entries)
         with self._lock:
@@ -322,14 +322,14 @@ class _FrameNotes:
 
 
 def _serve(connection: Connection, viewer: str, recording_id: str, strict: bool) -> int:
-    from host_bridge.counters import TopicCounters
-    from host_bridge.decode import Decoder
-    from host_bridge.destinations import SinkOptions
-    from host_bridge.dispatch import Conversion, TopicBinding
+    from host_bridge.core.counters import TopicCounters
+    from host_bridge.core.decode import Decoder
+    from host_bridge.core.destinations import SinkOptions
+    from host_bridge.core.state import TopicState
     from host_bridge.errors import SinkError
-    from host_bridge.registry import default_registry
-    from host_bridge.sink import RerunSink
-    from host_bridge.state import TopicState
+    from host_bridge.outputs.sink import RerunSink
+    from host_bridge.pipeline.dispatch import Conversion, TopicBinding
+    from host_bridge.table.registry import default_registry
 
     notes = _FrameNotes()
     giving_up = threading.Event()

@@ -4,7 +4,7 @@ whether it is shown, which alternative converter draws it, the converter's optio
 Precedence, lowest to highest, merged key by key (``options`` too, option by option):
 
 1. the built-in defaults of the topic's type (the options record of its row in the type table,
-   ``host_bridge/registry.py``),
+   ``host_bridge/table/registry.py``),
 2. ``defaults``,
 3. matching ``types`` entries: type globs (``sensor_msgs/msg/*``) least specific first, then
    the exact type name,
@@ -34,8 +34,8 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
+from host_bridge.core.options import CONVERTER_OPTION, converter_choices, fixed_defaults, option_names
 from host_bridge.errors import ConfigError, relay_errors
-from host_bridge.options import CONVERTER_OPTION, converter_choices, fixed_defaults, option_names
 from robot_relay.configfile import (
     ConfigDocument,
     KeyPath,
@@ -49,8 +49,8 @@ from robot_relay.configfile import (
 if TYPE_CHECKING:
     from jsonschema.protocols import Validator
 
-    from host_bridge.registry import Registry
     from host_bridge.slam.settings import SlamSettings
+    from host_bridge.table.registry import Registry
 
 SCHEMA_NAME = "host"
 DEFAULT_ENTITY_PATH = "/{robot}{topic}"

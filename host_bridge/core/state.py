@@ -20,9 +20,9 @@ import numpy as np
 import numpy.typing as npt
 import rerun as rr
 
+from host_bridge.core.options import GridDrawingOptions, Options, options_from
+from host_bridge.core.resources import ResourceResolver
 from host_bridge.errors import ConvertError
-from host_bridge.options import GridDrawingOptions, Options, options_from
-from host_bridge.resources import ResourceResolver
 
 State = TypeVar("State")
 FloatArray = npt.NDArray[np.float64]
@@ -67,7 +67,7 @@ class Grid:
 
     ``options`` are the grid topic's own, so an update (whose topic has its own options)
     renders the patched grid the way the grid topic asked for; a map's hold its walls' too
-    (:class:`~host_bridge.options.GridOptions`), a costmap's do not.
+    (:class:`~host_bridge.core.options.GridOptions`), a costmap's do not.
     """
 
     topic: str

@@ -4,9 +4,9 @@
 ``rerun.blueprint.Blueprint`` out. Per robot: one 3D view of everything under ``/<robot>`` (model,
 scan, cloud, map, walls, trails, camera frustums), a 2D view per image topic, a map for GPS
 fixes, time series grouped by kind, bar charts of custom types' long arrays, and a text log.
-Where a type goes is its row's :class:`~host_bridge.registry.View` in the type table. Several
+Where a type goes is its row's :class:`~host_bridge.table.registry.View` in the type table. Several
 robots get one tab each, after a tab with every robot in one 3D view. The 3D views name no
-target frame: the data does (host_bridge/frames.py logs the robot's ``map``, ``odom`` or model
+target frame: the data does (host_bridge/core/frames.py logs the robot's ``map``, ``odom`` or model
 root as the frame of ``/<robot>`` and keeps every frame of the robot connected to it), so a saved
 blueprint still fits a robot whose frames differ.
 
@@ -25,10 +25,10 @@ from pathlib import Path
 
 import rerun.blueprint as rrb
 
-from host_bridge.contract import STATS_ROOT, WARNINGS_PATH, ConvertContext
 from host_bridge.converters.camera import pinhole_path
+from host_bridge.core.contract import STATS_ROOT, WARNINGS_PATH, ConvertContext
 from host_bridge.errors import ConfigError
-from host_bridge.registry import Registry, View, default_registry
+from host_bridge.table.registry import Registry, View, default_registry
 
 TIMER_PREFIX = "/instrumentation/timer/"
 

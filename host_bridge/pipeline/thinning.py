@@ -43,16 +43,16 @@ from typing import TYPE_CHECKING
 
 import rerun as rr
 
-from host_bridge.contract import STATS_ROOT, TIMELINE_RECEIVE, WARNINGS_PATH, LogItem
+from host_bridge.core.contract import STATS_ROOT, TIMELINE_RECEIVE, WARNINGS_PATH, LogItem
 from host_bridge.inputs.queues import TypeLanes
-from host_bridge.registry import Lane
-from host_bridge.viewer_lag import LONGEST_PERIOD_S, SHORTEST_PERIOD_S
+from host_bridge.outputs.viewer_lag import LONGEST_PERIOD_S, SHORTEST_PERIOD_S
+from host_bridge.table.registry import Lane
 
 if TYPE_CHECKING:
-    from host_bridge.counters import TopicCounters
-    from host_bridge.dispatch import Dispatcher, Offload, TopicBinding
-    from host_bridge.sink import RerunSink
-    from host_bridge.viewer_lag import ViewerLag
+    from host_bridge.core.counters import TopicCounters
+    from host_bridge.outputs.sink import RerunSink
+    from host_bridge.outputs.viewer_lag import ViewerLag
+    from host_bridge.pipeline.dispatch import Dispatcher, Offload, TopicBinding
     from robot_relay.wire import RawMessage
 
 log = logging.getLogger("swanky.host")

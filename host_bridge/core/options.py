@@ -1,8 +1,8 @@
 """Converter options as typed records: one frozen dataclass per family of converters.
 
-A type's row in the table (:mod:`host_bridge.registry`) names its record: the one its converter
+A type's row in the table (:mod:`host_bridge.table.registry`) names its record: the one its converter
 reads (``ctx.options(LaserScanOptions)``, attributes mypy checks). The record is the one place
-a default is written and says which options the type takes; :mod:`host_bridge.config` checks a
+a default is written and says which options the type takes; :mod:`host_bridge.table.config` checks a
 config file's option names, the ``converter`` choices and the built-in layer of
 ``--print-config`` against the row's record. ``schemas/host.schema.json`` describes the options
 to users and says which values are valid; it holds no defaults, and

@@ -140,7 +140,7 @@ class McapRecorder:
 
     def _bundled_definition(self, msgtype: str) -> MessageDefinition:
         """The source sent no definition (no catalog yet): the one the host decodes with."""
-        from host_bridge.schemas import base_typestore
+        from host_bridge.core.schemas import base_typestore
 
         if self._fallback is None:
             self._fallback = base_typestore()

@@ -1,0 +1,2 @@
+"""Runs -> taps -> decode -> convert -> sink (``dispatch``), the heavy topics' second process
+(``offload``) and what a lagging viewer is spared (``thinning``)."""
