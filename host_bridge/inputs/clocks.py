@@ -61,6 +61,9 @@ WINDOW = 16
 BURST = 8
 BURST_SPACING_S = 0.01
 QUERY_PERIOD_S = 2.0
+NO_ANSWER_AFTER_S = 1.0
+"""A relay is said not to answer once its whole first burst and this long went unanswered: a
+relay that has just joined may not have its clock query routed to this host yet."""
 QUERY_TIMEOUT_S = 1.0
 READY_TIMEOUT_S = 2.0
 """The most a joining relay's samples wait for its first burst."""
@@ -177,7 +180,7 @@ class _Follower:
         self.robot = robot
         self.estimator = ClockEstimator()
         self.ready = threading.Event()
-        """Set once the first burst is over, or its first query went unanswered."""
+        """Set once the first burst is over (answered or not)."""
         self.wake = threading.Event()
         self.stop = threading.Event()
         self.prompted = 0.0
@@ -261,6 +264,9 @@ class RelayClocks:
     def _run(self, follower: _Follower) -> None:
         queries = BURST
         answered = False
+        unanswered = 0
+        said_unanswered = False
+        following_since = time.monotonic()
         while not follower.stop.is_set():
             follower.wake.clear()  # before asking: a prompt that comes meanwhile asks again
             sample = self._ask(follower)
@@ -269,12 +275,14 @@ class RelayClocks:
                 answered = True
                 queries = BURST if estimate.jumped else queries
                 self._publish(follower, estimate)
-            elif sample is None and not answered:
-                self._say(follower.robot, NoClockError(
-                    f"robot {follower.robot}'s relay does not answer the clock query "
-                    f"({clock_key(follower.robot)}; a relay older than this host?): its "
-                    "receive_time and latency_ms stay on its own clock, uncorrected"))
-                follower.ready.set()
+            elif sample is None and not answered and not said_unanswered:
+                unanswered += 1
+                if unanswered >= BURST and time.monotonic() - following_since >= NO_ANSWER_AFTER_S:
+                    said_unanswered = True
+                    self._say(follower.robot, NoClockError(
+                        f"robot {follower.robot}'s relay does not answer the clock query "
+                        f"({clock_key(follower.robot)}; a relay older than this host?): its "
+                        "receive_time and latency_ms stay on its own clock, uncorrected"))
             queries -= 1
             if queries <= 0:
                 follower.ready.set()

@@ -164,7 +164,12 @@ def test_a_relay_that_does_not_answer_the_clock_query_is_said_once_and_left_unco
         for sequence in range(3):
             chat.put(string_cdr("hi"), encoding=cdr_encoding(STRING),
                      attachment=Attachment(sequence, 1_000 + sequence).pack())
-        items = received.wait_for(lambda items: len(messages(items)) >= 3)
+        early = received.wait_for(lambda items: len(messages(items)) >= 3)
+        # Said once the first burst and NO_ANSWER_AFTER_S went unanswered, not at once: a relay
+        # that has just joined may not be reachable by its clock query yet.
+        assert not [item for item in early if isinstance(item, InputProblem)]
+        items = received.wait_for(
+            lambda items: any(isinstance(item, InputProblem) for item in items))
         offset = source.clocks.offset_ns("old")
     finally:
         source.close()
