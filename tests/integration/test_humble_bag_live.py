@@ -41,6 +41,8 @@ def test_relay_replays_a_humble_bag_as_the_host_converts_it(tmp_path: Path) -> N
              for rs in (rows["/robot/global_costmap/costmap_raw"],
                         offline["/robot/global_costmap/costmap_raw"])]
     assert grids[0] == grids[1] == [[100, 255, 1, 0, 50, 99]]
-    [warning] = texts(rows[WARNINGS_PATH])
+    warnings = texts(rows[WARNINGS_PATH])
+    assert len(warnings) == 1, warnings
+    [warning] = warnings
     assert warning.startswith("[robot] /sensor/reading: type my_msgs/msg/Reading has no definition")
     assert texts(offline[WARNINGS_PATH]) == [warning]
