@@ -191,14 +191,13 @@ class ZenohInput:
         if not joined:
             self.clocks.unfollow(robot)
         else:
-            self.clocks.follow(robot)
             with self._lock:
                 state = self._robots.setdefault(robot, _RobotCatalog())
                 # A restarted relay may bring other topics or definitions: its samples wait
                 # for the new catalog. (Not on leaving: its last samples may still arrive.)
                 state.topics = None
                 state.joins += 1
-            self._fetch_catalog(robot)
+            self._fetch_catalog(robot, follow_clock=True)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -297,20 +296,25 @@ class ZenohInput:
     def _put(self, item: InputItem, latched: bool = False) -> None:
         self.queues.put(item, latched)
 
-    def _fetch_catalog(self, robot: str, after: float = 0.0) -> None:
+    def _fetch_catalog(self, robot: str, after: float = 0.0, *, follow_clock: bool = False) -> None:
         """Ask ``robot``'s relay for its catalog in ``after`` seconds, unless a fetch is under
-        way."""
+        way; ``follow_clock`` (its relay joined): then measure its clock anew."""
         with self._lock:
             state = self._robots.setdefault(robot, _RobotCatalog())
-            if state.fetching:
-                return
+            fetching = state.fetching
             state.fetching = True
-            state.last_fetch = time.monotonic() + after
+            if not fetching:
+                state.last_fetch = time.monotonic() + after
+        if fetching:
+            if follow_clock:
+                self.clocks.follow(robot)
+            return
         threading.Thread(
-            target=self._catalog_worker, args=(robot, after), name=f"catalog-{robot}", daemon=True
+            target=self._catalog_worker, args=(robot, after, follow_clock), name=f"catalog-{robot}",
+            daemon=True,
         ).start()
 
-    def _catalog_worker(self, robot: str, after: float) -> None:
+    def _catalog_worker(self, robot: str, after: float, follow_clock: bool = False) -> None:
         if self._closed.wait(after):
             return
         with self._lock:
@@ -331,6 +335,11 @@ class ZenohInput:
                 f"robot {robot} did not answer its catalog ({key}) within {CATALOG_TIMEOUT_S} s; "
                 "decoding its topics with the bundled ROS 2 Humble types"
             )
+        if follow_clock:
+            # After the catalog's query, not beside it: a relay that has just joined answered
+            # its catalog late (past CATALOG_TIMEOUT_S) in 2 of 5 runs when the clock's burst of
+            # queries went out at the same time, in none of 4 without it.
+            self.clocks.follow(robot)
         self.clocks.wait_ready(robot)
         with self._lock:
             state = self._robots[robot]
