@@ -59,7 +59,7 @@ JUMP_MARGIN_NS = 1_000_000
 nanosecond-rounded sample and a drift a little above :data:`MAX_DRIFT` never reach)."""
 WINDOW = 16
 BURST = 8
-BURST_SPACING_S = 0.01
+BURST_SPACING_S = 0.001
 QUERY_PERIOD_S = 2.0
 NO_ANSWER_AFTER_S = 1.0
 """A relay is said not to answer once its whole first burst and this long went unanswered: a
