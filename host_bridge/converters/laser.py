@@ -179,11 +179,13 @@ _SCAN_BY_SCAN = per_message(convert_scan)
 
 def convert_scans(run: Run) -> list[LogEntry]:
     """A run of one topic's scans as one ``Points3D`` column partitioned by scan."""
+    if len(run) == 1:  # a live scan alone: straight to the scan's converter
+        return _SCAN_BY_SCAN(run)
     options = _options(run)
     msgs = run.messages()
     frames = [run.frame(m.header.frame_id) for m in msgs]
     named = [f for f in frames if f is not None]
-    if len(msgs) == 1 or options.mode != "points" or 0 < len(named) < len(frames):
+    if options.mode != "points" or 0 < len(named) < len(frames):
         # Rays, or scans with and without a frame id (a row cannot log "no frame"): one by one.
         return _SCAN_BY_SCAN(run)
     entries: list[LogEntry] = []

@@ -357,10 +357,23 @@ class Run(TopicContext):
 
     def row_times(self, row: int = -1, stamp: int | None = None) -> dict[str, int]:
         """Message ``row``'s timelines by :meth:`times`, ``stamp`` its stamp (None: unknown, or
-        none): what the dispatcher logs about it (a warning; an item without times)."""
-        rows = np.array([row % self._size])
-        groups = self.times(None if stamp is None else np.array([stamp], np.int64), rows)
-        return {name: int(values[0]) for _, times in groups for name, values in times.items()}
+        none): what the dispatcher logs about it (a warning; an item without times), and each
+        message's context. :meth:`times`' rule for one row, with no arrays: a live message
+        alone (the usual live run) would spend more on making them than on converting; the
+        test of both paths (tests/host_bridge/test_run_paths.py) holds the two to one rule."""
+        receive = None if self.receive_ns is None else int(self.receive_ns[row])
+        logged = None if self.log_ns is None else int(self.log_ns[row])
+        times: dict[str, int] = {}
+        arrival = receive if receive is not None else logged
+        if self.restamp and arrival is not None:
+            times[TIMELINE_ROS] = arrival
+        elif stamp:  # zero: no stamp
+            times[TIMELINE_ROS] = stamp
+        if receive is not None:
+            times[TIMELINE_RECEIVE] = receive
+        if logged is not None:
+            times[TIMELINE_LOG] = logged
+        return times
 
     def stamp(self, row: int = -1) -> int | None:
         """Message ``row``'s header stamp: from the columns or messages the run has read, else
@@ -380,11 +393,14 @@ class Run(TopicContext):
     def contexts(self) -> list[ConvertContext]:
         """One context per message, at its timelines (the messages decoded for their stamps)."""
         if self._contexts is None:
-            per_row: list[dict[str, int]] = [{}] * self._size
-            for rows, times in self.times(self.stamps()):
-                columns = {name: values.tolist() for name, values in times.items()}
-                for entry, row in enumerate(rows.tolist()):
-                    per_row[row] = {name: column[entry] for name, column in columns.items()}
+            if self._size == 1:  # a live message alone: no arrays (see row_times)
+                per_row = [self.row_times(0, header_stamp(self.messages()[0]))]
+            else:
+                per_row = [{}] * self._size
+                for rows, times in self.times(self.stamps()):
+                    columns = {name: values.tolist() for name, values in times.items()}
+                    for entry, row in enumerate(rows.tolist()):
+                        per_row[row] = {name: column[entry] for name, column in columns.items()}
             self._contexts = [
                 ConvertContext(self.robot, self.topic, self.entity_path, times, self.topic_state,
                                self.robot_state, self.restamp)

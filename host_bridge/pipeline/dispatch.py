@@ -256,7 +256,7 @@ class Conversion:
         )
         started = time.perf_counter()
         parts = [run]
-        if isinstance(converter, PerMessage) and len(run) > 1:
+        if len(run) > 1 and isinstance(converter, PerMessage):
             # A converter written per message gets its messages one by one, decoded and timed
             # at once for the run (unless one does not decode: then each on its own).
             with contextlib.suppress(HostError):
@@ -294,8 +294,12 @@ class Conversion:
             return None
         # Items without times of their own (none of this package's converters returns one) go at
         # the run's last arrival.
-        untimed = any(isinstance(e, LogItem) and e.times is None and not e.static for e in entries)
-        self.log(run.robot, entries, run.row_times() if untimed else {})
+        times: Mapping[str, int] = {}
+        for entry in entries:  # (a loop: any() of a generator costs a live message more)
+            if isinstance(entry, LogItem) and entry.times is None and not entry.static:
+                times = run.row_times()
+                break
+        self.log(run.robot, entries, times)
         if counters is not None:
             counters.converted += len(run)
         return run

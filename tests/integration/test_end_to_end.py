@@ -50,7 +50,8 @@ def test_relay_to_host_delivers_every_scan(shared_data: Path, tmp_path: Path) ->
     host = command("host_bridge.cli", "-l", f"tcp/127.0.0.1:{port}", *ZENOH_LOOPBACK,
                    "--save", str(out), "--until-idle", "5", "--duration", "90")
     relay = command("robot_relay.cli", "--robot", "hokuyo", "--bag", str(bag), "--rate", "20",
-                    "--config", str(config), "-e", f"tcp/127.0.0.1:{port}", *ZENOH_LOOPBACK, "--wait-for-host", "30")
+                    "--config", str(config), "-e", f"tcp/127.0.0.1:{port}", *ZENOH_LOOPBACK,
+                    "--wait-for-host", "30")
     with running(host) as host_proc:
         time.sleep(1.0)
         with running(relay) as relay_proc:
