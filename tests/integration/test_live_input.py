@@ -228,8 +228,14 @@ def test_a_relay_that_joins_while_its_catalog_is_asked_for_is_asked_again(
     relays.queues.serve(received.take)
     relay = None
     try:
-        robot.put(data_key("tb3", "/speed"), b"\x00", encoding=cdr_encoding(FLOAT64),
-                  attachment=Attachment(0, time.time_ns()).pack())
+        # Once the robot's session knows the host's subscriber: a put before that is not sent
+        # at all (CI lost the garbage sample so, under load).
+        garbage = robot.declare_publisher(data_key("tb3", "/speed"), encoding=cdr_encoding(FLOAT64))
+        deadline = time.monotonic() + 10.0
+        while not garbage.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        garbage.put(b"\x00", attachment=Attachment(0, time.time_ns()).pack())
+        garbage.undeclare()
         relay = Relay(robot, Catalog("tb3", "ros2", (TopicInfo("/speed", FLOAT64, definition),)))
         assert relay.wait_for_host(10.0)
         relay.publish(RawMessage("tb3", "/speed", FLOAT64, speed, log_ns=1))
