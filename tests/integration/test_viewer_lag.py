@@ -50,7 +50,7 @@ pytestmark = [pytest.mark.integration, pytest.mark.filterwarnings("ignore:RRD fi
 ROBOT = "cam"
 IMAGES, ODOM = "/camera/image_raw", "/odom"
 WIDTH, HEIGHT = 320, 240
-BAG_S = 24.0
+BAG_S = 20.0
 """The robot's whole run: healthy, the viewer frozen, then long enough for it to catch up."""
 HEALTHY_S = 4.0
 FROZEN_S = 4.0
