@@ -1,5 +1,7 @@
 """Fleet capacity (issue 24): 25 demo robots' live traffic into one host on this machine, against
-one robot's through the same pipeline, measured in the same run.
+one robot's through the same pipeline, measured in the same run; with ``--router``, the README's
+two-PC recipe: the fleet through a Zenoh router into one host, then into two hosts sharing one
+viewer.
 
 Each robot is the demo's simulated swanky_bot (``host_bridge/demo``: Imu, TF, odometry, joint
 states, ground-truth pose and a step-time series at 30 Hz, LaserScan 360 rays at 5 Hz, a 160x120
@@ -23,23 +25,54 @@ every robot delivered, warms up ``--warmup`` s, then measures ``--seconds``:
   dispatcher does; as ``live_capacity.py``), p50 and p99 of each robot;
 - drops by kind, small topics against heavy ones (the type table's lanes): messages the host's
   queues dropped (a full queue; a heavy message replaced by a newer one while the host is behind,
-  ``inputs/queues.py``) and messages lost between relay and host (wire sequence gaps);
+  ``inputs/queues.py``) and messages lost between relay and host (wire sequence gaps less the
+  host's own drops, which leave gaps too);
 - heavy messages converted per robot: the fewest and the most over the robots (fair thinning
   keeps them close, no robot starved);
 - host CPU: the phase's process time over the window's wall time (cores), per robot, and per
   message converted (the turns of ``inputs/queues.py`` make a busy host convert longer runs,
   which cost less per message);
-- host peak RSS: the phase process's VmHWM.
+- host peak RSS: the phase process's VmHWM;
+- the CPU (cores) over the window of the processes beside the host: the relays'.
 
 Targets: no small-topic message dropped (TF, odometry, joints, IMU, logs, latched topics: the
 issue's "no drop of non-sensor data"); every robot's small-topic p99 <= 100 ms (three periods of
 its 30 Hz topics, half the time between two of its scans: the viewer's frames and TF lookups
 stay current); every robot converts heavy messages.
 
+``--router``: relays and hosts meet at the lab's router (``deploy/zenoh-router.json5`` on a
+loopback port, a zenoh-python session in router mode in a process of its own: no zenohd here),
+all of them its clients, as that file has robots connect (in Zenoh's default peer mode they learn
+of each other through the router and connect directly, so the data would not pass it). The
+robots are the README's two groups, east-1, west-1, east-2, ... (the same demo robots). Two
+phases, each with its own Rerun viewer process without a window (``rerun --port N --save
+FILE.rrd``, ``tests/integration/procs.saving_viewer``) that its hosts log to under the recording
+id ``fleet``, as ``swanky-host --recording-id fleet --rerun-addr`` does: the layout it follows
+the topics with, how far behind the viewer is (``/_stats/host/viewer_lag_ms``) and heavy topics
+thinned for a viewer behind; only their conversion stays on the host's threads (no converter
+process), so the host's CPU is its process's:
+
+- one host, ``--robots '*'``: the whole fleet;
+- two hosts, ``--robots 'east-$*'`` and ``--robots 'west-$*'``, each a process of its own,
+  measuring the same window (the parent tells both to go once both have every robot).
+
+Printed per host the figures above (the router's and the viewer's CPU beside the relays'), then
+two hosts against one: the worst robot's small-topic p99, the pooled p50s, host CPU in cores and
+per message converted, small and heavy messages converted per robot and second, peak RSS, small
+messages dropped, each as a ratio where one reads as one. Both hosts run on this machine's two
+cores, so two hosts against one says what splitting the fleet over two processes buys (a GIL
+each) and costs, not what a second PC's cores would add. Then what each viewer saved: its
+recordings (one: both hosts' data in ``fleet``), the blueprints the hosts sent (each made the
+active one, so the layout shown is the last host's, naming its robots only), rows of each
+robot's ``/imu`` (every robot present, none short), the entities outside every robot's paths
+(which both hosts write: ``/_stats/host/viewer_lag_ms`` gets both hosts' series interleaved) and
+the hosts' warnings. After its window a host flushes what it logged to the viewer, then ends.
+
 The bags took 45-52 s to simulate on this shared 2-core machine (load 8 to 13), each phase
 30-45 s; a phase's process ends right after its window, without draining what its queues hold.
 
     .venv/bin/python benchmarks/fleet.py [--robots 25] [--seconds 15] [--warmup 5] [--slam]
+        [--router]
 """
 
 from __future__ import annotations
@@ -47,6 +80,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -82,7 +116,7 @@ from host_bridge.demo.run import (  # noqa: E402
 )
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun  # noqa: E402
 from host_bridge.inputs.live import LiveInput  # noqa: E402
-from host_bridge.inputs.queues import HeavyTopicsThinnedError  # noqa: E402
+from host_bridge.inputs.queues import HeavyTopicsThinnedError, RobotQueues  # noqa: E402
 from host_bridge.outputs.sink import RerunSink  # noqa: E402
 from host_bridge.pipeline.dispatch import Dispatcher  # noqa: E402
 from host_bridge.table.registry import Lane, Registry, default_registry  # noqa: E402
@@ -90,6 +124,7 @@ from robot_relay.session import ZenohOptions  # noqa: E402
 from robot_relay.wire import RawMessage  # noqa: E402
 from tests.integration.procs import running, saving_viewer  # noqa: E402
 from tests.integration.router import router_command, wait_for_port  # noqa: E402
+from tests.rrd import ROW_ID  # noqa: E402
 
 # python -m benchmarks gives each script this many seconds at most.
 BUDGET_SECONDS = 180
@@ -215,13 +250,19 @@ def peak_rss_mb() -> float:
 
 
 Counts = dict[tuple[str, str], tuple[int, int, int]]
-"""(robot, topic) -> (received by the dispatcher, converted, sequence gaps)."""
+"""(robot, topic) -> (received by the dispatcher, converted, messages lost between relay and
+host)."""
 
 
-def counter_snapshot(dispatcher: Dispatcher) -> tuple[Counts, dict[tuple[str, str], str]]:
+def counter_snapshot(
+    dispatcher: Dispatcher, queues: RobotQueues,
+) -> tuple[Counts, dict[tuple[str, str], str]]:
+    """The dispatcher's counters; the link's losses are its sequence gaps less the host's own
+    drops, which leave gaps too (as the ``/_stats`` drops series counts them)."""
     counts, types = {}, {}
     for key, counters in list(dispatcher.counters.items()):
-        counts[key] = (counters.received, counters.converted, counters.sequence_gaps)
+        host_dropped = queues.dropped_when_taken(key[0]).get(key[1], 0)
+        counts[key] = (counters.received, counters.converted, counters.sequence_gaps - host_dropped)
         types[key] = counters.msgtype
     return counts, types
 
@@ -364,7 +405,7 @@ whose CPU over the window is measured too, names to pids) and ``warmup`` passed 
         if relays is not None:
             watched["relays"] = relays.pid
         time.sleep(warmup)
-        counts_before, _ = counter_snapshot(dispatcher)
+        counts_before, _ = counter_snapshot(dispatcher, live.queues)
         drops_before = live.queues.dropped
         others_before = {name: process_cpu_s(pid) for name, pid in watched.items()}
         timing.start_measuring()
@@ -374,12 +415,13 @@ whose CPU over the window is measured too, names to pids) and ``warmup`` passed 
         host_cpu = time.process_time() - cpu_before
         wall = time.perf_counter() - wall_before
         others_cpu = {name: process_cpu_s(pid) - others_before[name] for name, pid in watched.items()}
-        counts_after, types = counter_snapshot(dispatcher)
+        counts_after, types = counter_snapshot(dispatcher, live.queues)
         drops_after = live.queues.dropped
         if relays is not None:
             stop_process(relays)
-        else:
-            sink.flush()  # what the shared viewer's file holds: everything up to the window's end
+        if layout is not None:  # the viewer's file gets everything up to the window's end
+            layout.close()
+            sink.flush()
         kinds = {key: "small" if registry.row(msgtype, key[1]).lane is Lane.SMALL else "heavy"
                  for key, msgtype in types.items()}
         pooled = np.concatenate(list(small_ms.values())) if small_ms else np.array([np.nan])
@@ -493,7 +535,8 @@ class ViewerFindings:
     recordings: list[str]
     """Each recording's application and recording id."""
     blueprints: list[list[str]]
-    """Each blueprint's robots (those its views name), in the file's order."""
+    """Each blueprint's robots (those its views name), in the order they were sent (their first
+    row ids, which begin with the time they were logged at: the file keeps no order of stores)."""
     rows: dict[str, int]
     """Per robot, the rows of its VIEWER_TOPIC."""
     shared: dict[str, int]
@@ -512,9 +555,12 @@ def viewer_findings(rrd: Path, robots: list[str]) -> ViewerFindings:
     blueprints = []
     for store in reader.blueprints():
         found: set[str] = set()
+        first_row = b"\xff" * 16
         for chunk in reader.stream(store=store):
-            found.update(chunk_robots(chunk.to_record_batch(), named))
-        blueprints.append(sorted(found, key=robots.index))
+            batch = chunk.to_record_batch()
+            found.update(chunk_robots(batch, named))
+            first_row = min(first_row, *batch.column(ROW_ID).to_pylist())
+        blueprints.append((first_row, sorted(found, key=robots.index)))
     rows = dict.fromkeys(robots, 0)
     shared: dict[str, int] = {}
     said = []
@@ -531,15 +577,14 @@ def viewer_findings(rrd: Path, robots: list[str]) -> ViewerFindings:
             elif parts[0] == robot and parts[1:2] == [VIEWER_TOPIC] and not chunk.is_static:
                 rows[robot] += chunk.num_rows
     return ViewerFindings([f"{s.application_id}/{s.recording_id}" for s in reader.recordings()],
-                          blueprints, rows, shared, said)
+                          [robots for _, robots in sorted(blueprints)], rows, shared, said)
 
 
 def chunk_robots(batch: pa.RecordBatch, named: str) -> set[str]:
     """The robots a blueprint chunk names (an entity path, a view's origin or query)."""
-    import re
-
-    text = json.dumps([column.to_pylist() for column in batch.columns
-                       if not pa.types.is_timestamp(column.type)], default=str)
+    columns = zip(batch.schema.names, batch.columns, strict=True)
+    text = json.dumps([column.to_pylist() for name, column in columns
+                       if name != ROW_ID and not pa.types.is_timestamp(column.type)], default=str)
     return {found.group(1) for found in re.finditer(rf"/({named})\b", text)}
 
 
