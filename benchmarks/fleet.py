@@ -26,7 +26,8 @@ every robot delivered, warms up ``--warmup`` s, then measures ``--seconds``:
 - drops by kind, small topics against heavy ones (the type table's lanes): messages the host's
   queues dropped (a full queue; a heavy message replaced by a newer one while the host is behind,
   ``inputs/queues.py``) and messages lost between relay and host (wire sequence gaps less the
-  host's own drops, which leave gaps too);
+  host's own drops, which leave gaps too; read a moment apart, so a robot's figure can be a few
+  messages off either way, even below 0);
 - heavy messages converted per robot: the fewest and the most over the robots (fair thinning
   keeps them close, no robot starved);
 - host CPU: the phase's process time over the window's wall time (cores), per robot, and per
