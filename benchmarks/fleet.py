@@ -1,5 +1,7 @@
 """Fleet capacity (issue 24): 25 demo robots' live traffic into one host on this machine, against
-one robot's through the same pipeline, measured in the same run.
+one robot's through the same pipeline, measured in the same run; with ``--router``, the README's
+two-PC recipe: the fleet through a Zenoh router into one host, then into two hosts sharing one
+viewer.
 
 Each robot is the demo's simulated swanky_bot (``host_bridge/demo``: Imu, TF, odometry, joint
 states, ground-truth pose and a step-time series at 30 Hz, LaserScan 360 rays at 5 Hz, a 160x120
@@ -23,23 +25,55 @@ every robot delivered, warms up ``--warmup`` s, then measures ``--seconds``:
   dispatcher does; as ``live_capacity.py``), p50 and p99 of each robot;
 - drops by kind, small topics against heavy ones (the type table's lanes): messages the host's
   queues dropped (a full queue; a heavy message replaced by a newer one while the host is behind,
-  ``inputs/queues.py``) and messages lost between relay and host (wire sequence gaps);
+  ``inputs/queues.py``) and messages lost between relay and host (wire sequence gaps less the
+  host's own drops, which leave gaps too; read a moment apart, so a robot's figure can be a few
+  messages off either way, even below 0);
 - heavy messages converted per robot: the fewest and the most over the robots (fair thinning
   keeps them close, no robot starved);
 - host CPU: the phase's process time over the window's wall time (cores), per robot, and per
   message converted (the turns of ``inputs/queues.py`` make a busy host convert longer runs,
   which cost less per message);
-- host peak RSS: the phase process's VmHWM.
+- host peak RSS: the phase process's VmHWM;
+- the CPU (cores) over the window of the processes beside the host: the relays'.
 
 Targets: no small-topic message dropped (TF, odometry, joints, IMU, logs, latched topics: the
 issue's "no drop of non-sensor data"); every robot's small-topic p99 <= 100 ms (three periods of
 its 30 Hz topics, half the time between two of its scans: the viewer's frames and TF lookups
 stay current); every robot converts heavy messages.
 
+``--router``: relays and hosts meet at the lab's router (``deploy/zenoh-router.json5`` on a
+loopback port, a zenoh-python session in router mode in a process of its own: no zenohd here),
+all of them its clients, as that file has robots connect (in Zenoh's default peer mode they learn
+of each other through the router and connect directly, so the data would not pass it). The
+robots are the README's two groups, east-1, west-1, east-2, ... (the same demo robots). Two
+phases, each with its own Rerun viewer process without a window (``rerun --port N --save
+FILE.rrd``, ``tests/integration/procs.saving_viewer``) that its hosts log to under the recording
+id ``fleet``, as ``swanky-host --recording-id fleet --rerun-addr`` does: the layout it follows
+the topics with, how far behind the viewer is (``/_stats/host/viewer_lag_ms``) and heavy topics
+thinned for a viewer behind; only their conversion stays on the host's threads (no converter
+process), so the host's CPU is its process's:
+
+- one host, ``--robots '*'``: the whole fleet;
+- two hosts, ``--robots 'east-$*'`` and ``--robots 'west-$*'``, each a process of its own,
+  measuring the same window (the parent tells both to go once both have every robot).
+
+Printed per host the figures above (the router's and the viewer's CPU beside the relays'), then
+two hosts against one: the worst robot's small-topic p99, the pooled p50s, host CPU in cores and
+per message converted, small and heavy messages converted per robot and second, peak RSS, small
+messages dropped, each as a ratio where one reads as one. Both hosts run on this machine's two
+cores, so two hosts against one says what splitting the fleet over two processes buys (a GIL
+each) and costs, not what a second PC's cores would add. Then what each viewer saved: its
+recordings (one: both hosts' data in ``fleet``), the blueprints the hosts sent (each made the
+active one, so the layout shown is the last host's, naming its robots only), rows of each
+robot's ``/imu`` (every robot present, none short), the entities outside every robot's paths
+(which both hosts write: ``/_stats/host/viewer_lag_ms`` gets both hosts' series interleaved) and
+the hosts' warnings. After its window a host flushes what it logged to the viewer, then ends.
+
 The bags took 45-52 s to simulate on this shared 2-core machine (load 8 to 13), each phase
 30-45 s; a phase's process ends right after its window, without draining what its queues hold.
 
     .venv/bin/python benchmarks/fleet.py [--robots 25] [--seconds 15] [--warmup 5] [--slam]
+        [--router]
 """
 
 from __future__ import annotations
@@ -47,20 +81,23 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Sequence
-from contextlib import ExitStack
+import warnings
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import ExitStack, contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import NoReturn
+from typing import IO, NoReturn
 
 import numpy as np
 import numpy.typing as npt
+import pyarrow as pa
 
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
@@ -68,7 +105,8 @@ if str(ROOT) not in sys.path:
 
 from live_capacity import received_ns  # noqa: E402  (beside this script)
 
-from host_bridge.app import HostOptions, open_input  # noqa: E402
+from host_bridge.app import HostOptions, open_input, start_layout  # noqa: E402
+from host_bridge.core.contract import WARNINGS_PATH  # noqa: E402
 from host_bridge.core.destinations import SinkOptions  # noqa: E402
 from host_bridge.demo.run import (  # noqa: E402
     DEMO_ROBOT,
@@ -79,12 +117,15 @@ from host_bridge.demo.run import (  # noqa: E402
 )
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun  # noqa: E402
 from host_bridge.inputs.live import LiveInput  # noqa: E402
-from host_bridge.inputs.queues import HeavyTopicsThinnedError  # noqa: E402
+from host_bridge.inputs.queues import HeavyTopicsThinnedError, RobotQueues  # noqa: E402
 from host_bridge.outputs.sink import RerunSink  # noqa: E402
 from host_bridge.pipeline.dispatch import Dispatcher  # noqa: E402
 from host_bridge.table.registry import Lane, Registry, default_registry  # noqa: E402
 from robot_relay.session import ZenohOptions  # noqa: E402
 from robot_relay.wire import RawMessage  # noqa: E402
+from tests.integration.procs import running, saving_viewer  # noqa: E402
+from tests.integration.router import router_command, wait_for_port  # noqa: E402
+from tests.rrd import ROW_ID  # noqa: E402
 
 # python -m benchmarks gives each script this many seconds at most.
 BUDGET_SECONDS = 180
@@ -93,6 +134,13 @@ P99_TARGET_MS = 100.0
 BAG_MARGIN_S = 5.0  # the bags loop; a little more than the phase needs spares the loop's jump
 JOIN_TIMEOUT_S = 90.0  # every robot delivering: a loaded 2-core machine starts 25 relays slowly
 KINDS = ("small", "heavy")
+ROUTER_CONFIG = ROOT / "deploy" / "zenoh-router.json5"
+RECORDING_ID = "fleet"
+GROUPS = {"all": "*", "east": "east-$*", "west": "west-$*"}
+"""Through the router, each host's ``--robots``: one host takes every robot, or two hosts one
+group each, as the README's two-PC recipe has it."""
+VIEWER_TOPIC = "imu"
+"""The small topic whose rows per robot the shared viewer's file is read for (30 Hz)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -112,10 +160,14 @@ class RobotFigures:
 
 @dataclass(frozen=True, slots=True)
 class Phase:
+    host: str
+    """The host's group: "all" (the only host), "east" or "west"."""
     robots: int
     seconds: float
     host_cpu_s: float
-    relays_cpu_s: float
+    others_cpu_s: dict[str, float]
+    """CPU seconds over the window of the processes beside the host: the relays', and through
+    the router the router's and the shared viewer's."""
     peak_rss_mb: float
     small_pooled_p50_ms: float
     small_pooled_p99_ms: float
@@ -199,13 +251,19 @@ def peak_rss_mb() -> float:
 
 
 Counts = dict[tuple[str, str], tuple[int, int, int]]
-"""(robot, topic) -> (received by the dispatcher, converted, sequence gaps)."""
+"""(robot, topic) -> (received by the dispatcher, converted, messages lost between relay and
+host)."""
 
 
-def counter_snapshot(dispatcher: Dispatcher) -> tuple[Counts, dict[tuple[str, str], str]]:
+def counter_snapshot(
+    dispatcher: Dispatcher, queues: RobotQueues,
+) -> tuple[Counts, dict[tuple[str, str], str]]:
+    """The dispatcher's counters; the link's losses are its sequence gaps less the host's own
+    drops, which leave gaps too (as the ``/_stats`` drops series counts them)."""
     counts, types = {}, {}
     for key, counters in list(dispatcher.counters.items()):
-        counts[key] = (counters.received, counters.converted, counters.sequence_gaps)
+        host_dropped = queues.dropped_when_taken(key[0]).get(key[1], 0)
+        counts[key] = (counters.received, counters.converted, counters.sequence_gaps - host_dropped)
         types[key] = counters.msgtype
     return counts, types
 
@@ -232,42 +290,88 @@ def robot_figures(
         0 if small_ms is None else len(small_ms), arrived, converted, queue_drops, link_drops)
 
 
-def start_relays(robots: list[str], bags: Path, endpoint: str) -> subprocess.Popen[str]:
+def robot_names(count: int, *, router: bool) -> list[str]:
+    """The demo's robots (sim, sim2, ...); through the router the README's two groups, east-1,
+    west-1, east-2, ... (their bags the demo's, spread along its loop alike)."""
+    if not router:
+        return demo_robot_names(str(count))
+    return [f"{('east', 'west')[i % 2]}-{i // 2 + 1}" for i in range(count)]
+
+
+def group_robots(robots: list[str], group: str) -> list[str]:
+    """The robots of ``robots`` a host of ``group`` (GROUPS) takes."""
+    return robots if group == "all" else [robot for robot in robots if robot.startswith(f"{group}-")]
+
+
+@dataclass(frozen=True, slots=True)
+class ViaRouter:
+    """A phase's host behind the router: the router's endpoint, the host's group and the viewer
+    it shares with the other host."""
+
+    router: str
+    group: str
+    viewer: str
+
+
+def start_relays(count: int, bags: Path, endpoint: str, *, router: bool) -> subprocess.Popen[str]:
     """The relays' process; what it says goes to ``relays.log`` beside the bags (a pipe nobody
     reads while the phase runs could fill and stop it)."""
     with (bags / "relays.log").open("a") as log:
         return subprocess.Popen(
             [sys.executable, __file__, "--relay-fleet", endpoint, "--bags", str(bags),
-             "--robots", str(len(robots))],
+             "--robots", str(count), *(["--router"] if router else [])],
             stdout=subprocess.DEVNULL, stderr=log, text=True)
 
 
-def stop_relays(relays: subprocess.Popen[str]) -> None:
-    if relays.poll() is None:
-        relays.send_signal(signal.SIGTERM)
+def stop_process(process: subprocess.Popen[str]) -> None:
+    """SIGTERM, then SIGKILL after 30 s."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
     try:
-        relays.wait(timeout=30)
+        process.wait(timeout=30)
     except subprocess.TimeoutExpired:
-        relays.kill()
-        relays.wait(timeout=10)
+        process.kill()
+        process.wait(timeout=10)
 
 
 def run_phase(
     count: int, bags: Path, *, warmup: float, seconds: float, slam: bool,
-    publish: Callable[[Phase], None],
+    publish: Callable[[Phase], None], via: ViaRouter | None,
 ) -> None:
-    """One host, ``count`` robots' relays (another process) into it; the figures of the
-    ``seconds`` after every robot delivered and ``warmup`` passed go to ``publish`` once the
-    relays have stopped, before the host drains its queues (seconds of backlog when it does not
-    keep up: nothing after the window is measured)."""
-    robots = demo_robot_names(str(count))
-    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    """One host and its robots' relays (another process); the figures of the ``seconds`` after
+    every robot delivered, the parent said go (a line on stdin: the processes beside the host
+whose CPU over the window is measured too, names to pids) and ``warmup`` passed go to
+    ``publish`` before the host drains its queues (seconds of backlog when it does not keep up:
+    nothing after the window is measured).
+
+    Without ``via`` the host listens on a loopback endpoint and starts the relays of ``count``
+    robots itself, saving to /dev/null. With it, the host connects to the router as a client and
+    takes its group of the ``count`` robots (whose relays the parent starts once the host said
+    "opened"), logging to the shared viewer as ``swanky-host --recording-id fleet --rerun-addr``
+    does (its layout; how far behind the viewer is, and heavy topics thinned for it when behind)
+    but for the converter process (its heavy topics are converted on threads, as without the
+    router: the host's CPU is this process's)."""
+    robots = group_robots(robot_names(count, router=via is not None), "all" if via is None else via.group)
     registry = default_registry()
     with ExitStack() as closing:
-        sink = RerunSink(SinkOptions(save=Path("/dev/null")))
+        if via is None:
+            endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+            zenoh = ZenohOptions(listen=(endpoint,), multicast_scouting=False)
+            sink = RerunSink(SinkOptions(save=Path("/dev/null")))
+        else:
+            zenoh = ZenohOptions(mode="client", connect=(via.router,), multicast_scouting=False)
+            sink = RerunSink(SinkOptions(connect=via.viewer, recording_id=RECORDING_ID), keep_up=True)
         closing.callback(sink.close)
-        dispatcher = Dispatcher(sink, registry=registry)
+        layout = None if via is None else start_layout(HostOptions(), sink)
+        if layout is not None:
+            closing.callback(layout.close)
+        dispatcher = Dispatcher(sink, registry=registry,
+                                on_new_topic=None if layout is None else layout.topic_seen)
         closing.callback(dispatcher.close)
+        if sink.viewer_lag is not None:
+            from host_bridge.pipeline.thinning import ViewerThinning
+
+            dispatcher.offload = ViewerThinning(dispatcher, sink, sink.viewer_lag)
         if slam:
             from host_bridge.slam.feeder import SlamTap
             from host_bridge.table.config import HostConfig
@@ -277,42 +381,54 @@ def run_phase(
                                lossless=False)
             closing.callback(slam_tap.close)
             dispatcher.add_tap(slam_tap)
-        options = HostOptions(zenoh=ZenohOptions(listen=(endpoint,), multicast_scouting=False),
-                              robots=f"{DEMO_ROBOT}$*", rmw_zenoh=False)
+        options = HostOptions(zenoh=zenoh, rmw_zenoh=False,
+                              robots=f"{DEMO_ROBOT}$*" if via is None else GROUPS[via.group])
         live = open_input(options, dispatcher, demo=None, robot_files=None,
                           stop=threading.Event(), closing=closing)
         assert isinstance(live, LiveInput)
         timing = FleetTiming(dispatcher, registry)
         live.start(timing)
-        relays = start_relays(robots, bags, endpoint)
-        closing.callback(stop_relays, relays)
+        relays = None
+        if via is None:
+            relays = start_relays(count, bags, endpoint, router=False)
+            closing.callback(stop_process, relays)
+        print("opened", flush=True)
         deadline = time.monotonic() + JOIN_TIMEOUT_S
-        while len(timing.seen) < count:
-            if relays.poll() is not None or time.monotonic() > deadline:
-                msg = (f"{len(timing.seen)} of {count} robots delivered within {JOIN_TIMEOUT_S:.0f} s"
-                       f"; relays' process: {relays.poll()}, said: "
-                       f"{(bags / 'relays.log').read_text()[-2000:]}")
+        while len(timing.seen) < len(robots):
+            if (relays is not None and relays.poll() is not None) or time.monotonic() > deadline:
+                msg = (f"{len(timing.seen)} of {len(robots)} robots delivered within "
+                       f"{JOIN_TIMEOUT_S:.0f} s; relays said: {(bags / 'relays.log').read_text()[-2000:]}")
                 raise RuntimeError(msg)
             time.sleep(0.1)
+        print("joined", flush=True)
+        # The parent's go: every host of the phase measures the same window.
+        watched: dict[str, int] = json.loads(sys.stdin.readline())
+        if relays is not None:
+            watched["relays"] = relays.pid
         time.sleep(warmup)
-        counts_before, _ = counter_snapshot(dispatcher)
+        counts_before, _ = counter_snapshot(dispatcher, live.queues)
         drops_before = live.queues.dropped
-        relays_before = process_cpu_s(relays.pid)
+        others_before = {name: process_cpu_s(pid) for name, pid in watched.items()}
         timing.start_measuring()
         cpu_before, wall_before = time.process_time(), time.perf_counter()
         time.sleep(seconds)
         small_ms, entered_ms = timing.stop_measuring()
         host_cpu = time.process_time() - cpu_before
         wall = time.perf_counter() - wall_before
-        relays_cpu = process_cpu_s(relays.pid) - relays_before
-        counts_after, types = counter_snapshot(dispatcher)
+        others_cpu = {name: process_cpu_s(pid) - others_before[name] for name, pid in watched.items()}
+        counts_after, types = counter_snapshot(dispatcher, live.queues)
         drops_after = live.queues.dropped
-        stop_relays(relays)
+        if relays is not None:
+            stop_process(relays)
+        if layout is not None:  # the viewer's file gets everything up to the window's end
+            layout.close()
+            sink.flush()
         kinds = {key: "small" if registry.row(msgtype, key[1]).lane is Lane.SMALL else "heavy"
                  for key, msgtype in types.items()}
         pooled = np.concatenate(list(small_ms.values())) if small_ms else np.array([np.nan])
         publish(Phase(
-            count, wall, host_cpu, relays_cpu, peak_rss_mb(),
+            "all" if via is None else via.group, len(robots), wall, host_cpu, others_cpu,
+            peak_rss_mb(),
             float(np.percentile(pooled, 50)), float(np.percentile(pooled, 99)),
             float(np.percentile(entered_ms, 50)), float(np.percentile(entered_ms, 99)),
             len(pooled) / max(timing.small_batches, 1),
@@ -328,13 +444,15 @@ def publish_and_exit(phase: Phase) -> NoReturn:
     os._exit(0)
 
 
-def relay_fleet(endpoint: str, bags: Path, count: int) -> int:
-    """The robots' side: one demo relay per robot, threads of this process, until SIGTERM."""
+def relay_fleet(endpoint: str, bags: Path, count: int, *, router: bool) -> int:
+    """The robots' side: one demo relay per robot, threads of this process, until SIGTERM;
+    through the router each a Zenoh client of it, as deploy/zenoh-router.json5 has robots."""
     stop, failed = threading.Event(), threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    mode = "client" if router else None
     relays = [threading.Thread(target=relay_bag, args=(bags / robot, robot, endpoint, stop, failed),
-                               name=f"relay-{robot}", daemon=True)
-              for robot in demo_robot_names(str(count))]
+                               kwargs={"mode": mode}, name=f"relay-{robot}", daemon=True)
+              for robot in robot_names(count, router=router)]
     for relay in relays:
         relay.start()
     while not stop.wait(0.2):
@@ -345,20 +463,149 @@ def relay_fleet(endpoint: str, bags: Path, count: int) -> int:
     return 0
 
 
-def measured_phase(count: int, bags: Path, args: argparse.Namespace) -> Phase:
-    """``count`` robots' phase in a process of its own."""
+@contextmanager
+def running_router() -> Iterator[tuple[str, int]]:
+    """The lab's router (deploy/zenoh-router.json5: no multicast scouting, two links a client,
+    timestamps) on a loopback port instead of 7447, a process of its own (no zenohd here: a
+    zenoh-python session in router mode): its endpoint and pid, until leaving."""
+    port = free_loopback_port()
+    with running(router_command(port, ROUTER_CONFIG)) as router:
+        wait_for_port(port)
+        yield f"tcp/127.0.0.1:{port}", router.pid
+
+
+def expect_line(host: subprocess.Popen[str], stderr: IO[str], line: str) -> None:
+    """Read the host's stdout up to ``line``; a host that ended first is an error naming why
+    (its ``stderr``)."""
+    assert host.stdout is not None
+    while (said := host.stdout.readline()) != f"{line}\n":
+        if not said:
+            host.wait(timeout=30)
+            raise RuntimeError(f"a host ended ({host.returncode}) before saying {line!r}: {tail(stderr)}")
+
+
+def tail(stderr: IO[str]) -> str:
+    stderr.seek(0)
+    return stderr.read()[-3000:]
+
+
+def measured_hosts(
+    count: int, bags: Path, args: argparse.Namespace, hosts: Sequence[Sequence[str]],
+    opened: Callable[[], dict[str, int]] = dict,
+) -> list[Phase]:
+    """One phase: a process per host (``hosts``: each one's extra flags), ``opened()`` once each
+    host listens for its robots (the processes it started, whose CPU the hosts measure too);
+    when every host has every robot, they are told to go at once."""
     command = [sys.executable, __file__, "--phase", str(count), "--bags", str(bags),
                "--seconds", str(args.seconds), "--warmup", str(args.warmup)]
     if args.slam:
         command.append("--slam")
-    done = subprocess.run(command, capture_output=True, text=True, check=False,
-                          timeout=BUDGET_SECONDS)
-    if done.returncode != 0:
-        msg = f"the {count}-robot phase failed ({done.returncode}): {done.stderr[-3000:]}"
-        raise RuntimeError(msg)
-    found = json.loads(done.stdout.strip().splitlines()[-1])
-    found["figures"] = [RobotFigures(**figures) for figures in found["figures"]]
-    return Phase(**found)
+    with ExitStack() as closing:
+        processes = []
+        for flags in hosts:
+            said = closing.enter_context(tempfile.TemporaryFile("w+"))
+            process = subprocess.Popen([*command, *flags], stdin=subprocess.PIPE,
+                                       stdout=subprocess.PIPE, stderr=said, text=True)
+            closing.callback(stop_process, process)
+            processes.append((process, said))
+        for process, said in processes:
+            expect_line(process, said, "opened")
+        watched = json.dumps(opened())
+        for process, said in processes:
+            expect_line(process, said, "joined")
+        for process, _ in processes:
+            assert process.stdin is not None
+            process.stdin.write(f"{watched}\n")
+            process.stdin.flush()
+        phases = []
+        for process, said in processes:
+            out, _ = process.communicate(timeout=BUDGET_SECONDS)
+            if process.returncode != 0:
+                msg = f"a host of the {count}-robot phase failed ({process.returncode}): {tail(said)}"
+                raise RuntimeError(msg)
+            found = json.loads(out.strip().splitlines()[-1])
+            found["figures"] = [RobotFigures(**figures) for figures in found["figures"]]
+            phases.append(Phase(**found))
+        return phases
+
+
+@dataclass(frozen=True, slots=True)
+class ViewerFindings:
+    """What the viewer the hosts shared saved."""
+
+    recordings: list[str]
+    """Each recording's application and recording id."""
+    blueprints: list[list[str]]
+    """Each blueprint's robots (those its views name), in the order they were sent (their first
+    row ids, which begin with the time they were logged at: the file keeps no order of stores)."""
+    rows: dict[str, int]
+    """Per robot, the rows of its VIEWER_TOPIC."""
+    shared: dict[str, int]
+    """Entities under no robot's paths (every host may write them): their rows."""
+    warnings: list[str]
+    """The hosts' warnings (WARNINGS_PATH)."""
+
+
+def viewer_findings(rrd: Path, robots: list[str]) -> ViewerFindings:
+    from rerun.chunk import RrdReader
+
+    with warnings.catch_warnings():  # the viewer's --save file has no footer: read whole, as meant
+        warnings.simplefilter("ignore")
+        reader = RrdReader(rrd)
+    named = "|".join(robots)
+    blueprints = []
+    for store in reader.blueprints():
+        found: set[str] = set()
+        first_row = b"\xff" * 16
+        for chunk in reader.stream(store=store):
+            batch = chunk.to_record_batch()
+            found.update(chunk_robots(batch, named))
+            first_row = min(first_row, *batch.column(ROW_ID).to_pylist())
+        blueprints.append((first_row, sorted(found, key=robots.index)))
+    rows = dict.fromkeys(robots, 0)
+    shared: dict[str, int] = {}
+    said = []
+    for store in reader.recordings():
+        for chunk in reader.stream(store=store):
+            if chunk.entity_path == WARNINGS_PATH:
+                batch = chunk.to_record_batch()
+                said += [text for name in batch.schema.names if name.endswith(":text")
+                         for texts in batch.column(name).to_pylist() for text in texts or ()]
+            parts = chunk.entity_path.strip("/").split("/")
+            robot = parts[1] if parts[0] == "_stats" and len(parts) > 1 else parts[0]
+            if robot not in rows:
+                shared[chunk.entity_path] = shared.get(chunk.entity_path, 0) + chunk.num_rows
+            elif parts[0] == robot and parts[1:2] == [VIEWER_TOPIC] and not chunk.is_static:
+                rows[robot] += chunk.num_rows
+    return ViewerFindings([f"{s.application_id}/{s.recording_id}" for s in reader.recordings()],
+                          [robots for _, robots in sorted(blueprints)], rows, shared, said)
+
+
+def chunk_robots(batch: pa.RecordBatch, named: str) -> set[str]:
+    """The robots a blueprint chunk names (an entity path, a view's origin or query)."""
+    columns = zip(batch.schema.names, batch.columns, strict=True)
+    text = json.dumps([column.to_pylist() for name, column in columns
+                       if name != ROW_ID and not pa.types.is_timestamp(column.type)], default=str)
+    return {found.group(1) for found in re.finditer(rf"/({named})\b", text)}
+
+
+def router_phase(
+    groups: Sequence[str], bags: Path, args: argparse.Namespace, router: tuple[str, int],
+) -> tuple[list[Phase], ViewerFindings]:
+    """The hosts of ``groups`` behind the router, logging to one saving viewer; the relays of
+    every robot in a process of their own, started once the hosts listen."""
+    endpoint, router_pid = router
+    rrd = bags / f"viewer-{len(groups)}-hosts.rrd"
+    with saving_viewer(rrd) as (viewer, viewer_process), ExitStack() as relays:
+
+        def start() -> dict[str, int]:
+            process = start_relays(args.robots, bags, endpoint, router=True)
+            relays.callback(stop_process, process)
+            return {"relays": process.pid, "router": router_pid, "viewer": viewer_process.pid}
+
+        hosts = [["--router-at", endpoint, "--group", group, "--viewer", viewer] for group in groups]
+        phases = measured_hosts(args.robots, bags, args, hosts, opened=start)
+    return phases, viewer_findings(rrd, robot_names(args.robots, router=True))
 
 
 def per_second(phase: Phase, kind: str, what: str) -> float:
@@ -372,30 +619,46 @@ def cpu_per_message_ms(phase: Phase) -> float:
     return phase.host_cpu_s / max(converted, 1) * 1e3
 
 
-def report(base: Phase, fleet: Phase) -> None:
-    """Print the figures, each target's verdict with them."""
-    for phase in (base, fleet):
-        name = "baseline" if phase is base else "fleet"
-        print(f"{name}, {phase.robots} robot{'s' if phase.robots > 1 else ''}, {phase.seconds:.1f} s: "
-              f"arrived per robot {per_second(phase, 'small', 'arrived'):.1f} small + "
-              f"{per_second(phase, 'heavy', 'arrived'):.1f} heavy msg/s; "
-              f"host CPU {phase.host_cpu_s / phase.seconds:.2f} cores "
-              f"({phase.host_cpu_s / phase.seconds / phase.robots * 100:.1f} % of a core per robot, "
-              f"{cpu_per_message_ms(phase):.3f} ms per message converted, "
-              f"{phase.small_per_batch:.1f} small messages per batch), "
-              f"relays' process {phase.relays_cpu_s / phase.seconds:.2f} cores; "
-              f"host peak RSS {phase.peak_rss_mb:.0f} MB", flush=True)
+def phase_line(name: str, phase: Phase) -> str:
+    others = ", ".join(f"{who} {cpu / phase.seconds:.2f}"
+                       for who, cpu in phase.others_cpu_s.items())
+    return (f"{name}, {phase.robots} robot{'s' if phase.robots > 1 else ''}, {phase.seconds:.1f} s: "
+            f"arrived per robot {per_second(phase, 'small', 'arrived'):.1f} small + "
+            f"{per_second(phase, 'heavy', 'arrived'):.1f} heavy msg/s; "
+            f"host CPU {phase.host_cpu_s / phase.seconds:.2f} cores "
+            f"({phase.host_cpu_s / phase.seconds / phase.robots * 100:.1f} % of a core per robot, "
+            f"{cpu_per_message_ms(phase):.3f} ms per message converted, "
+            f"{phase.small_per_batch:.1f} small messages per batch); beside it: {others} cores; "
+            f"host peak RSS {phase.peak_rss_mb:.0f} MB")
+
+
+def robot_table(phase: Phase) -> None:
     print(f"  {'robot':<8}{'small/s':>8}{'p50 ms':>8}{'p99 ms':>8}{'small drops':>12}"
           f"{'heavy/s':>8}{'converted':>10}{'replaced':>9}{'link gaps':>10}")
-    for f in fleet.figures:
-        print(f"  {f.robot:<8}{f.arrived['small'] / fleet.seconds:>8.1f}{f.small_p50_ms:>8.2f}"
+    for f in phase.figures:
+        print(f"  {f.robot:<8}{f.arrived['small'] / phase.seconds:>8.1f}{f.small_p50_ms:>8.2f}"
               f"{f.small_p99_ms:>8.2f}{f.queue_drops['small']:>12}"
-              f"{f.arrived['heavy'] / fleet.seconds:>8.1f}{f.converted['heavy']:>10}"
+              f"{f.arrived['heavy'] / phase.seconds:>8.1f}{f.converted['heavy']:>10}"
               f"{f.queue_drops['heavy']:>9}{sum(f.link_drops.values()):>10}")
+
+
+def worst_robot(phases: Sequence[Phase]) -> RobotFigures:
+    return max((f for phase in phases for f in phase.figures), key=lambda f: f.small_p99_ms)
+
+
+def small_lost(phases: Sequence[Phase]) -> int:
+    return sum(f.queue_drops["small"] + f.link_drops["small"] for phase in phases for f in phase.figures)
+
+
+def report(base: Phase, fleet: Phase) -> None:
+    """Print the figures, each target's verdict with them."""
+    print(phase_line("baseline", base), flush=True)
+    print(phase_line("fleet", fleet), flush=True)
+    robot_table(fleet)
     kept = per_second(fleet, "small", "arrived") / per_second(base, "small", "arrived")
     print(f"small messages arrived per robot per second, fleet / baseline: {kept:.2f} "
           "(below 1: the relays' process, on the same cores, fell behind real time)")
-    worst = max(fleet.figures, key=lambda f: f.small_p99_ms)
+    worst = worst_robot([fleet])
     base_p99 = base.figures[0].small_p99_ms
     p99_met = worst.small_p99_ms <= P99_TARGET_MS
     print(f"small topics publish -> converted, p50 / p99 ms: baseline {base.small_pooled_p50_ms:.2f} / "
@@ -406,10 +669,10 @@ def report(base: Phase, fleet: Phase) -> None:
           f"of which publish -> pipeline entry: baseline {base.small_entered_p50_ms:.2f} / "
           f"{base.small_entered_p99_ms:.2f}, fleet {fleet.small_entered_p50_ms:.2f} / "
           f"{fleet.small_entered_p99_ms:.2f}")
-    small_lost = sum(f.queue_drops["small"] + f.link_drops["small"] for f in fleet.figures)
+    lost = small_lost([fleet])
     heavy_replaced = sum(f.queue_drops["heavy"] for f in fleet.figures)
     heavy_lost = sum(f.link_drops["heavy"] for f in fleet.figures)
-    print(f"drops in the fleet: small {small_lost} (target 0: {'met' if not small_lost else 'MISSED'}); "
+    print(f"drops in the fleet: small {lost} (target 0: {'met' if not lost else 'MISSED'}); "
           f"heavy {heavy_replaced} replaced by newer ones in the host's queues "
           f"(baseline {base.figures[0].queue_drops['heavy']}), {heavy_lost} lost on the link; "
           f"the host said it thins heavy topics {fleet.thinned_said} time(s)")
@@ -421,34 +684,94 @@ def report(base: Phase, fleet: Phase) -> None:
           f"every robot converts some: {'met' if fair else 'MISSED'}")
 
 
+def report_router(one: Phase, two: list[Phase], seen: dict[int, ViewerFindings]) -> None:
+    """Each host's figures, two hosts against one, and what the shared viewer saved."""
+    for phase in (one, *two):
+        print(phase_line(f"{'one host' if phase is one else 'two hosts'}, {phase.host}", phase), flush=True)
+        robot_table(phase)
+    worst_one, worst_two = worst_robot([one]), worst_robot(two)
+    cpu_one = one.host_cpu_s / one.seconds
+    cpu_two = sum(phase.host_cpu_s / phase.seconds for phase in two)
+    per_message_two = sum(phase.host_cpu_s for phase in two) / max(
+        sum(sum(f.converted.values()) for phase in two for f in phase.figures), 1) * 1e3
+    small_one = per_second(one, "small", "converted")
+    small_two = sum(per_second(phase, "small", "converted") * phase.robots for phase in two) / one.robots
+    heavy_one = per_second(one, "heavy", "converted")
+    heavy_two = sum(per_second(phase, "heavy", "converted") * phase.robots for phase in two) / one.robots
+    print(f"two hosts / one host: worst robot's small-topic p99 {worst_two.small_p99_ms:.1f} "
+          f"({worst_two.robot}) / {worst_one.small_p99_ms:.1f} ms ({worst_one.robot}) = "
+          f"{worst_two.small_p99_ms / worst_one.small_p99_ms:.2f}; pooled p50 "
+          f"{' + '.join(f'{p.small_pooled_p50_ms:.1f}' for p in two)} / {one.small_pooled_p50_ms:.1f} ms; "
+          f"host CPU {cpu_two:.2f} / {cpu_one:.2f} cores = {cpu_two / cpu_one:.2f}; CPU per message "
+          f"converted {per_message_two:.3f} / {cpu_per_message_ms(one):.3f} ms = "
+          f"{per_message_two / cpu_per_message_ms(one):.2f}; converted per robot per second: small "
+          f"{small_two:.1f} / {small_one:.1f} = {small_two / small_one:.2f}, heavy {heavy_two:.2f} / "
+          f"{heavy_one:.2f}; peak RSS {' + '.join(f'{p.peak_rss_mb:.0f}' for p in two)} / "
+          f"{one.peak_rss_mb:.0f} MB; small messages dropped {small_lost(two)} / {small_lost([one])}")
+    for hosts, found in seen.items():
+        groups = {group: group_robots(list(found.rows), group) for group in ("east", "west")}
+        rows = "; ".join(f"{group} {min(found.rows[r] for r in robots)}-{max(found.rows[r] for r in robots)}"
+                         for group, robots in groups.items() if robots)
+        present = sum(1 for count in found.rows.values() if count)
+        print(f"viewer shared by {hosts} host{'s' if hosts > 1 else ''}: {len(found.recordings)} "
+              f"recording(s) ({', '.join(found.recordings)}); robots with /{VIEWER_TOPIC} rows "
+              f"{present} of {len(found.rows)} (rows per robot, fewest-most: {rows}); "
+              f"{len(found.blueprints)} blueprint(s) sent, each made the active one, naming "
+              + ", ".join(f"{len(robots)} robot(s)" + (f" ({robots[0]}...)" if robots else "")
+                          for robots in found.blueprints)
+              + f" (the last, the layout shown at the end: {len(found.blueprints[-1])} of "
+              f"{len(found.rows)} robots); entities outside every robot's (rows): "
+              + ", ".join(f"{path} {rows}" for path, rows in sorted(found.shared.items()))
+              + "".join(f"\n  warning: {text}" for text in found.warnings))
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--robots", type=int, default=25, help="the fleet (default %(default)s)")
     parser.add_argument("--seconds", type=float, default=15.0, help="measured per phase")
     parser.add_argument("--warmup", type=float, default=5.0, help="after every robot delivered")
     parser.add_argument("--slam", action="store_true", help="host-side SLAM per robot, as the demo")
+    parser.add_argument("--router", action="store_true",
+                        help="through a Zenoh router: one host for the fleet, then two (README)")
     parser.add_argument("--phase", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--router-at", metavar="ENDPOINT", help=argparse.SUPPRESS)
+    parser.add_argument("--group", choices=sorted(GROUPS), help=argparse.SUPPRESS)
+    parser.add_argument("--viewer", help=argparse.SUPPRESS)
     parser.add_argument("--relay-fleet", metavar="ENDPOINT", help=argparse.SUPPRESS)
     parser.add_argument("--bags", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.relay_fleet is not None:
-        return relay_fleet(args.relay_fleet, args.bags, args.robots)
+        return relay_fleet(args.relay_fleet, args.bags, args.robots, router=args.router)
     if args.phase is not None:
+        via = None if args.router_at is None else ViaRouter(args.router_at, args.group, args.viewer)
         run_phase(args.phase, args.bags, warmup=args.warmup, seconds=args.seconds, slam=args.slam,
-                  publish=publish_and_exit)
+                  publish=publish_and_exit, via=via)
         return 1  # publish_and_exit did not exit: the phase failed
     with tempfile.TemporaryDirectory(prefix="swanky-fleet-") as tmp:
+        bags = Path(tmp)
         started = time.perf_counter()
         seconds = args.warmup + args.seconds + BAG_MARGIN_S
-        written = write_bags(Path(tmp), demo_robot_names(str(args.robots)), seconds, threading.Event())
+        robots = robot_names(args.robots, router=args.router)
+        written = write_bags(bags, robots, seconds, threading.Event())
         assert written is not None
         print(f"{args.robots} demo robots' bags of {seconds:g} s written in "
-              f"{time.perf_counter() - started:.1f} s; host saving to /dev/null"
+              f"{time.perf_counter() - started:.1f} s; "
+              + (f"through a Zenoh router ({ROUTER_CONFIG.name}), hosts logging to one Rerun "
+                 f"viewer (rerun --port N --save FILE) under recording id {RECORDING_ID!r}"
+                 if args.router else "host saving to /dev/null")
               + (", SLAM per robot" if args.slam else ""), flush=True)
-        base = measured_phase(1, Path(tmp), args)
+        if args.router:
+            with running_router() as router:
+                (one,), seen_one = router_phase(["all"], bags, args, router)
+                print(f"one host measured: worst robot's small-topic p99 "
+                      f"{worst_robot([one]).small_p99_ms:.2f} ms", flush=True)
+                two, seen_two = router_phase(["east", "west"], bags, args, router)
+            report_router(one, two, {1: seen_one, 2: seen_two})
+            return 0
+        (base,) = measured_hosts(1, bags, args, [[]])
         print(f"baseline measured: {base.figures[0].small_p50_ms:.2f} / "
               f"{base.figures[0].small_p99_ms:.2f} ms small-topic p50 / p99", flush=True)
-        fleet = measured_phase(args.robots, Path(tmp), args)
+        (fleet,) = measured_hosts(args.robots, bags, args, [[]])
     report(base, fleet)
     return 0
 

@@ -143,12 +143,14 @@ def write_bags(
 
 
 def relay_bag(
-    bag: Path, robot: str, endpoint: str, stop: threading.Event, host_stop: threading.Event
+    bag: Path, robot: str, endpoint: str, stop: threading.Event, host_stop: threading.Event,
+    *, mode: str | None = None,
 ) -> None:
     """Robot ``robot``'s relay: replays ``bag`` (looping, real time) to the host at
-    ``endpoint`` until ``stop``; sets ``host_stop`` if it fails."""
+    ``endpoint`` (a router's, with ``mode`` "client": benchmarks/fleet.py) until ``stop``;
+    sets ``host_stop`` if it fails."""
     try:
-        session = open_session(ZenohOptions(connect=(endpoint,), multicast_scouting=False))
+        session = open_session(ZenohOptions(mode=mode, connect=(endpoint,), multicast_scouting=False))
         try:
             with BagSource(bag, robot, rate=1.0, loop=True, sleep=stop.wait) as source:
                 relay = Relay(session, source.catalog())
