@@ -206,6 +206,9 @@ class Conversion:
 
     def robot_state(self, robot: str) -> RobotState:
         """The state ``robot``'s converters share. The slow lane converts for robots too."""
+        state = self._robots.get(robot)  # a known robot's without the lock (dict reads are atomic)
+        if state is not None:
+            return state
         with self._robots_lock:
             state = self._robots.get(robot)
             if state is None:
@@ -433,7 +436,10 @@ class Dispatcher:
         self.conversion.warn(robot, topic, err, times)
 
     def _frames_of(self, robot: str) -> _Frames:
-        # The slow lane's thread logs for robots too.
+        # The slow lane's thread logs for robots too. A known robot's without the lock.
+        found = self._frames.get(robot)
+        if found is not None:
+            return found
         with self._frames_lock:
             found = self._frames.get(robot)
             if found is None:
@@ -454,7 +460,7 @@ class Dispatcher:
         (nearly all) are logged outside it: a small topic does not wait for a cloud's log."""
         known = self._frames_of(robot)
         with known.placing:
-            updates = known.frames.observe(entries, self.robot_state(robot))
+            updates = known.frames.observe(entries, self.conversion.robot_state(robot))
             if updates:
                 self.sink.log(entries, times)
                 self.sink.log(updates, times)
