@@ -45,8 +45,8 @@ class LogItem:
     """Archetypes to log at one entity path.
 
     ``times`` are its timelines (:meth:`Run.times`; :func:`per_message` gives each message's
-    items its own); ``None``: the arrival times of its run's last message, where the dispatcher
-    logs the run. Static items ignore times.
+    items its own); ``None``: the timelines of its run's last message (:meth:`Run.row_times`,
+    with its stamp), where the dispatcher logs the run. Static items ignore times.
     """
 
     path: str
@@ -375,6 +375,13 @@ class Run(TopicContext):
             times[TIMELINE_LOG] = logged
         return times
 
+    def last_times(self) -> Mapping[str, int]:
+        """The timelines of the run's last message (where items without times of their own go):
+        its context's, when the contexts are made."""
+        if self._contexts is not None:
+            return self._contexts[-1].times
+        return self.row_times(-1, self.stamp(-1))
+
     def stamp(self, row: int = -1) -> int | None:
         """Message ``row``'s header stamp: from the columns or messages the run has read, else
         decoded alone; None for a type without a header, or a message that does not decode."""
@@ -498,6 +505,10 @@ class PerMessage:
     convert: MessageConverter
 
     def __call__(self, run: Run) -> list[LogEntry]:
+        if len(run) == 1:
+            # A message alone (the usual live run): its items without times of their own go at
+            # the run's last message's timelines, which are its own (see LogItem).
+            return self.convert(run.messages()[0], run.contexts()[0])
         entries: list[LogEntry] = []
         errors: list[str] = []
         for msg, ctx in zip(run.messages(), run.contexts(), strict=True):

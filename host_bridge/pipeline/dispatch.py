@@ -295,12 +295,12 @@ class Conversion:
                 counters.dropped += len(run)
             self._failed(run, err, strict)
             return None
-        # Items without times of their own (none of this package's converters returns one) go at
-        # the run's last arrival.
+        # Items without times of their own (a per-message converter's, of a message alone) go at
+        # the timelines of the run's last message.
         times: Mapping[str, int] = {}
         for entry in entries:  # (a loop: any() of a generator costs a live message more)
             if isinstance(entry, LogItem) and entry.times is None and not entry.static:
-                times = run.row_times()
+                times = run.last_times()
                 break
         self.log(run.robot, entries, times)
         if counters is not None:
