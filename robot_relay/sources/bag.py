@@ -453,15 +453,17 @@ class BagSource:
             return None
 
     def mcap_storages(self) -> list[tuple[Path, dict[int, TopicInfo]]] | None:
-        """A rosbag2 stored as MCAP (neither file nor message compression): its storage files in
-        the order :meth:`messages` reads them, each with the info of every channel id read from
-        it, as rosbags matches them to the bag's connections. None for any other bag.
+        """A rosbag2 stored as MCAP without message compression: its storage files in the order
+        :meth:`messages` reads them, each with the info of every channel id read from it, as
+        rosbags matches them to the bag's connections. None for any other bag. A bag recorded
+        with ``--compression-mode file`` gives the files rosbags decompressed when it opened the
+        bag (into a temporary directory it removes when closed), which :meth:`messages` reads.
 
         For the bulk reader (:meth:`bulk_files`), which must yield what :meth:`messages`
         would."""
         from rosbags.rosbag2.storage_mcap import McapReader
 
-        if self.is_ros1 or self._reader.compression_mode or self._reader.storage is None:
+        if self.is_ros1 or self._reader.compression_mode == "message" or self._reader.storage is None:
             return None
         storage = self._reader.storage
         if isinstance(storage, McapReader):  # a bare .mcap: the file's channels are the connections
