@@ -2,10 +2,11 @@
 
 It reuses the relay's raw bag source, so a bag converted here and one replayed through a relay
 give the host the same RawMessages (same CDR, same definitions, same log times). A rosbag2 in
-MCAP storage is read in bulk by the relay's bulk reader, :mod:`robot_relay.sources.mcap`, instead
-(the same messages in the same order, payloads sliced out of whole chunks) and handed on as one
-:class:`~host_bridge.inputs.base.MessageRun` per topic, with no record per message; a file it
-does not take is read by the source.
+MCAP or sqlite3 storage is read in bulk by the relay's bulk readers, :mod:`robot_relay.sources.mcap`
+and :mod:`robot_relay.sources.sqlite`, instead (the same messages in the same order, payloads
+sliced out of whole chunks or of a batch of rows) and handed on as one
+:class:`~host_bridge.inputs.base.MessageRun` per topic, with no record per message; a file they
+do not take is read by the source.
 """
 
 from __future__ import annotations
@@ -40,11 +41,11 @@ def bag_runs(
     stop: threading.Event | None = None,
 ) -> Iterator[Sequence[RawMessage]]:
     """The bag's messages, every topic's in log-time order, in windows of at most ``run_size``
-    messages and ``run_bytes`` bytes of payload (at least one message). An indexed MCAP bag
-    gives each window as one :class:`MessageRun` per topic (the run holding the window's last
-    message last; see :meth:`~robot_relay.sources.mcap.McapFile.windows`); another bag gives
-    each window as one list of RawMessages in log-time order, read message by message (seconds
-    a window from sqlite3), so it ends early, as the last window, once ``stop`` is set."""
+    messages and about ``run_bytes`` bytes of payload (at least one message). An indexed MCAP or
+    a sqlite3 bag gives each window as one :class:`MessageRun` per topic (the run holding the
+    window's last message last; see :meth:`~robot_relay.sources.mcap.McapFile.windows`); another
+    bag gives each window as one list of RawMessages in log-time order, read message by message,
+    so it ends early, as the last window, once ``stop`` is set."""
     try:
         with BagSource(path, robot) as source:
             files = source.bulk_files()

@@ -12,8 +12,10 @@ every definition in the bag when it opens, so one it cannot parse (a Jazzy servi
 would need a typestore. Forwarding raw CDR needs neither; the host decodes, topic by topic.
 ``swanky-host --bag`` (also its progress line) and ``swanky-relay --bag`` open bags only here.
 Their messages are read from a rosbag2 whose files are all indexed MCAP by the bulk reader of
-:mod:`robot_relay.sources.mcap` (the same messages in the same order, with no Python per record
-unpaced); :meth:`BagSource.messages` reads every bag through rosbags, the reference.
+:mod:`robot_relay.sources.mcap`, or all sqlite3 by that of :mod:`robot_relay.sources.sqlite` (the
+same messages in the same order, with no Python per record unpaced; a bag recorded with
+``--compression-mode file`` too, from the files rosbags decompressed); :meth:`BagSource.messages`
+reads every bag through rosbags, the reference.
 
 Needs rosbags (``pip install ".[relay,bag]"``); the live ROS 2 source does not.
 """
@@ -42,8 +44,9 @@ from robot_relay.wire import (
     absolute_topic,
 )
 
-if TYPE_CHECKING:  # it imports numpy (rosbags brings it): opening an MCAP rosbag2 imports it
+if TYPE_CHECKING:  # they import numpy (rosbags brings it): opening a rosbag2 imports them
     from robot_relay.sources.mcap import McapFile
+    from robot_relay.sources.sqlite import Sqlite3File
 
 log = logging.getLogger("swanky.relay")
 
@@ -352,7 +355,7 @@ class BagSource:
         self._malformed = 0
         self._ros1_store: Any = None
         self._warned: set[str] = set()
-        self._bulk: list[McapFile] | None = None
+        self._bulk: list[McapFile] | list[Sqlite3File] | None = None
 
     def __enter__(self) -> BagSource:
         return self.open()
@@ -453,23 +456,33 @@ class BagSource:
             return None
 
     def mcap_storages(self) -> list[tuple[Path, dict[int, TopicInfo]]] | None:
-        """A rosbag2 stored as MCAP (neither file nor message compression): its storage files in
-        the order :meth:`messages` reads them, each with the info of every channel id read from
-        it, as rosbags matches them to the bag's connections. None for any other bag.
-
-        For the bulk reader (:meth:`bulk_files`), which must yield what :meth:`messages`
-        would."""
+        """A rosbag2 stored as MCAP without message compression: :meth:`_storages` as each MCAP
+        file's path (rosbags' decompressed copy for a bag recorded with ``--compression-mode
+        file``) with its channels. None for any other bag."""
         from rosbags.rosbag2.storage_mcap import McapReader
 
-        if self.is_ros1 or self._reader.compression_mode or self._reader.storage is None:
+        storages = self._storages()
+        if storages is None or not all(isinstance(s, McapReader) for s, _ in storages):
+            return None
+        return [(Path(str(storage.path)), channels) for storage, channels in storages]
+
+    def _storages(self) -> list[tuple[Any, dict[int, TopicInfo]]] | None:
+        """A rosbag2 without message compression: its storage files, as rosbags opened them, in
+        the order :meth:`messages` reads them, each with the info of every connection id read
+        from it, as rosbags matches them to the bag's connections. None for any other bag. A bag
+        recorded with ``--compression-mode file`` gives the files rosbags decompressed when it
+        opened the bag (into a temporary directory it removes when closed).
+
+        For the bulk readers (:meth:`bulk_files`), which must yield what :meth:`messages`
+        would."""
+        if self.is_ros1 or self._reader.compression_mode == "message" or self._reader.storage is None:
             return None
         storage = self._reader.storage
-        if isinstance(storage, McapReader):  # a bare .mcap: the file's channels are the connections
-            return [(Path(str(storage.path)), {c.id: self._infos[c.id] for c in self._asked})]
+        stored_files = getattr(storage, "storages", None)
+        if stored_files is None:  # a bare .mcap/.db3: the file's connections are the connections
+            return [(storage, {c.id: self._infos[c.id] for c in self._asked})]
         files = []
-        for stored in getattr(storage, "storages", ()):
-            if not isinstance(stored, McapReader):
-                return None
+        for stored in stored_files:
             channels = {}
             for channel in stored.connections:  # rosbags' DirectoryReader.messages match
                 asked = next((
@@ -480,7 +493,7 @@ class BagSource:
                 ), None)
                 if asked is not None:
                     channels[channel.id] = self._infos[asked.id]
-            files.append((Path(str(stored.path)), channels))
+            files.append((stored, channels))
         return files or None
 
     def log_undefined(self) -> None:
@@ -515,9 +528,9 @@ class BagSource:
         RUN_WINDOW messages, into a run per topic, each topic's messages in their order: the
         relay bundles them (schemas/wire.md).
 
-        A rosbag2 whose every file is an indexed MCAP is read by the bulk reader
-        (:mod:`robot_relay.sources.mcap`): unpaced, in windows with no Python per message (at
-        most RUN_BYTES of payload a window; its runs in the order of their last messages);
+        A rosbag2 whose every file is an indexed MCAP, or every file sqlite3, is read by a bulk
+        reader (:meth:`bulk_files`): unpaced, in windows with no Python per message (at most
+        about RUN_BYTES of payload a window; its runs in the order of their last messages);
         paced, its records one by one as any other bag's, in the order each topic first
         appears in the window."""
         files = self.bulk_files()
@@ -533,23 +546,33 @@ class BagSource:
             if not self.loop:
                 return
 
-    def bulk_files(self) -> list[McapFile] | None:
-        """Every storage file of the bag opened for the bulk reader, in the order
-        :meth:`messages` reads them, each with the channels it yields as :meth:`messages`
-        would; None unless each is an indexed MCAP of a rosbag2 and some topic is wanted (the
-        caller then reads with rosbags). Opened with the bag, closed with it."""
+    def bulk_files(self) -> list[McapFile] | list[Sqlite3File] | None:
+        """Every storage file of the bag opened for a bulk reader, in the order :meth:`messages`
+        reads them, each with the channels it yields as :meth:`messages` would: a rosbag2 whose
+        files are all indexed MCAP (:mod:`robot_relay.sources.mcap`) or all sqlite3
+        (:mod:`robot_relay.sources.sqlite`); None for any other bag, or when no topic is wanted
+        (the caller then reads with rosbags). Opened with the bag, closed with it."""
         return self._bulk
 
-    def _open_bulk(self) -> list[McapFile] | None:
+    def _open_bulk(self) -> list[McapFile] | list[Sqlite3File] | None:
         # At open: a relay imports numpy and reads the summaries (0.1 s here) before a host is
         # there, not between the host's arrival and the first message.
-        storages = self.mcap_storages() if self.connections else None
+        storages = self._storages() if self.connections else None
         if storages is None:
+            return None
+        from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+
+        if all(isinstance(storage, Sqlite3Reader) for storage, _ in storages):
+            from robot_relay.sources.sqlite import Sqlite3File
+
+            return [Sqlite3File(self.paths[0], storage, channels) for storage, channels in storages]
+        mcap_files = self.mcap_storages()
+        if mcap_files is None:
             return None
         from robot_relay.sources.mcap import McapFile, NotIndexedError
 
         files: list[McapFile] = []
-        for path, channels in storages:
+        for path, channels in mcap_files:
             try:
                 files.append(McapFile(path, channels))
             except NotIndexedError as why:

@@ -571,9 +571,7 @@ class _Window:
 
     def __init__(self, channels: Mapping[int, TopicInfo]) -> None:
         self._infos = channels
-        topics = sorted({info.topic for info in channels.values()})
-        # Channel id -> the index of its topic: one topic's channels make one run.
-        self._topic_of = {channel: topics.index(info.topic) for channel, info in channels.items()}
+        self._topic_of = topic_indexes(channels)
         self._buffers: list[bytes | memoryview] = []
         self._kept: dict[int, int] = {}  # id of a chunk's data or view -> its place in _buffers
         self._columns: list[tuple[npt.NDArray[np.int64], ...]] = []
@@ -624,24 +622,42 @@ class _Window:
         return self._keep(copied), np.cumsum(sizes) - sizes
 
     def take(self) -> list[TopicRun]:
-        """The window as runs, one per stretch of a topic's messages with one channel (a topic
-        recorded on two channels alternates runs when its messages do), and empties it."""
+        """The window as :func:`topic_runs`, and empties it."""
         sources, starts, ends, channels, log_ns = (
             np.concatenate(column) for column in zip(*self._columns, strict=True))
-        buffers = tuple(self._buffers)
-        topics = np.array([self._topic_of[c] for c in np.unique(channels).tolist()])
-        keys = topics[np.searchsorted(np.unique(channels), channels)]
-        order = np.argsort(keys, kind="stable")
-        ordered_keys, ordered_channels = keys[order], channels[order]
-        cuts = np.flatnonzero((ordered_keys[1:] != ordered_keys[:-1])
-                              | (ordered_channels[1:] != ordered_channels[:-1])) + 1
-        bounds = [0, *cuts.tolist(), len(order)]
-        runs = []
-        for begin, end in itertools.pairwise(bounds):
-            rows = order[begin:end]
-            info = self._infos[int(ordered_channels[begin])]
-            runs.append((int(rows[-1]), TopicRun(
-                info, buffers, sources[rows], starts[rows], ends[rows], log_ns[rows])))
+        runs = topic_runs(self._infos, self._topic_of, tuple(self._buffers),
+                          (sources, starts, ends, channels, log_ns))
         self._buffers, self._kept, self._columns = [], {}, []
         self.count = self.payload_bytes = 0
-        return [run for _, run in sorted(runs, key=lambda pair: pair[0])]
+        return runs
+
+
+def topic_indexes(channels: Mapping[int, TopicInfo]) -> dict[int, int]:
+    """Channel id -> the index of its topic: one topic's channels make one run."""
+    topics = sorted({info.topic for info in channels.values()})
+    return {channel: topics.index(info.topic) for channel, info in channels.items()}
+
+
+def topic_runs(
+    infos: Mapping[int, TopicInfo], topic_of: Mapping[int, int],
+    buffers: tuple[bytes | memoryview, ...], columns: Sequence[npt.NDArray[np.int64]],
+) -> list[TopicRun]:
+    """A window's messages, in order (``columns``: each message's buffer, start and end in it,
+    channel and log time), as runs: one per stretch of a topic's messages with one channel (a
+    topic recorded on two channels alternates runs when its messages do), each in the window's
+    order, the run holding the window's last message last."""
+    sources, starts, ends, channels, log_ns = columns
+    topics = np.array([topic_of[c] for c in np.unique(channels).tolist()])
+    keys = topics[np.searchsorted(np.unique(channels), channels)]
+    order = np.argsort(keys, kind="stable")
+    ordered_keys, ordered_channels = keys[order], channels[order]
+    cuts = np.flatnonzero((ordered_keys[1:] != ordered_keys[:-1])
+                          | (ordered_channels[1:] != ordered_channels[:-1])) + 1
+    bounds = [0, *cuts.tolist(), len(order)]
+    runs = []
+    for begin, end in itertools.pairwise(bounds):
+        rows = order[begin:end]
+        info = infos[int(ordered_channels[begin])]
+        runs.append((int(rows[-1]), TopicRun(
+            info, buffers, sources[rows], starts[rows], ends[rows], log_ns[rows])))
+    return [run for _, run in sorted(runs, key=lambda pair: pair[0])]

@@ -1,6 +1,7 @@
 """The bag input stops within a fraction of a second (issue 22): a topic that is slow to convert
-goes on in deliveries of about DELIVERY_SECONDS, a fast one still in whole runs, and a window
-read message by message (sqlite3, ROS 1) ends when the input closes."""
+goes on in deliveries of about DELIVERY_SECONDS, a fast one still in whole runs (an indexed MCAP
+and a sqlite3 bag, read in bulk, as a bag read message by message), and a window read message by
+message (here a bag with message compression; ROS 1) ends when the input closes."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import pytest
-from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import CompressionMode, StoragePlugin
 
 from host_bridge.inputs import bag as bag_input
 from host_bridge.inputs.bag import BagInput, bag_runs
@@ -26,9 +27,10 @@ SLOW_S = 0.001
 GENEROUS_S = 60.0
 
 
-def copies(path: Path, storage: StoragePlugin) -> Path:
+def copies(path: Path, storage: StoragePlugin,
+           compression: CompressionMode = CompressionMode.NONE) -> Path:
     return write_copies(path, "/joint_states", "sensor_msgs/msg/JointState", joint_state(0, [1.0, 2.0]),
-                        count=MESSAGES, period_ns=PERIOD_NS, storage=storage)
+                        count=MESSAGES, period_ns=PERIOD_NS, storage=storage, compression=compression)
 
 
 class Deliveries:
@@ -41,7 +43,7 @@ class Deliveries:
         self.kinds: set[type] = set()
 
     def __call__(self, items: Sequence[InputItem]) -> None:
-        """A MessageRun (an indexed MCAP) or RawMessages (a window read message by message)."""
+        """A MessageRun (read in bulk) or RawMessages (a window read message by message)."""
         self.kinds.update(type(item) for item in items)
         messages = [raw for item in items for raw in (item if isinstance(item, MessageRun) else [item])]
         time.sleep(self.per_message * len(messages))
@@ -67,31 +69,34 @@ def converted(deliveries: Deliveries, bag: Path) -> None:
 
 
 STORAGES = [
-    pytest.param(StoragePlugin.MCAP, MessageRun, id="mcap-runs"),
-    pytest.param(StoragePlugin.SQLITE3, RawMessage, id="sqlite3-windows"),
+    pytest.param(StoragePlugin.MCAP, CompressionMode.NONE, MessageRun, id="mcap-runs"),
+    pytest.param(StoragePlugin.SQLITE3, CompressionMode.NONE, MessageRun, id="sqlite3-runs"),
+    pytest.param(StoragePlugin.SQLITE3, CompressionMode.MESSAGE, RawMessage,
+                 id="message-compressed-windows"),
 ]
 
 
-@pytest.mark.parametrize(("storage", "kind"), STORAGES)
+@pytest.mark.parametrize(("storage", "compression", "kind"), STORAGES)
 def test_a_fast_topic_goes_on_in_whole_runs(
-    storage: StoragePlugin, kind: type, tmp_path: Path
+    storage: StoragePlugin, compression: CompressionMode, kind: type, tmp_path: Path
 ) -> None:
     deliveries = Deliveries(per_message=0.0)
-    converted(deliveries, copies(tmp_path / "bag", storage))
+    converted(deliveries, copies(tmp_path / "bag", storage, compression))
     first = bag_input.FIRST_DELIVERY
     assert deliveries.sizes == [first, MESSAGES - first]  # the first times the topic
     assert deliveries.kinds == {kind}
     assert deliveries.in_order
 
 
-@pytest.mark.parametrize(("storage", "kind"), STORAGES)
+@pytest.mark.parametrize(("storage", "compression", "kind"), STORAGES)
 def test_a_slow_topic_goes_on_in_short_deliveries(
-    storage: StoragePlugin, kind: type, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    storage: StoragePlugin, compression: CompressionMode, kind: type, tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     monkeypatch.setattr(bag_input, "DELIVERY_SECONDS", 0.05)
     monkeypatch.setattr(bag_input, "FIRST_DELIVERY", 100)
     deliveries = Deliveries(per_message=SLOW_S)
-    converted(deliveries, copies(tmp_path / "bag", storage))
+    converted(deliveries, copies(tmp_path / "bag", storage, compression))
     # A message takes SLOW_S or more (a sleep is never shorter), so 0.05 s holds 50 at most.
     assert deliveries.sizes[0] == 100
     assert 1 <= min(deliveries.sizes[1:]) <= max(deliveries.sizes[1:]) <= 50
@@ -118,7 +123,7 @@ def test_closing_ends_after_the_delivery_under_way(tmp_path: Path, monkeypatch: 
 
 
 def test_a_window_read_message_by_message_ends_at_a_stop(tmp_path: Path) -> None:
-    bag = copies(tmp_path / "bag", StoragePlugin.SQLITE3)
+    bag = copies(tmp_path / "bag", StoragePlugin.SQLITE3, CompressionMode.MESSAGE)
     assert [len(window) for window in bag_runs(bag, "robot")] == [MESSAGES]
     stop = threading.Event()
     stop.set()

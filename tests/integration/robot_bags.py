@@ -17,7 +17,7 @@ from typing import IO, Any
 
 import numpy as np
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
-from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
@@ -109,12 +109,14 @@ def laser_scan(ns: int, ranges: int) -> Any:
 
 def write_copies(
     path: Path, topic: str, msgtype: str, msg: Any, *, count: int, period_ns: int,
-    storage: StoragePlugin = StoragePlugin.MCAP,
+    storage: StoragePlugin = StoragePlugin.MCAP, compression: CompressionMode = CompressionMode.NONE,
 ) -> Path:
     """A rosbag2 of ``count`` copies of ``msg``, ``period_ns`` apart: serialized once, so a bag
     that takes the host seconds to convert is written in about one."""
     data = bytes(STORE.serialize_cdr(msg, msgtype))
-    with Writer(path, version=9, storage_plugin=storage) as writer:
+    writer = Writer(path, version=9, storage_plugin=storage)
+    writer.set_compression(compression, CompressionFormat.ZSTD)
+    with writer:
         connection = writer.add_connection(topic, msgtype, typestore=STORE)
         for i in range(count):
             writer.write(connection, START_NS + i * period_ns, data)

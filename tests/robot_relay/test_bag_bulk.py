@@ -27,6 +27,7 @@ from host_bridge.inputs.zenoh import bundle_run
 from robot_relay.policy import PolicyTable
 from robot_relay.relay import Relay
 from robot_relay.sources.bag import BagSource
+from robot_relay.sources.mcap import McapFile
 from robot_relay.wire import Attachment, Catalog, TopicInfo
 from tests.host_bridge.test_corrupt_bags import (
     chunk_indexes,
@@ -168,6 +169,7 @@ def test_the_bag_has_several_chunks_and_every_topic_spans_them(bag: Path) -> Non
         files = source.bulk_files()
         assert files is not None
         [opened] = files
+        assert isinstance(opened, McapFile)
         with opened:
             chunks = opened.chunks
     assert {chunk.compression for chunk in chunks} == {bag.name.removesuffix(".mcap")}

@@ -221,14 +221,16 @@ def test_message_run_is_a_sequence_of_raw_messages() -> None:
     assert type(run[-1].log_ns) is int
 
 
-@pytest.mark.parametrize("storage_compression", [False, True])
-def test_rosbag2_directory_from_rosbags_writer(tmp_path: Path, storage_compression: bool) -> None:
-    """rosbags' own writer: schemas and channels inside the first chunk, 1 MiB chunks, zstd with
-    storage compression, a topic without its leading slash. (Split bags: the shared recordings.)"""
+@pytest.mark.parametrize("compression", [CompressionMode.NONE, CompressionMode.STORAGE,
+                                         CompressionMode.FILE], ids=lambda mode: mode.name.lower())
+def test_rosbag2_directory_from_rosbags_writer(tmp_path: Path, compression: CompressionMode) -> None:
+    """rosbags' own writer: schemas and channels inside the first chunk, 1 MiB chunks, zstd chunks
+    with storage compression, the whole file zstd'ed with file compression (rosbag2's
+    ``--compression-mode file``: read in bulk from the file rosbags decompressed), a topic without
+    its leading slash. (Split bags: the shared recordings.)"""
     directory = tmp_path / "bag"
     writer = BagWriter(directory, version=9, storage_plugin=StoragePlugin.MCAP)
-    if storage_compression:
-        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    writer.set_compression(compression, CompressionFormat.ZSTD)
     with writer:
         chatter = writer.add_connection("/chatter", "std_msgs/msg/String", typestore=STORE)
         camera = writer.add_connection("camera/image_raw", "sensor_msgs/msg/Image", typestore=STORE)
@@ -243,6 +245,8 @@ def test_rosbag2_directory_from_rosbags_writer(tmp_path: Path, storage_compressi
     assert isinstance(got[1].data, memoryview)  # read in bulk, not by the rosbags fallback
     assert got[1].definition is not None
     assert got[1].definition.encoding == "ros2msg"
+    stored = [path.name for path in directory.iterdir() if path.name != "metadata.yaml"]
+    assert stored == ["bag.mcap.zstd" if compression == CompressionMode.FILE else "bag.mcap"]
 
 
 @pytest.mark.parametrize(

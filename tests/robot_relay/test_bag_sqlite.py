@@ -1,0 +1,147 @@
+"""A rosbag2 in sqlite3 storage read in bulk (robot_relay/sources/sqlite.py) gives exactly what
+the record-by-record rosbags path gives: every topic's payloads and log times in rosbags' order,
+unpaced in windows within their bounds, paced record by record, and through ``swanky-host
+--bag``'s runs; a damaged row is skipped and counted as the rosbags path counts it.
+
+The bag is test_bag_bulk's (Imu, String, a latched TFMessage, 100 KB images, ties between topics),
+written by rosbags' Writer with sqlite3 storage, as one .db3 of a rosbag2 directory, or split in
+two files.
+"""
+
+from __future__ import annotations
+
+import logging
+import sqlite3
+from pathlib import Path
+
+import pytest
+from rosbags.rosbag2 import StoragePlugin, Writer
+
+from host_bridge.inputs.bag import bag_runs
+from host_bridge.inputs.base import MessageRun
+from robot_relay.errors import SourceError
+from robot_relay.sources.bag import BagSource
+from robot_relay.sources.mcap import LARGE_PAYLOAD
+from robot_relay.sources.sqlite import BATCH_SHARE, Sqlite3File
+from tests.robot_relay.test_bag_bulk import (
+    COUNTS,
+    STORE,
+    TYPES,
+    bag_messages,
+    bulk_runs,
+    per_topic,
+    record_runs,
+    written,
+)
+
+IMAGE_BYTES = len(next(data for topic, _, data in bag_messages() if topic == "/camera/image_raw"))
+
+
+def sqlite_bag(path: Path) -> Path:
+    with Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3) as writer:
+        connections = {topic: writer.add_connection(topic, msgtype, typestore=STORE)
+                       for topic, msgtype in TYPES.items()}
+        for topic, log_ns, data in bag_messages():
+            writer.write(connections[topic], log_ns, data)
+    return path
+
+
+def test_a_sqlite3_bag_is_read_in_bulk_as_rosbags_reads_it(tmp_path: Path) -> None:
+    bag = sqlite_bag(tmp_path / "bag")
+    with BagSource(bag, "tb3") as source:
+        files = source.bulk_files()
+        assert files is not None
+        assert [type(opened) for opened in files] == [Sqlite3File]
+        record = record_runs(source)
+        bulk = bulk_runs(source)
+        messages = [(m.topic, m.log_ns, bytes(m.data)) for m in source.messages()]
+    assert messages == bag_messages()  # rosbags' order is the order written
+    assert per_topic(bulk) == per_topic(record) == written()
+    assert len(bulk) < 20  # unpaced: windows of many messages, a run per topic each
+    images = [payload for info, payloads, _ in bulk if info.topic == "/camera/image_raw"
+              for payload in payloads]
+    assert len(images) == COUNTS["/camera/image_raw"]
+    assert all(isinstance(payload, memoryview) for payload in images)
+    infos = {info.topic: info for info, _, _ in bulk}
+    assert infos["/imu"].msgtype == "sensor_msgs/msg/Imu"
+    assert infos["/imu"].definition is not None  # rosbags' Writer stores the definitions
+    assert infos["/tf_static"].qos.durability == "transient_local"  # conventionally latched
+
+
+def test_a_paced_replay_reads_the_sqlite3_bag_record_by_record_in_bulk(tmp_path: Path) -> None:
+    with BagSource(sqlite_bag(tmp_path / "bag"), "tb3", rate=1000) as source:
+        assert per_topic(bulk_runs(source)) == written()
+
+
+@pytest.mark.parametrize(("messages", "payload_bytes"), [(100, 10**9), (10**6, 1_000_000), (1, 1)])
+def test_windows_keep_their_bounds_and_rosbags_order(
+    tmp_path: Path, messages: int, payload_bytes: int
+) -> None:
+    """At most ``messages`` a window, about ``payload_bytes`` of payload (at most one batch over:
+    a quarter of the bound, or one message), and each topic's messages in order."""
+    with BagSource(sqlite_bag(tmp_path / "bag"), "tb3") as source:
+        files = source.bulk_files()
+        assert files is not None
+        windows = [window for opened in files for window in opened.windows(messages, payload_bytes)]
+    got: dict[str, list[tuple[bytes, int]]] = {}
+    for window in windows:
+        sizes = [len(payload) for run in window for payload in run.payloads()]
+        assert 1 <= len(sizes) <= messages
+        assert sum(sizes) <= payload_bytes + max(payload_bytes // BATCH_SHARE, IMAGE_BYTES)
+        for run in window:
+            got.setdefault(run.info.topic, []).extend(
+                (bytes(payload), stamp) for payload, stamp in
+                zip(run.payloads(), run.log_ns.tolist(), strict=True))
+    assert got == written()
+    assert len(windows) >= (sum(COUNTS.values()) // messages if messages < 10**6 else 3)
+
+
+def test_a_split_sqlite3_bag_is_read_file_by_file(tmp_path: Path) -> None:
+    """Two .db3 files of one bag (rosbag2's --max-bag-size): their messages one file after the
+    other, as rosbags reads them, through the host's runs."""
+    bag = sqlite_bag(tmp_path / "bag")
+    second = sqlite_bag(tmp_path / "second")
+    (bag / "bag_1.db3").write_bytes((second / "second.db3").read_bytes())
+    metadata = (bag / "metadata.yaml").read_text()
+    assert "- bag.db3\n" in metadata
+    (bag / "metadata.yaml").write_text(metadata.replace("- bag.db3\n", "- bag.db3\n  - bag_1.db3\n", 1))
+    runs = list(bag_runs(bag, "tb3"))
+    bulk = [run for run in runs if isinstance(run, MessageRun)]
+    assert len(bulk) == len(runs)  # the bulk reader's runs, not rosbags' RawMessages
+    got: dict[str, list[tuple[bytes, int]]] = {}
+    for run in bulk:
+        got.setdefault(run.topic, []).extend((bytes(m.data), m.log_ns or 0) for m in run)
+    assert got == {topic: messages * 2 for topic, messages in written().items()}
+
+
+def test_a_damaged_row_is_skipped_counted_and_named(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    bag = sqlite_bag(tmp_path / "bag")
+    with sqlite3.connect(bag / "bag.db3") as db:
+        db.execute("UPDATE messages SET timestamp = 'x' WHERE id = 3")
+        db.execute("UPDATE messages SET data = 'text' WHERE id = 5")
+    with caplog.at_level(logging.WARNING), BagSource(bag, "tb3") as source:
+        bulk = per_topic(bulk_runs(source))
+    assert sum(len(messages) for messages in bulk.values()) == sum(COUNTS.values()) - 2
+    [warning] = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert f"bag {bag} is damaged" in warning
+    assert "lost: 2 messages whose log time or payload is malformed" in warning
+
+
+def test_a_read_error_mid_file_names_the_bag_and_where_it_stopped(tmp_path: Path) -> None:
+    bag = sqlite_bag(tmp_path / "bag")
+    with BagSource(bag, "tb3") as source:
+        files = source.bulk_files()
+        assert files is not None
+        [opened] = files
+        windows = opened.windows(50, 10**9)
+        next(windows)
+        with (bag / "bag.db3").open("r+b") as file:  # every page past the first 400 KB
+            size = file.seek(0, 2)
+            file.seek(400_000)
+            file.write(b"\xa5" * (size - 400_000))
+        with pytest.raises(SourceError, match=rf"bag {bag} is damaged: reading stopped after log "
+                                              r"time \d+ ns, after \d+ messages"):
+            list(windows)
+    assert LARGE_PAYLOAD < IMAGE_BYTES  # the images above are the large, uncopied kind
