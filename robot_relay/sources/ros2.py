@@ -41,6 +41,7 @@ from typing import Any
 from robot_relay.errors import SourceError
 from robot_relay.sources.base import Outlet, SourceThread
 from robot_relay.sources.qos import Offer, live_qos
+from robot_relay.sources.take_loop import RawSubscription, TakeLoop
 from robot_relay.wire import Catalog, MessageDefinition, RawMessage, TopicInfo
 
 log = logging.getLogger("swanky.relay")
@@ -367,8 +368,14 @@ class Ros2Source:
                 next_discovery = time.monotonic() + period
             self.wake.clear()
             self.apply_demand(publish)
-            # Short waits so a stop (signal) is seen quickly; demand wakes it at once.
-            self.wake.wait(min(max(next_discovery - time.monotonic(), 0.0), 0.2))
+            # Demand and a stop (:meth:`stop`) wake it at once.
+            if not stop.is_set():
+                self.wake.wait(max(next_discovery - time.monotonic(), 0.0))
+
+    def stop(self, stop: threading.Event) -> None:
+        """Set ``stop`` (the one :meth:`run` was given) and wake :meth:`run` to see it."""
+        stop.set()
+        self.wake.set()
 
     def close(self) -> None:
         for _, handle in self.subscriptions.values():
@@ -385,19 +392,24 @@ def message_class(msgtype: str) -> Any:
 
 class RclpySource:
     """The live ROS 2 graph as the relay's :class:`~robot_relay.sources.base.Source`: a node
-    ``swanky_relay`` whose executor spins on one thread while another reads the graph
-    (:class:`Ros2Source`) and applies the hosts' demand. :meth:`close` destroys the
-    subscriptions, the executor and the node, then shuts ROS down. rclpy's own signal handlers
-    are not installed (they would shut ROS down under the running executor and end in
-    tracebacks): the command's own handlers stop the app, which then closes this source."""
+    ``swanky_relay`` whose raw subscriptions are taken on one thread by a
+    :class:`~robot_relay.sources.take_loop.TakeLoop` while another reads the graph
+    (:class:`Ros2Source`) and applies the hosts' demand, and rclpy's executor answers the node's
+    own services (parameters) on a third. :meth:`close` destroys the subscriptions, the executor
+    and the node, then shuts ROS down. rclpy's own signal handlers are not installed (they would
+    shut ROS down under the running threads and end in tracebacks): the command's own handlers
+    stop the app, which then closes this source."""
 
     def __init__(self, robot: str, accept: Callable[[str], bool]) -> None:
         try:
             import rclpy
+            from rclpy.exceptions import NoTypeSupportImportedException
             from rclpy.executors import SingleThreadedExecutor
+            from rclpy.impl.implementation_singleton import rclpy_implementation
             from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
             from rclpy.signals import SignalHandlerOptions
-            from rclpy.subscription import Subscription
+            from rclpy.type_support import check_is_valid_msg_type
+            from rclpy.utilities import get_default_context
         except ImportError as err:
             msg = (f"rclpy is not importable ({err}): source ROS 2 (e.g. "
                    "/opt/ros/humble/setup.bash) or use --bag to replay a bag")
@@ -407,16 +419,15 @@ class RclpySource:
         self._stop = threading.Event()
         self._threads: list[SourceThread] = []
         self._closed = False
-        # Jazzy (and Iron) hand a callback taking two arguments the message info too; Humble never.
-        with_message_info = hasattr(Subscription, "CallbackType")
         rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         try:
             node = self._node = rclpy.create_node("swanky_relay")
         except BaseException:
             rclpy.shutdown()
             raise
+        loop = self._loop = TakeLoop(rclpy_implementation, get_default_context().handle)
 
-        def subscribe(info: TopicInfo, forward: Forward) -> Any:
+        def subscribe(info: TopicInfo, forward: Forward) -> RawSubscription | None:
             profile = QoSProfile(
                 depth=info.qos.depth,
                 reliability=ReliabilityPolicy.BEST_EFFORT if info.qos.reliability == "best_effort"
@@ -426,17 +437,16 @@ class RclpySource:
             )
             try:
                 message_type = message_class(info.msgtype)
-            except (ImportError, AttributeError, ValueError) as err:  # its package is not here
+                check_is_valid_msg_type(message_type)  # imports its type support
+            except (ImportError, AttributeError, ValueError, RuntimeError,
+                    NoTypeSupportImportedException) as err:  # its package is not here
                 log.error("%s: cannot subscribe, %s is not importable here: %s", info.topic,
                           info.msgtype, err)
                 return None
-            callback: Callable[..., None] = forward if with_message_info else (
-                lambda data: forward(data, None)
-            )
-            return node.create_subscription(message_type, info.topic, callback, profile, raw=True)
+            return loop.subscribe(node.handle, message_type, info, profile, forward)
 
         self.graph = Ros2Source(node, robot, accept, ament_share_dirs(), subscribe=subscribe,
-                                unsubscribe=node.destroy_subscription)
+                                unsubscribe=loop.remove)
         self._executor: Any = SingleThreadedExecutor()
         self._executor.add_node(node)
 
@@ -445,12 +455,13 @@ class RclpySource:
         return Catalog(self.robot, "ros2", ())
 
     def start(self, outlet: Outlet) -> None:
-        def spin() -> None:
+        def serve() -> None:  # returns once close() shut the executor down
             while not self._stop.is_set():
-                self._executor.spin_once(timeout_sec=0.1)
+                self._executor.spin_once()
 
         self._threads = [
-            SourceThread("rclpy-executor", spin),
+            SourceThread("rclpy-take", self._loop.run),
+            SourceThread("rclpy-services", serve),
             SourceThread("ros2-graph", lambda: self.graph.run(
                 outlet.update_catalog, outlet.publish, self._stop)),
         ]
@@ -471,12 +482,14 @@ class RclpySource:
         if self._closed:
             return
         self._closed = True
-        self._stop.set()
+        self.graph.stop(self._stop)
+        self._loop.stop()
+        self._executor.shutdown()
         for thread in self._threads:
             thread.join()
         try:
             self.graph.close()
-            self._executor.shutdown()
+            self._loop.close()
             self._node.destroy_node()
         finally:
             self._rclpy.shutdown()
