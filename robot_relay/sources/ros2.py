@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from robot_relay.errors import SourceError
+from robot_relay.heap import keep_freed_buffers
 from robot_relay.sources.base import Outlet, SourceThread
 from robot_relay.sources.qos import Offer, live_qos
 from robot_relay.sources.take_loop import RawSubscription, TakeLoop
@@ -416,6 +417,7 @@ class RclpySource:
             raise SourceError(msg) from err
         self.robot = robot
         self._rclpy: Any = rclpy
+        keep_freed_buffers()
         self._stop = threading.Event()
         self._threads: list[SourceThread] = []
         self._closed = False
