@@ -15,14 +15,18 @@ when a host starts or stops listening, and the discovery thread applies it (crea
 the subscription), so the node is only touched by that thread and rclpy's executor. Latched
 topics are always wanted (the Relay says so at once): their cache must be warm for late hosts.
 
+Messages are taken without rclpy's executor, by a :class:`~robot_relay.sources.take_loop.TakeLoop`
+(where the relay's CPU per message went, and what the loop saves, is in its docstring).
+
 Loss the relay can see: with one publisher on a topic, a gap in the publication sequence numbers
-rclpy hands the callback (Iron and later) counts as drops, reported in the relay's stats.
+rclpy gives with each message (Iron and later) counts as drops, reported in the relay's stats.
 
 How this was checked: the source alone against fake nodes answering like rclpy's graph API
 (tests/robot_relay/test_ros2_source.py), and :class:`RclpySource` in ``swanky-relay`` against
 real rclpy nodes of ROS 2 Jazzy with Fast DDS, from the ros-jazzy PyPI wheels
-(tests/integration/test_ros2_live.py). Humble's rclpy (no message info in callbacks) has not run
-here; keep this adapter thin.
+(tests/integration/test_ros2_live.py). Humble's rclpy (message info without sequence numbers)
+has not run here: the take loop uses only calls its source has too (rclpy's humble branch,
+read for this); keep this adapter thin.
 """
 
 from __future__ import annotations
@@ -61,7 +65,7 @@ _PRIMITIVES = frozenset({
 _SEPARATOR = "=" * 80
 _IDL_INCLUDE = re.compile(r'^#include\s+"([^"/]+/[^"/]+/[^"/]+)\.idl"', re.MULTILINE)
 
-# rclpy's message info (Iron and later): source_timestamp, received_timestamp,
+# rclpy's message info: source_timestamp, received_timestamp, and from Iron on
 # publication_sequence_number, reception_sequence_number (None where the RMW has none).
 MessageInfo = Mapping[str, Any]
 Forward = Callable[[bytes, MessageInfo | None], None]
