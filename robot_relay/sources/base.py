@@ -5,8 +5,8 @@ catalog) and hands over their messages as RawMessages, never decoded. ``robot_re
 declares the Relay from the source's first catalog, starts the source with an outlet that
 publishes (and learns the files a /robot_description names), waits until it ends (a bag) or the
 relay stops (live), and closes it. Push, as the host's inputs (host_bridge/inputs/base.py): the
-live graph delivers on rclpy's executor thread, so a bag replays on a thread of its own too and
-the app waits on both alike.
+live graph delivers on its take loop's thread (``sources/take_loop.py``), so a bag replays on a
+thread of its own too and the app waits on both alike.
 """
 
 from __future__ import annotations

@@ -15,14 +15,18 @@ when a host starts or stops listening, and the discovery thread applies it (crea
 the subscription), so the node is only touched by that thread and rclpy's executor. Latched
 topics are always wanted (the Relay says so at once): their cache must be warm for late hosts.
 
+Messages are taken without rclpy's executor, by a :class:`~robot_relay.sources.take_loop.TakeLoop`
+(where the relay's CPU per message went, and what the loop saves, is in its docstring).
+
 Loss the relay can see: with one publisher on a topic, a gap in the publication sequence numbers
-rclpy hands the callback (Iron and later) counts as drops, reported in the relay's stats.
+rclpy gives with each message (Iron and later) counts as drops, reported in the relay's stats.
 
 How this was checked: the source alone against fake nodes answering like rclpy's graph API
 (tests/robot_relay/test_ros2_source.py), and :class:`RclpySource` in ``swanky-relay`` against
 real rclpy nodes of ROS 2 Jazzy with Fast DDS, from the ros-jazzy PyPI wheels
-(tests/integration/test_ros2_live.py). Humble's rclpy (no message info in callbacks) has not run
-here; keep this adapter thin.
+(tests/integration/test_ros2_live.py). Humble's rclpy (message info without sequence numbers)
+has not run here: the take loop uses only calls its source has too (rclpy's humble branch,
+read for this); keep this adapter thin.
 """
 
 from __future__ import annotations
@@ -39,8 +43,10 @@ from pathlib import Path
 from typing import Any
 
 from robot_relay.errors import SourceError
+from robot_relay.heap import keep_freed_buffers
 from robot_relay.sources.base import Outlet, SourceThread
 from robot_relay.sources.qos import Offer, live_qos
+from robot_relay.sources.take_loop import RawSubscription, TakeLoop
 from robot_relay.wire import Catalog, MessageDefinition, RawMessage, TopicInfo
 
 log = logging.getLogger("swanky.relay")
@@ -59,7 +65,7 @@ _PRIMITIVES = frozenset({
 _SEPARATOR = "=" * 80
 _IDL_INCLUDE = re.compile(r'^#include\s+"([^"/]+/[^"/]+/[^"/]+)\.idl"', re.MULTILINE)
 
-# rclpy's message info (Iron and later): source_timestamp, received_timestamp,
+# rclpy's message info: source_timestamp, received_timestamp, and from Iron on
 # publication_sequence_number, reception_sequence_number (None where the RMW has none).
 MessageInfo = Mapping[str, Any]
 Forward = Callable[[bytes, MessageInfo | None], None]
@@ -367,8 +373,14 @@ class Ros2Source:
                 next_discovery = time.monotonic() + period
             self.wake.clear()
             self.apply_demand(publish)
-            # Short waits so a stop (signal) is seen quickly; demand wakes it at once.
-            self.wake.wait(min(max(next_discovery - time.monotonic(), 0.0), 0.2))
+            # Demand and a stop (:meth:`stop`) wake it at once.
+            if not stop.is_set():
+                self.wake.wait(max(next_discovery - time.monotonic(), 0.0))
+
+    def stop(self, stop: threading.Event) -> None:
+        """Set ``stop`` (the one :meth:`run` was given) and wake :meth:`run` to see it."""
+        stop.set()
+        self.wake.set()
 
     def close(self) -> None:
         for _, handle in self.subscriptions.values():
@@ -385,38 +397,43 @@ def message_class(msgtype: str) -> Any:
 
 class RclpySource:
     """The live ROS 2 graph as the relay's :class:`~robot_relay.sources.base.Source`: a node
-    ``swanky_relay`` whose executor spins on one thread while another reads the graph
-    (:class:`Ros2Source`) and applies the hosts' demand. :meth:`close` destroys the
-    subscriptions, the executor and the node, then shuts ROS down. rclpy's own signal handlers
-    are not installed (they would shut ROS down under the running executor and end in
-    tracebacks): the command's own handlers stop the app, which then closes this source."""
+    ``swanky_relay`` whose raw subscriptions are taken on one thread by a
+    :class:`~robot_relay.sources.take_loop.TakeLoop` while another reads the graph
+    (:class:`Ros2Source`) and applies the hosts' demand, and rclpy's executor answers the node's
+    own services (parameters) on a third. :meth:`close` destroys the subscriptions, the executor
+    and the node, then shuts ROS down. rclpy's own signal handlers are not installed (they would
+    shut ROS down under the running threads and end in tracebacks): the command's own handlers
+    stop the app, which then closes this source."""
 
     def __init__(self, robot: str, accept: Callable[[str], bool]) -> None:
         try:
             import rclpy
+            from rclpy.exceptions import NoTypeSupportImportedException
             from rclpy.executors import SingleThreadedExecutor
+            from rclpy.impl.implementation_singleton import rclpy_implementation
             from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
             from rclpy.signals import SignalHandlerOptions
-            from rclpy.subscription import Subscription
+            from rclpy.type_support import check_is_valid_msg_type
+            from rclpy.utilities import get_default_context
         except ImportError as err:
             msg = (f"rclpy is not importable ({err}): source ROS 2 (e.g. "
                    "/opt/ros/humble/setup.bash) or use --bag to replay a bag")
             raise SourceError(msg) from err
         self.robot = robot
         self._rclpy: Any = rclpy
+        keep_freed_buffers()
         self._stop = threading.Event()
         self._threads: list[SourceThread] = []
         self._closed = False
-        # Jazzy (and Iron) hand a callback taking two arguments the message info too; Humble never.
-        with_message_info = hasattr(Subscription, "CallbackType")
         rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         try:
             node = self._node = rclpy.create_node("swanky_relay")
         except BaseException:
             rclpy.shutdown()
             raise
+        loop = self._loop = TakeLoop(rclpy_implementation, get_default_context().handle)
 
-        def subscribe(info: TopicInfo, forward: Forward) -> Any:
+        def subscribe(info: TopicInfo, forward: Forward) -> RawSubscription | None:
             profile = QoSProfile(
                 depth=info.qos.depth,
                 reliability=ReliabilityPolicy.BEST_EFFORT if info.qos.reliability == "best_effort"
@@ -426,17 +443,16 @@ class RclpySource:
             )
             try:
                 message_type = message_class(info.msgtype)
-            except (ImportError, AttributeError, ValueError) as err:  # its package is not here
+                check_is_valid_msg_type(message_type)  # imports its type support
+            except (ImportError, AttributeError, ValueError, RuntimeError,
+                    NoTypeSupportImportedException) as err:  # its package is not here
                 log.error("%s: cannot subscribe, %s is not importable here: %s", info.topic,
                           info.msgtype, err)
                 return None
-            callback: Callable[..., None] = forward if with_message_info else (
-                lambda data: forward(data, None)
-            )
-            return node.create_subscription(message_type, info.topic, callback, profile, raw=True)
+            return loop.subscribe(node.handle, message_type, info, profile, forward)
 
         self.graph = Ros2Source(node, robot, accept, ament_share_dirs(), subscribe=subscribe,
-                                unsubscribe=node.destroy_subscription)
+                                unsubscribe=loop.remove)
         self._executor: Any = SingleThreadedExecutor()
         self._executor.add_node(node)
 
@@ -445,12 +461,13 @@ class RclpySource:
         return Catalog(self.robot, "ros2", ())
 
     def start(self, outlet: Outlet) -> None:
-        def spin() -> None:
+        def serve() -> None:  # returns once close() shut the executor down
             while not self._stop.is_set():
-                self._executor.spin_once(timeout_sec=0.1)
+                self._executor.spin_once()
 
         self._threads = [
-            SourceThread("rclpy-executor", spin),
+            SourceThread("rclpy-take", self._loop.run),
+            SourceThread("rclpy-services", serve),
             SourceThread("ros2-graph", lambda: self.graph.run(
                 outlet.update_catalog, outlet.publish, self._stop)),
         ]
@@ -471,12 +488,14 @@ class RclpySource:
         if self._closed:
             return
         self._closed = True
-        self._stop.set()
+        self.graph.stop(self._stop)
+        self._loop.stop()
+        self._executor.shutdown()
         for thread in self._threads:
             thread.join()
         try:
             self.graph.close()
-            self._executor.shutdown()
+            self._loop.close()
             self._node.destroy_node()
         finally:
             self._rclpy.shutdown()

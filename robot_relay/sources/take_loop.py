@@ -1,0 +1,146 @@
+"""Raw messages taken from rcl subscriptions in one loop over a wait set, without rclpy's executor.
+
+rclpy's executor pays, for every single message, a new wait set built from every entity of the
+node, a timer for the timeout, a generator, a handler, a Task and a coroutine before the callback
+runs. :class:`TakeLoop` keeps one wait set, waits on the subscriptions and a guard condition
+only, and takes everything a ready subscription holds (up to its queue's depth per turn) with
+``take_message`` before it waits again, calling the forwarder directly.
+
+Where the relay's CPU went (benchmarks/relay_cpu.py's small messages, 64 a second; perf with
+software clock sampling, py-spy and cProfile of the relay; see that script's docstring for the
+figures): with the executor, 82 % of it in the Python threads, half of the executor thread's
+busy samples building wait sets and running the Task machinery and the rest publishing to
+Zenoh; the Fast DDS receive thread 8 % and Zenoh's transmit thread 9 %. With this loop the
+executor's share is gone; what is left per message is the take thread (Python ~30 % of the
+relay's CPU, context switches and Zenoh's wake-up of its transmit thread), Zenoh's transmit
+thread (~19 %: the TCP send to the host, in the kernel) and Fast DDS's receive thread (~17 %).
+
+It uses rclpy's C extension (``rclpy.impl.implementation_singleton.rclpy_implementation``) the
+way rclpy's own executor and ``Node.create_subscription`` do, with calls that are the same in
+Humble (rclpy 3) and Jazzy (rclpy 7): ``Subscription(node, type, topic, qos)``,
+``WaitSet(subscriptions, guards, timers, clients, services, events, context)``,
+``clear_entities``, ``add_subscription``, ``add_guard_condition``, ``wait(ns)``,
+``get_ready_entities("subscription")``, ``take_message(type, raw)`` (bytes and a dict of message
+info: the timestamps, and from Iron on the sequence numbers), ``GuardCondition(context)``,
+``destroy_when_not_in_use``. rclpy is handed in, never imported here: the relay imports it only
+when it reads a live graph.
+
+Threads: subscriptions are created on the caller's thread (the graph thread) and handed over
+with :meth:`TakeLoop.add`; :meth:`TakeLoop.remove` asks for one's end. Both take effect at the
+loop's next turn (the guard condition wakes it), and only the loop's thread destroys a
+subscription, so none is destroyed while rcl waits on it.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from robot_relay.wire import TopicInfo
+
+# Waits end by themselves this often even when nothing arrives: a backstop, since a stop or a
+# change triggers the guard condition at once.
+WAIT_NS = 1_000_000_000
+Take = Callable[[bytes, Mapping[str, Any]], None]
+
+
+@dataclass(eq=False)
+class RawSubscription:
+    """One raw rcl subscription and where its messages go."""
+
+    handle: Any
+    message_type: Any
+    forward: Take
+    depth: int
+
+    def drain(self) -> None:
+        """Take and forward what the subscription holds, at most ``depth`` messages: a topic
+        that outruns the relay cannot starve the others."""
+        for _ in range(self.depth):
+            taken = self.handle.take_message(self.message_type, True)
+            if taken is None:
+                return
+            self.forward(*taken)
+
+
+class TakeLoop:
+    """The relay's raw subscriptions, waited on together and drained on one thread (:meth:`run`)."""
+
+    def __init__(self, rclpy_implementation: Any, context_handle: Any) -> None:
+        self._rclpy = rclpy_implementation
+        self._context = context_handle
+        self._wake = rclpy_implementation.GuardCondition(context_handle)
+        self._lock = threading.Lock()
+        self._added: list[RawSubscription] = []
+        self._removed: list[RawSubscription] = []
+        self._subscriptions: dict[int, RawSubscription] = {}
+        self._stopped = False
+
+    def subscribe(self, node_handle: Any, message_type: Any, info: TopicInfo, qos: Any,
+                  forward: Take) -> RawSubscription:
+        """A raw subscription of ``info.topic`` with rclpy's ``qos`` profile, handed to the loop."""
+        handle = self._rclpy.Subscription(node_handle, message_type, info.topic,
+                                          qos.get_c_qos_profile())
+        subscription = RawSubscription(handle, message_type, forward, max(info.qos.depth, 1))
+        with self._lock:
+            self._added.append(subscription)
+        self._wake.trigger_guard_condition()
+        return subscription
+
+    def remove(self, subscription: RawSubscription) -> None:
+        with self._lock:
+            self._removed.append(subscription)
+        self._wake.trigger_guard_condition()
+
+    def stop(self) -> None:
+        """End :meth:`run` at its next turn (at once: the guard condition wakes it)."""
+        with self._lock:
+            self._stopped = True
+        self._wake.trigger_guard_condition()
+
+    def _apply_changes(self) -> bool:
+        """Take in the subscriptions added and destroy the ones removed; False once stopped."""
+        with self._lock:
+            added, self._added = self._added, []
+            removed, self._removed = self._removed, []
+            stopped = self._stopped
+        for subscription in added:
+            self._subscriptions[subscription.handle.pointer] = subscription
+        for subscription in removed:
+            self._subscriptions.pop(subscription.handle.pointer, None)
+            subscription.handle.destroy_when_not_in_use()
+        return not stopped
+
+    def run(self) -> None:
+        """Wait, drain what is ready, and again, until :meth:`stop`."""
+        wait_set = None
+        size = -1
+        try:
+            while self._apply_changes():
+                if len(self._subscriptions) != size:
+                    if wait_set is not None:
+                        wait_set.destroy_when_not_in_use()
+                    size = len(self._subscriptions)
+                    wait_set = self._rclpy.WaitSet(size, 1, 0, 0, 0, 0, self._context)
+                assert wait_set is not None
+                wait_set.clear_entities()
+                for subscription in self._subscriptions.values():
+                    wait_set.add_subscription(subscription.handle)
+                wait_set.add_guard_condition(self._wake)
+                wait_set.wait(WAIT_NS)
+                for pointer in wait_set.get_ready_entities("subscription"):
+                    self._subscriptions[pointer].drain()
+        finally:
+            if wait_set is not None:
+                wait_set.destroy_when_not_in_use()
+
+    def close(self) -> None:
+        """Once :meth:`run` has returned (or never ran): destroy every subscription and the guard
+        condition."""
+        self._apply_changes()
+        for subscription in self._subscriptions.values():
+            subscription.handle.destroy_when_not_in_use()
+        self._subscriptions.clear()
+        self._wake.destroy_when_not_in_use()
