@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 from operator import attrgetter
 from typing import Any
 from urllib.parse import urlparse
@@ -74,7 +75,12 @@ def _points(marker: Any) -> npt.NDArray[np.float64]:
 
 def _rgba8(colors: Sequence[Any]) -> npt.NDArray[np.uint8]:
     """std_msgs/ColorRGBA floats (0..1) as (N, 4) RGBA bytes."""
-    values = np.array(list(map(_RGBA, colors)), dtype=np.float64).reshape(-1, 4)
+    return _bytes(list(map(_RGBA, colors)))
+
+
+def _bytes(rgba: Sequence[tuple[float, float, float, float]]) -> npt.NDArray[np.uint8]:
+    """RGBA floats (0..1) as (N, 4) bytes."""
+    values = np.array(rgba, dtype=np.float64).reshape(-1, 4)
     return np.clip(np.rint(values * 255.0), 0, 255).astype(np.uint8)
 
 
@@ -105,21 +111,25 @@ def _arrow(marker: Any, ctx: ConvertContext) -> Archetypes:
     return (rr.Arrows3D(origins=origins, vectors=vectors, radii=[radius], colors=_color(marker)),)
 
 
-def _cube(marker: Any, ctx: ConvertContext) -> Archetypes:
-    return (rr.Boxes3D(centers=_ORIGIN, half_sizes=[_scale(marker) / 2], colors=_color(marker),
-                       fill_mode=_SOLID),)
+@lru_cache(maxsize=256)
+def _solid(marker_type: int, scale: tuple[float, float, float],
+           rgba: tuple[float, float, float, float]) -> Archetypes:
+    """The geometry of a CUBE, SPHERE or CYLINDER (the pose places it), made once per size and
+    colour: such a topic usually moves a few shapes about, and Rerun's archetype constructor
+    was a quarter of converting a cube marker."""
+    half_sizes, color = [np.array(scale) / 2], _bytes([rgba])
+    if marker_type == CUBE:
+        return (rr.Boxes3D(centers=_ORIGIN, half_sizes=half_sizes, colors=color, fill_mode=_SOLID),)
+    if marker_type == SPHERE:
+        return (rr.Ellipsoids3D(centers=_ORIGIN, half_sizes=half_sizes, colors=color,
+                                fill_mode=_SOLID),)
+    # Axis along z, height scale.z, diameter scale.x (Rerun cylinders are circular).
+    return (rr.Cylinders3D(centers=_ORIGIN, lengths=[scale[2]], radii=[scale[0] / 2], colors=color,
+                           fill_mode=_SOLID),)
 
 
-def _sphere(marker: Any, ctx: ConvertContext) -> Archetypes:
-    return (rr.Ellipsoids3D(centers=_ORIGIN, half_sizes=[_scale(marker) / 2],
-                            colors=_color(marker), fill_mode=_SOLID),)
-
-
-def _cylinder(marker: Any, ctx: ConvertContext) -> Archetypes:
-    """Axis along z, height scale.z, diameter scale.x (Rerun cylinders are circular)."""
-    scale = _scale(marker)
-    return (rr.Cylinders3D(centers=_ORIGIN, lengths=[scale[2]], radii=[scale[0] / 2],
-                           colors=_color(marker), fill_mode=_SOLID),)
+def _solid_of(marker: Any, ctx: ConvertContext) -> Archetypes:
+    return _solid(int(marker.type), _XYZ(marker.scale), _RGBA(marker.color))
 
 
 def _line_strip(marker: Any, ctx: ConvertContext) -> Archetypes:
@@ -225,9 +235,9 @@ def _mesh(marker: Any, ctx: ConvertContext) -> Archetypes:
 
 _BUILDERS: Mapping[int, Callable[[Any, ConvertContext], Archetypes]] = {
     ARROW: _arrow,
-    CUBE: _cube,
-    SPHERE: _sphere,
-    CYLINDER: _cylinder,
+    CUBE: _solid_of,
+    SPHERE: _solid_of,
+    CYLINDER: _solid_of,
     LINE_STRIP: _line_strip,
     LINE_LIST: _line_list,
     CUBE_LIST: _cube_list,
