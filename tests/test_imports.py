@@ -9,7 +9,8 @@
 - The host imports from the robot side only the modules in :data:`HOST_MAY_IMPORT`, each with
   its reason.
 - The type table's module imports no converter at module level: the command line imports it
-  and must start without them.
+  and must start without them. Its ``Lazy("laser", "SPEC")`` rows count as imports of the
+  converter module (``host_bridge.converters.laser``) made inside a function.
 - Only ``host_bridge/core/rerun_private.py`` uses Rerun's private API (:data:`RERUN_PRIVATE_NAMES`).
 """
 
@@ -111,6 +112,20 @@ def imported_modules(node: ast.Import | ast.ImportFrom, importer: str, package: 
     return submodules or [base]
 
 
+def lazy_converter(node: ast.AST) -> ast.Call | None:
+    """A ``Lazy("module", "NAME")`` of the type table, which imports the converter module on
+    first use (:func:`lazy_module`), else None."""
+    if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "Lazy":
+        return node
+    return None
+
+
+def lazy_module(call: ast.Call) -> str:
+    module = call.args[0].value if call.args and isinstance(call.args[0], ast.Constant) else None
+    assert isinstance(module, str), ast.unparse(call)  # a name the scan can read
+    return f"host_bridge.converters.{module}"
+
+
 def imports_of(path: Path) -> list[Import]:
     importer = module_name(path)
     package = path.name == "__init__.py"
@@ -130,6 +145,9 @@ def imports_of(path: Path) -> list[Import]:
                     Import(importer, name, child.lineno, when)
                     for name in imported_modules(child, importer, package)
                 )
+            elif lazy := lazy_converter(child):
+                # The type table's Lazy("laser", "SPEC") imports converters.laser when called.
+                found.append(Import(importer, lazy_module(lazy), lazy.lineno, "function"))
             visit(child, inner)
 
     visit(ast.parse(path.read_text(), str(path)), "module")

@@ -9,51 +9,15 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
+from collections.abc import Callable, Sequence
 from typing import TextIO
 
-from host_bridge.errors import InputError
+from host_bridge.inputs.bag import BagExtent
 from host_bridge.inputs.base import MessageRun
-from robot_relay.errors import SourceError
-from robot_relay.sources.bag import BagSource
 from robot_relay.wire import RawMessage
 
 TTY_PERIOD_S = 0.25
 LOG_PERIOD_S = 5.0
-
-
-@dataclass(frozen=True, slots=True)
-class BagExtent:
-    """What a whole bag holds, from its index or metadata (nothing is read)."""
-
-    messages: int
-    topics: int
-    start_ns: int
-    end_ns: int
-    types: Mapping[str, str] = field(default_factory=dict)
-    """Each topic's type (host-side SLAM asks whether the bag holds odometry)."""
-
-    @property
-    def duration_ns(self) -> int:
-        return max(self.end_ns - self.start_ns, 0)
-
-
-def bag_extent(path: Path) -> BagExtent:
-    """Opened the way the conversion opens it (the relay's bag source), so every bag that
-    converts has a progress line too."""
-    try:
-        with BagSource(path, robot="") as source:
-            return BagExtent(
-                messages=source.message_count,
-                topics=source.topic_count,
-                start_ns=source.start_ns,
-                end_ns=source.end_ns,
-                types={info.topic: info.msgtype for info in source.catalog().topics},
-            )
-    except SourceError as err:
-        raise InputError(str(err)) from err
 
 
 def render_progress(

@@ -32,8 +32,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import yaml
-
 from host_bridge.core.options import CONVERTER_OPTION, converter_choices, fixed_defaults, option_names
 from host_bridge.errors import ConfigError, relay_errors
 from robot_relay.configfile import (
@@ -250,6 +248,8 @@ class HostConfig:
         return [(("slam",), base), *((("slam", "robots", key), robots[key]) for key in keys)]
 
     def _check_slam(self) -> list[str]:
+        if not self._slam:  # the built-in settings hold, and the SLAM modules stay unimported
+            return []
         from host_bridge.slam.settings import SlamSettings, settings_from
 
         problems = []
@@ -392,6 +392,8 @@ class HostConfig:
 
     def dump(self) -> str:
         """``effective()`` as YAML, itself a valid host config file."""
+        import yaml
+
         source = (
             f"{self._document.path} merged over the built-in defaults" if self._document is not None
             else "the built-in defaults (no --config file)"

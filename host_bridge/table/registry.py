@@ -10,8 +10,10 @@ option names, converter choices and defaults from its row. The relay keeps its o
 traffic column, ``robot_relay.policy.TRAFFIC`` (the robot has no host code), and
 ``tests/host_bridge/test_registry.py`` checks it against the rows.
 
-The converter modules are imported when the table is built, not with this module: the command
-line imports it and must start fast.
+The table names each converter by its module and attribute (:class:`Lazy`), imported when a
+topic of its type first needs it: the command line imports this module and must start fast, and
+a bag converts with only its own types' converter modules imported (the others' cost 6% of
+``swanky-host --bag`` of nav2_turtlebot.mcap, sampled with py-spy).
 """
 
 from __future__ import annotations
@@ -20,9 +22,10 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from enum import Enum
 from fnmatch import fnmatchcase
+from importlib import import_module
 from typing import Any
 
-from host_bridge.core.contract import Converter, combine
+from host_bridge.core.contract import Converter, LogEntry, Run, combine
 from host_bridge.core.options import NoOptions
 from host_bridge.errors import RegistryError
 from robot_relay.policy import DEFAULT_TRAFFIC, TrafficClass
@@ -66,6 +69,34 @@ class Lane(Enum):
 
 
 @dataclass(frozen=True, slots=True)
+class Lazy:
+    """A converter named by its module under ``host_bridge.converters`` and its attribute there,
+    imported on first use; :meth:`Registry.get` hands out the converter itself (the dispatcher
+    asks whether it is a ``PerMessage``). Callable as the converter, for ``combine``."""
+
+    module: str
+    name: str
+
+    def load(self) -> Converter:
+        converter: Converter = getattr(import_module(f"host_bridge.converters.{self.module}"), self.name)
+        return converter
+
+    def __call__(self, run: Run) -> list[LogEntry]:
+        return self.load()(run)
+
+
+def loaded(converter: Converter) -> Converter:
+    """``converter``, imported if the table names it lazily."""
+    return converter.load() if isinstance(converter, Lazy) else converter
+
+
+def is_robot_description(topic: str) -> bool:
+    """``/robot_description`` or a namespaced one (``/tb1/robot_description``): std_msgs/String
+    there is a robot model (the description converter's row), plain text everywhere else."""
+    return topic.rstrip("/").split("/")[-1] == "robot_description"
+
+
+@dataclass(frozen=True, slots=True)
 class Row:
     """One line of the table.
 
@@ -78,7 +109,8 @@ class Row:
     :class:`Lane`. ``slow``: a second converter too slow for the receive path (wall meshes of a
     map), run after ``converter`` in a worker that keeps only the newest message. ``traffic``:
     the relay's share of the link for the type (its own table, ``robot_relay.policy.TRAFFIC``,
-    must agree).
+    must agree). ``converter`` and ``slow`` may be :class:`Lazy`: :meth:`Registry.get` and
+    :func:`loaded` give the converter itself.
     """
 
     msgtype: str
@@ -139,7 +171,7 @@ class Registry:
         return next(row for row in self._families if fnmatchcase(msgtype, row.msgtype))
 
     def get(self, msgtype: str, topic: str = "") -> Converter:
-        return self.row(msgtype, topic).converter
+        return loaded(self.row(msgtype, topic).converter)
 
     def rows(self) -> tuple[Row, ...]:
         """Every row in table order (a test walks them all)."""
@@ -150,37 +182,14 @@ class Registry:
         return sorted({row.msgtype for row in self._rows if not row.is_family})
 
     def slow_converters(self) -> dict[str, Converter]:
+        """Each type's slow converter, imported on its first call (the SlowLane's worker calls
+        it; a bag with no map imports no wall finder)."""
         return {t: row.slow for t, row in self._exact.items() if row.slow is not None}
 
 
 def default_registry() -> Registry:
     """Swanky's table. Every type spelt out; see :class:`Row`, :class:`View` and :class:`Lane`
     for the columns."""
-    from host_bridge.converters import (
-        camera,
-        diagnostics,
-        generic,
-        geo,
-        geometry,
-        images,
-        imu,
-        joints,
-        laser,
-        logs,
-        markers,
-        nav,
-        occupancy,
-        odometry,
-        pointcloud,
-        proximity,
-        scalars,
-        services,
-        tf,
-        video,
-        vision,
-        walls,
-    )
-    from host_bridge.converters.urdf import description
     from host_bridge.core.options import (
         CostmapUpdateOptions,
         GenericOptions,
@@ -201,94 +210,97 @@ def default_registry() -> Registry:
     from robot_relay.policy import BULK, FRAMES, SCANS, SENSOR, VIDEO
 
     return Registry([
-        Row("tf2_msgs/msg/TFMessage", tf.SPEC, View.SPATIAL, options=TfOptions, traffic=FRAMES),
-        Row("sensor_msgs/msg/LaserScan", laser.SPEC, View.SPATIAL, options=LaserScanOptions,
+        Row("tf2_msgs/msg/TFMessage", Lazy("tf", "SPEC"), View.SPATIAL, options=TfOptions, traffic=FRAMES),
+        Row("sensor_msgs/msg/LaserScan", Lazy("laser", "SPEC"), View.SPATIAL, options=LaserScanOptions,
             traffic=SCANS),
-        Row("sensor_msgs/msg/PointCloud2", pointcloud.SPEC, View.SPATIAL, options=PointCloudOptions,
-            lane=Lane.HEAVY, traffic=BULK),
-        Row("nav_msgs/msg/Odometry", odometry.SPEC, View.ODOMETRY, options=PoseOptions),
-        Row("sensor_msgs/msg/Imu", imu.IMU, View.IMU, options=ImuOptions, traffic=SENSOR),
-        Row("sensor_msgs/msg/MagneticField", imu.MAGNETIC_FIELD, View.IMU, traffic=SENSOR),
-        Row("sensor_msgs/msg/NavSatFix", geo.SPEC, View.MAP, options=NavSatFixOptions),
-        Row("sensor_msgs/msg/Range", proximity.SPEC, View.SIGNALS, traffic=SENSOR),
+        Row("sensor_msgs/msg/PointCloud2", Lazy("pointcloud", "SPEC"), View.SPATIAL,
+            options=PointCloudOptions, lane=Lane.HEAVY, traffic=BULK),
+        Row("nav_msgs/msg/Odometry", Lazy("odometry", "SPEC"), View.ODOMETRY, options=PoseOptions),
+        Row("sensor_msgs/msg/Imu", Lazy("imu", "IMU"), View.IMU, options=ImuOptions, traffic=SENSOR),
+        Row("sensor_msgs/msg/MagneticField", Lazy("imu", "MAGNETIC_FIELD"), View.IMU, traffic=SENSOR),
+        Row("sensor_msgs/msg/NavSatFix", Lazy("geo", "SPEC"), View.MAP, options=NavSatFixOptions),
+        Row("sensor_msgs/msg/Range", Lazy("proximity", "SPEC"), View.SIGNALS, traffic=SENSOR),
         # Cameras. CompressedImage is not heavy: its format may name a video codec, and a lost
         # video frame spoils the picture until the next keyframe.
-        Row("sensor_msgs/msg/Image", images.IMAGE, View.IMAGE, options=ImageOptions, lane=Lane.HEAVY,
-            traffic=BULK),
-        Row("sensor_msgs/msg/CompressedImage", images.COMPRESSED_IMAGE, View.IMAGE, options=ImageOptions,
-            traffic=BULK),
-        Row("foxglove_msgs/msg/CompressedVideo", video.SPEC, View.IMAGE, traffic=VIDEO),
-        Row("sensor_msgs/msg/CameraInfo", camera.SPEC, View.CAMERA, traffic=SENSOR),
-        Row("vision_msgs/msg/Detection2D", vision.DETECTION_2D, View.IMAGE_OVERLAY),
-        Row("vision_msgs/msg/Detection2DArray", vision.DETECTION_2D_ARRAY, View.IMAGE_OVERLAY),
-        Row("vision_msgs/msg/Detection3D", vision.DETECTION_3D, View.SPATIAL),
-        Row("vision_msgs/msg/Detection3DArray", vision.DETECTION_3D_ARRAY, View.SPATIAL),
+        Row("sensor_msgs/msg/Image", Lazy("images", "IMAGE"), View.IMAGE, options=ImageOptions,
+            lane=Lane.HEAVY, traffic=BULK),
+        Row("sensor_msgs/msg/CompressedImage", Lazy("images", "COMPRESSED_IMAGE"), View.IMAGE,
+            options=ImageOptions, traffic=BULK),
+        Row("foxglove_msgs/msg/CompressedVideo", Lazy("video", "SPEC"), View.IMAGE, traffic=VIDEO),
+        Row("sensor_msgs/msg/CameraInfo", Lazy("camera", "SPEC"), View.CAMERA, traffic=SENSOR),
+        Row("vision_msgs/msg/Detection2D", Lazy("vision", "DETECTION_2D"), View.IMAGE_OVERLAY),
+        Row("vision_msgs/msg/Detection2DArray", Lazy("vision", "DETECTION_2D_ARRAY"), View.IMAGE_OVERLAY),
+        Row("vision_msgs/msg/Detection3D", Lazy("vision", "DETECTION_3D"), View.SPATIAL),
+        Row("vision_msgs/msg/Detection3DArray", Lazy("vision", "DETECTION_3D_ARRAY"), View.SPATIAL),
         # Maps: a grid is drawn at once, its walls come from the slow worker.
-        Row("nav_msgs/msg/OccupancyGrid", occupancy.GRID, View.SPATIAL, options=GridOptions,
-            lane=Lane.HEAVY, slow=walls.GRID_WALLS),
-        Row("map_msgs/msg/OccupancyGridUpdate", occupancy.GRID_UPDATE, View.SPATIAL,
-            options=GridUpdateOptions, lane=Lane.PATCH, slow=walls.UPDATE_WALLS),
-        Row("nav2_msgs/msg/Costmap", occupancy.COSTMAP, View.SPATIAL, options=GridDrawingOptions,
+        Row("nav_msgs/msg/OccupancyGrid", Lazy("occupancy", "GRID"), View.SPATIAL, options=GridOptions,
+            lane=Lane.HEAVY, slow=Lazy("walls", "GRID_WALLS")),
+        Row("map_msgs/msg/OccupancyGridUpdate", Lazy("occupancy", "GRID_UPDATE"), View.SPATIAL,
+            options=GridUpdateOptions, lane=Lane.PATCH, slow=Lazy("walls", "UPDATE_WALLS")),
+        Row("nav2_msgs/msg/Costmap", Lazy("occupancy", "COSTMAP"), View.SPATIAL, options=GridDrawingOptions,
             lane=Lane.HEAVY),
-        Row("nav2_msgs/msg/CostmapUpdate", occupancy.COSTMAP_UPDATE, View.SPATIAL,
+        Row("nav2_msgs/msg/CostmapUpdate", Lazy("occupancy", "COSTMAP_UPDATE"), View.SPATIAL,
             options=CostmapUpdateOptions, lane=Lane.PATCH),
-        Row("nav_msgs/msg/GridCells", nav.GRID_CELLS, View.SPATIAL),
-        Row("nav_msgs/msg/Path", nav.PATH, View.SPATIAL, options=PathOptions),
-        Row("geometry_msgs/msg/PoseStamped", geometry.POSE_STAMPED, View.SPATIAL, options=PoseOptions),
-        Row("geometry_msgs/msg/PoseWithCovarianceStamped", geometry.POSE_WITH_COVARIANCE,
+        Row("nav_msgs/msg/GridCells", Lazy("nav", "GRID_CELLS"), View.SPATIAL),
+        Row("nav_msgs/msg/Path", Lazy("nav", "PATH"), View.SPATIAL, options=PathOptions),
+        Row("geometry_msgs/msg/PoseStamped", Lazy("geometry", "POSE_STAMPED"), View.SPATIAL,
+            options=PoseOptions),
+        Row("geometry_msgs/msg/PoseWithCovarianceStamped", Lazy("geometry", "POSE_WITH_COVARIANCE"),
             View.SPATIAL, options=PoseCovarianceOptions),
-        Row("geometry_msgs/msg/PoseArray", geometry.POSE_ARRAY, View.SPATIAL, options=PoseArrayOptions),
-        Row("geometry_msgs/msg/PointStamped", geometry.POINT, View.SPATIAL),
-        Row("geometry_msgs/msg/PolygonStamped", geometry.POLYGON, View.SPATIAL),
-        Row("geometry_msgs/msg/TwistStamped", geometry.TWIST, View.SIGNALS),
-        Row("geometry_msgs/msg/WrenchStamped", geometry.WRENCH, View.SIGNALS),
-        Row("geometry_msgs/msg/Vector3Stamped", geometry.VECTOR3, View.SIGNALS),
-        Row("visualization_msgs/msg/Marker", markers.MARKER, View.SPATIAL),
-        Row("visualization_msgs/msg/MarkerArray", markers.MARKER_ARRAY, View.SPATIAL),
+        Row("geometry_msgs/msg/PoseArray", Lazy("geometry", "POSE_ARRAY"), View.SPATIAL,
+            options=PoseArrayOptions),
+        Row("geometry_msgs/msg/PointStamped", Lazy("geometry", "POINT"), View.SPATIAL),
+        Row("geometry_msgs/msg/PolygonStamped", Lazy("geometry", "POLYGON"), View.SPATIAL),
+        Row("geometry_msgs/msg/TwistStamped", Lazy("geometry", "TWIST"), View.SIGNALS),
+        Row("geometry_msgs/msg/WrenchStamped", Lazy("geometry", "WRENCH"), View.SIGNALS),
+        Row("geometry_msgs/msg/Vector3Stamped", Lazy("geometry", "VECTOR3"), View.SIGNALS),
+        Row("visualization_msgs/msg/Marker", Lazy("markers", "MARKER"), View.SPATIAL),
+        Row("visualization_msgs/msg/MarkerArray", Lazy("markers", "MARKER_ARRAY"), View.SPATIAL),
         # The robot: its model moves with the joints, which are also plotted.
-        Row("std_msgs/msg/String", description.SPEC, View.SPATIAL, topics=description.is_robot_description),
-        Row("sensor_msgs/msg/JointState", combine(joints.JOINT_STATE, scalars.JOINT_STATE),
-            View.JOINTS),
-        Row("trajectory_msgs/msg/JointTrajectory", joints.JOINT_TRAJECTORY, View.SPATIAL),
-        Row("sensor_msgs/msg/BatteryState", scalars.BATTERY, View.BATTERY),
-        Row("sensor_msgs/msg/Temperature", scalars.TEMPERATURE, View.SIGNALS),
-        Row("sensor_msgs/msg/FluidPressure", scalars.FLUID_PRESSURE, View.SIGNALS),
-        Row("sensor_msgs/msg/Illuminance", scalars.ILLUMINANCE, View.SIGNALS),
-        Row("sensor_msgs/msg/RelativeHumidity", scalars.RELATIVE_HUMIDITY, View.SIGNALS),
+        Row("std_msgs/msg/String", Lazy("urdf.description", "SPEC"), View.SPATIAL,
+            topics=is_robot_description),
+        Row("sensor_msgs/msg/JointState",
+            combine(Lazy("joints", "JOINT_STATE"), Lazy("scalars", "JOINT_STATE")), View.JOINTS),
+        Row("trajectory_msgs/msg/JointTrajectory", Lazy("joints", "JOINT_TRAJECTORY"), View.SPATIAL),
+        Row("sensor_msgs/msg/BatteryState", Lazy("scalars", "BATTERY"), View.BATTERY),
+        Row("sensor_msgs/msg/Temperature", Lazy("scalars", "TEMPERATURE"), View.SIGNALS),
+        Row("sensor_msgs/msg/FluidPressure", Lazy("scalars", "FLUID_PRESSURE"), View.SIGNALS),
+        Row("sensor_msgs/msg/Illuminance", Lazy("scalars", "ILLUMINANCE"), View.SIGNALS),
+        Row("sensor_msgs/msg/RelativeHumidity", Lazy("scalars", "RELATIVE_HUMIDITY"), View.SIGNALS),
         # Text.
-        Row("rcl_interfaces/msg/Log", logs.ROS2_LOG, View.LOG),
-        Row("rosgraph_msgs/msg/Log", logs.ROS1_LOG, View.LOG),
-        Row("std_msgs/msg/String", logs.STRING, View.LOG),
-        Row("diagnostic_msgs/msg/DiagnosticArray", diagnostics.SPEC, View.LOG),
-        Row("*/srv/*_Event", services.SPEC, View.LOG),  # /<service>/_service_event
+        Row("rcl_interfaces/msg/Log", Lazy("logs", "ROS2_LOG"), View.LOG),
+        Row("rosgraph_msgs/msg/Log", Lazy("logs", "ROS1_LOG"), View.LOG),
+        Row("std_msgs/msg/String", Lazy("logs", "STRING"), View.LOG),
+        Row("diagnostic_msgs/msg/DiagnosticArray", Lazy("diagnostics", "SPEC"), View.LOG),
+        Row("*/srv/*_Event", Lazy("services", "SPEC"), View.LOG),  # /<service>/_service_event
         # Plain numbers.
-        Row("std_msgs/msg/Bool", scalars.NUMBER, View.SIGNALS),
-        Row("std_msgs/msg/Byte", scalars.NUMBER, View.SIGNALS),
-        Row("std_msgs/msg/Char", scalars.NUMBER, View.SIGNALS),
-        Row("std_msgs/msg/Int8", scalars.NUMBER, View.SIGNALS),
-        Row("std_msgs/msg/UInt8", scalars.NUMBER, View.SIGNALS),
-        Row("std_msgs/msg/Int16", scalars.NUMBER, View.SIGNALS),
-        Row("std_msgs/msg/UInt16", scalars.NUMBER, View.SIGNALS),
-        Row("std_msgs/msg/Int32", scalars.NUMBER, View.SIGNALS),
-        Row("std_msgs/msg/UInt32", scalars.NUMBER, View.SIGNALS),
-        Row("std_msgs/msg/Int64", scalars.NUMBER, View.SIGNALS),
-        Row("std_msgs/msg/UInt64", scalars.NUMBER, View.SIGNALS),
-        Row("std_msgs/msg/Float32", scalars.NUMBER, View.SIGNALS),
-        Row("std_msgs/msg/Float64", scalars.NUMBER, View.SIGNALS),
-        Row("std_msgs/msg/ByteMultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
-        Row("std_msgs/msg/Int8MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
-        Row("std_msgs/msg/UInt8MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
-        Row("std_msgs/msg/Int16MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
-        Row("std_msgs/msg/UInt16MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
-        Row("std_msgs/msg/Int32MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
-        Row("std_msgs/msg/UInt32MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
-        Row("std_msgs/msg/Int64MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
-        Row("std_msgs/msg/UInt64MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
-        Row("std_msgs/msg/Float32MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
-        Row("std_msgs/msg/Float64MultiArray", scalars.NUMBER_ARRAY, View.SIGNALS),
-        Row("builtin_interfaces/msg/Time", scalars.SECONDS, View.SIGNALS),
-        Row("builtin_interfaces/msg/Duration", scalars.SECONDS, View.SIGNALS),
+        Row("std_msgs/msg/Bool", Lazy("scalars", "NUMBER"), View.SIGNALS),
+        Row("std_msgs/msg/Byte", Lazy("scalars", "NUMBER"), View.SIGNALS),
+        Row("std_msgs/msg/Char", Lazy("scalars", "NUMBER"), View.SIGNALS),
+        Row("std_msgs/msg/Int8", Lazy("scalars", "NUMBER"), View.SIGNALS),
+        Row("std_msgs/msg/UInt8", Lazy("scalars", "NUMBER"), View.SIGNALS),
+        Row("std_msgs/msg/Int16", Lazy("scalars", "NUMBER"), View.SIGNALS),
+        Row("std_msgs/msg/UInt16", Lazy("scalars", "NUMBER"), View.SIGNALS),
+        Row("std_msgs/msg/Int32", Lazy("scalars", "NUMBER"), View.SIGNALS),
+        Row("std_msgs/msg/UInt32", Lazy("scalars", "NUMBER"), View.SIGNALS),
+        Row("std_msgs/msg/Int64", Lazy("scalars", "NUMBER"), View.SIGNALS),
+        Row("std_msgs/msg/UInt64", Lazy("scalars", "NUMBER"), View.SIGNALS),
+        Row("std_msgs/msg/Float32", Lazy("scalars", "NUMBER"), View.SIGNALS),
+        Row("std_msgs/msg/Float64", Lazy("scalars", "NUMBER"), View.SIGNALS),
+        Row("std_msgs/msg/ByteMultiArray", Lazy("scalars", "NUMBER_ARRAY"), View.SIGNALS),
+        Row("std_msgs/msg/Int8MultiArray", Lazy("scalars", "NUMBER_ARRAY"), View.SIGNALS),
+        Row("std_msgs/msg/UInt8MultiArray", Lazy("scalars", "NUMBER_ARRAY"), View.SIGNALS),
+        Row("std_msgs/msg/Int16MultiArray", Lazy("scalars", "NUMBER_ARRAY"), View.SIGNALS),
+        Row("std_msgs/msg/UInt16MultiArray", Lazy("scalars", "NUMBER_ARRAY"), View.SIGNALS),
+        Row("std_msgs/msg/Int32MultiArray", Lazy("scalars", "NUMBER_ARRAY"), View.SIGNALS),
+        Row("std_msgs/msg/UInt32MultiArray", Lazy("scalars", "NUMBER_ARRAY"), View.SIGNALS),
+        Row("std_msgs/msg/Int64MultiArray", Lazy("scalars", "NUMBER_ARRAY"), View.SIGNALS),
+        Row("std_msgs/msg/UInt64MultiArray", Lazy("scalars", "NUMBER_ARRAY"), View.SIGNALS),
+        Row("std_msgs/msg/Float32MultiArray", Lazy("scalars", "NUMBER_ARRAY"), View.SIGNALS),
+        Row("std_msgs/msg/Float64MultiArray", Lazy("scalars", "NUMBER_ARRAY"), View.SIGNALS),
+        Row("builtin_interfaces/msg/Time", Lazy("scalars", "SECONDS"), View.SIGNALS),
+        Row("builtin_interfaces/msg/Duration", Lazy("scalars", "SECONDS"), View.SIGNALS),
         # Every other type, custom ones included.
-        Row(CATCH_ALL, generic.SPEC, View.CUSTOM, options=GenericOptions),
+        Row(CATCH_ALL, Lazy("generic", "SPEC"), View.CUSTOM, options=GenericOptions),
     ])
 

@@ -5,11 +5,14 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
+import pytest
+
 from host_bridge.core.destinations import SinkOptions
-from host_bridge.inputs.bag import bag_runs
-from host_bridge.outputs.progress import LOG_PERIOD_S, BagExtent, Progress, bag_extent, render_progress
+from host_bridge.inputs.bag import BagExtent, BagInput
+from host_bridge.outputs.progress import LOG_PERIOD_S, Progress, render_progress
 from host_bridge.outputs.sink import RerunSink
 from host_bridge.pipeline.dispatch import Dispatcher
+from robot_relay.sources.bag import BagSource
 from robot_relay.wire import RawMessage
 
 EXTENT = BagExtent(messages=8197, topics=4, start_ns=10**18, end_ns=10**18 + 97_400_000_000)
@@ -75,17 +78,31 @@ def test_progress_on_a_terminal_redraws_at_most_four_times_a_second() -> None:
     assert stream.getvalue().endswith("100% 100/100 msgs  1/1 topics  bag 0.0/0.0 s  101 msg/s\n")
 
 
-def test_summary_of_a_real_bag(shared_data: Path, tmp_path: Path) -> None:
+def test_summary_of_a_real_bag(
+    shared_data: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     bag = shared_data / "tf_nav2_sim_evo" / "tf_example"
-    extent = bag_extent(bag)
+    openings: list[Path] = []
+    opening = BagSource.open
+
+    def counted(source: BagSource) -> BagSource:
+        openings.append(source.paths[0])
+        return opening(source)
+
+    monkeypatch.setattr(BagSource, "open", counted)
+    bag_input = BagInput(bag, "robot")
+    extent = bag_input.extent()
     assert extent == BagExtent(518, 2, extent.start_ns, extent.start_ns + extent.duration_ns, {
         "/tf_static": "tf2_msgs/msg/TFMessage", "/tf": "tf2_msgs/msg/TFMessage"})
     assert round(extent.duration_ns / 1e9, 1) == 51.7
     stream = io.StringIO()
     progress = Progress(extent, stream)
     dispatcher = Dispatcher(RerunSink(SinkOptions(save=tmp_path / "out.rrd")), taps=[progress])
-    for run in bag_runs(bag, "robot"):
-        dispatcher.dispatch(run)
+    bag_input.start(dispatcher.take)
+    assert bag_input.finished.wait(60)
+    bag_input.close()
+    assert bag_input.ended()
+    assert openings == [bag]  # the extent and the messages from one opening of the bag
     progress.finish()
     dispatcher.close()
     dispatcher.sink.close()

@@ -4,6 +4,9 @@ table agrees with its traffic column."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import pytest
 
 from host_bridge.converters import (
@@ -24,7 +27,16 @@ from host_bridge.converters.urdf import description
 from host_bridge.core.contract import Converter, PerMessage, per_message
 from host_bridge.core.options import GenericOptions
 from host_bridge.errors import RegistryError
-from host_bridge.table.registry import CATCH_ALL, Lane, Registry, Row, View, default_registry
+from host_bridge.table.registry import (
+    CATCH_ALL,
+    Lane,
+    Registry,
+    Row,
+    View,
+    default_registry,
+    is_robot_description,
+    loaded,
+)
 from robot_relay.policy import DEFAULT_TRAFFIC, TRAFFIC
 
 TABLE = default_registry()
@@ -68,21 +80,46 @@ def test_special_cases_are_plain_rows() -> None:
     assert TABLE.row("std_msgs/msg/String", "/robot_description").view is View.SPATIAL
     assert TABLE.row("std_msgs/msg/String", "/chatter").view is View.LOG
     # Service events: one type per service, a family rule.
-    event = TABLE.row("lifecycle_msgs/srv/ChangeState_Event")
-    assert (event.converter, event.view) == (services.SPEC, View.LOG)
+    assert TABLE.get("lifecycle_msgs/srv/ChangeState_Event") is services.SPEC
+    assert TABLE.row("lifecycle_msgs/srv/ChangeState_Event").view is View.LOG
     assert TABLE.get("lifecycle_msgs/srv/ChangeState_Request") is generic.SPEC
     # JointState moves the model and is plotted: both converters, with a run form.
-    joint_state = TABLE.row("sensor_msgs/msg/JointState")
-    assert joint_state.view is View.JOINTS
-    assert not isinstance(joint_state.converter, PerMessage)
+    assert TABLE.row("sensor_msgs/msg/JointState").view is View.JOINTS
+    assert not isinstance(TABLE.get("sensor_msgs/msg/JointState"), PerMessage)
     # Anything else: the generic converter.
-    unknown = TABLE.row("acme_msgs/msg/Gauge")
-    assert (unknown.converter, unknown.view) == (generic.SPEC, View.CUSTOM)
+    assert TABLE.get("acme_msgs/msg/Gauge") is generic.SPEC
+    assert TABLE.row("acme_msgs/msg/Gauge").view is View.CUSTOM
     assert [t for t in TABLE.types() if set(t) & set("*?[")] == []
 
 
+def test_robot_description_topic_names() -> None:
+    assert is_robot_description("/robot_description")
+    assert is_robot_description("/tb1/robot_description")
+    assert not is_robot_description("/robot_description_semantic")
+
+
+def test_the_table_imports_a_converter_when_its_type_is_first_met() -> None:
+    """A fresh interpreter: building the table imports no converter module, asking it for
+    TFMessage's converter imports tf.py and the helpers it imports, nothing of the others."""
+    script = (
+        "import sys\n"
+        "from host_bridge.table.registry import default_registry\n"
+        "ours = lambda: sorted(m for m in sys.modules if m.startswith('host_bridge.converters.'))\n"
+        "table = default_registry()\n"
+        "table.slow_converters()\n"
+        "print(ours())\n"
+        "table.get('tf2_msgs/msg/TFMessage')\n"
+        "print(ours())\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
+                          timeout=120)
+    built, after_tf = done.stdout.splitlines()
+    assert built == "[]"
+    assert after_tf == "['host_bridge.converters._common', 'host_bridge.converters.tf']"
+
+
 def test_slow_and_lane_columns() -> None:
-    assert TABLE.slow_converters() == {
+    assert {msgtype: loaded(slow) for msgtype, slow in TABLE.slow_converters().items()} == {
         "nav_msgs/msg/OccupancyGrid": walls.GRID_WALLS,
         "map_msgs/msg/OccupancyGridUpdate": walls.UPDATE_WALLS,
     }

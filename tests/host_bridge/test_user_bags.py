@@ -23,7 +23,7 @@ from rosbags.typesys.store import Typestore
 from host_bridge.cli import main as host_main
 from host_bridge.core.contract import WARNINGS_PATH
 from host_bridge.core.schemas import base_typestore
-from host_bridge.outputs.progress import BagExtent, bag_extent
+from host_bridge.inputs.bag import BagExtent, BagInput
 from robot_relay.cli import main as relay_main
 from robot_relay.errors import SourceError
 from robot_relay.sources.bag import BagSource, bag_paths
@@ -91,9 +91,12 @@ def test_humble_sqlite3_bag_without_definitions(tmp_path: Path, capsys: pytest.C
     bag = humble_bag(tmp_path / "humble")
     with pytest.raises(AnyReaderError, match="Bag contains no type definitions"):
         AnyReader([bag]).open()  # how the progress reader used to open it
-    assert bag_extent(bag) == BagExtent(messages=6, topics=3, start_ns=T0, end_ns=T0 + 2 * 10**8 + 1, types={
-        "/chatter": "std_msgs/msg/String", "/global_costmap/costmap_raw": "nav2_msgs/msg/Costmap",
-        "/sensor/reading": "my_msgs/msg/Reading"})
+    bag_input = BagInput(bag, "robot")
+    assert bag_input.extent() == BagExtent(
+        messages=6, topics=3, start_ns=T0, end_ns=T0 + 2 * 10**8 + 1, types={
+            "/chatter": "std_msgs/msg/String", "/global_costmap/costmap_raw": "nav2_msgs/msg/Costmap",
+            "/sensor/reading": "my_msgs/msg/Reading"})
+    bag_input.close()
 
     rows = convert(bag, tmp_path / "out.rrd")
 

@@ -182,11 +182,6 @@ def _check_origin(origin: npt.NDArray[np.float64] | None, what: str) -> None:
         raise ConvertError(msg)
 
 
-def is_robot_description(topic: str) -> bool:
-    """``/robot_description`` or a namespaced one (``/tb1/robot_description``)."""
-    return topic.rstrip("/").split("/")[-1] == "robot_description"
-
-
 # Routed by topic, not type: std_msgs/String carries plain text everywhere else, so the
-# registry's row picks this for topics where is_robot_description() holds.
+# registry's row picks this for topics where its is_robot_description() holds.
 SPEC = per_message(convert)

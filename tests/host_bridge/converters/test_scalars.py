@@ -12,7 +12,7 @@ from host_bridge.converters import scalars
 from host_bridge.core.contract import ColumnsItem, ConvertContext, Converter, LogEntry, PerMessage
 from host_bridge.core.schemas import base_typestore
 from host_bridge.errors import ConvertError
-from host_bridge.table.registry import default_registry
+from host_bridge.table.registry import default_registry, loaded
 from tests.host_bridge.sensor_test_support import (
     column_rows,
     columns_item,
@@ -246,16 +246,16 @@ def test_joint_state_length_mismatch_names_topic() -> None:
 
 
 def test_every_type_converts_a_run_at_once_and_the_fixed_layouts_read_columns() -> None:
-    plotted = [row for row in REGISTRY.rows() if row.converter in (
+    plotted = [row for row in REGISTRY.rows() if loaded(row.converter) in (
         scalars.NUMBER, scalars.NUMBER_ARRAY, scalars.SECONDS, scalars.TEMPERATURE,
         scalars.FLUID_PRESSURE, scalars.ILLUMINANCE, scalars.RELATIVE_HUMIDITY, scalars.BATTERY,
     )]
     assert len(plotted) == 13 + 11 + 2 + 4 + 1  # numbers, arrays, times, sensors, battery
-    assert not any(isinstance(row.converter, PerMessage) for row in plotted)
+    assert not any(isinstance(loaded(row.converter), PerMessage) for row in plotted)
     # MultiArrays vary in length and BatteryState differs between ROS 1 and 2: decoded.
     store = base_typestore()
     decoded = {row.msgtype for row in plotted if not reads_columns_only(
-        row.converter, [default_message(store, row.msgtype)] * 3, make_ctx("/plot"))}
+        loaded(row.converter), [default_message(store, row.msgtype)] * 3, make_ctx("/plot"))}
     assert decoded == {row.msgtype for row in plotted if row.msgtype.endswith("MultiArray")} | {
         "sensor_msgs/msg/BatteryState"
     }

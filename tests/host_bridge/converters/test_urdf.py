@@ -385,12 +385,6 @@ def test_package_path_option_parsing(tmp_path: Path) -> None:
             parse_package_path(bad)
 
 
-def test_robot_description_topic_names() -> None:
-    assert description.is_robot_description("/robot_description")
-    assert description.is_robot_description("/tb1/robot_description")
-    assert not description.is_robot_description("/robot_description_semantic")
-
-
 OBJ = b"""mtllib {mtl}
 v 0 0 0
 v 1 0 0
