@@ -134,6 +134,7 @@ class Registry:
         self._rows = tuple(rows)
         self._exact: dict[str, Row] = {}
         self._routed: list[Row] = []
+        self._converters: dict[tuple[str, str], Converter] = {}
         self._families: list[Row] = []
         seen: set[tuple[str, Callable[[str], bool] | None]] = set()
         for row in self._rows:
@@ -171,7 +172,12 @@ class Registry:
         return next(row for row in self._families if fnmatchcase(msgtype, row.msgtype))
 
     def get(self, msgtype: str, topic: str = "") -> Converter:
-        return loaded(self.row(msgtype, topic).converter)
+        """The converter of ``msgtype`` on ``topic``, imported; found once per (type, topic):
+        the dispatcher asks for every run, a live message alone."""
+        converter = self._converters.get((msgtype, topic))
+        if converter is None:
+            converter = self._converters[(msgtype, topic)] = loaded(self.row(msgtype, topic).converter)
+        return converter
 
     def rows(self) -> tuple[Row, ...]:
         """Every row in table order (a test walks them all)."""
