@@ -36,6 +36,7 @@ from robot_relay.wire import check_robot_name
 if TYPE_CHECKING:
     from host_bridge.demo.run import DemoPlan
     from host_bridge.inputs.bag import BagExtent
+    from host_bridge.inputs.bag_opener import BagOpener
     from host_bridge.pipeline.offload import HeavyProcess
     from host_bridge.slam.feeder import SlamTap
 
@@ -147,6 +148,7 @@ def start_layout(options: HostOptions, sink: RerunSink) -> BlueprintFollower | N
 def open_input(
     options: HostOptions, dispatcher: Dispatcher, *, demo: DemoPlan | None,
     robot_files: RobotFiles | None, stop: threading.Event, closing: ExitStack,
+    bag_opener: BagOpener | None = None,
 ) -> Input:
     """The input the options name, with the taps that go with it; ``closing`` closes what was
     opened (the input first, the Zenoh session last)."""
@@ -157,7 +159,7 @@ def open_input(
 
         if options.stats:
             dispatcher.add_tap(StatsTap(dispatcher.sink, dispatcher.counters))
-        bag: Input = BagInput(options.bag, options.robot)
+        bag: Input = BagInput(options.bag, options.robot, bag_opener)
         closing.callback(bag.close)
         return bag
     from host_bridge.inputs.live import LiveInput, open_host_session
@@ -226,10 +228,13 @@ def wait_for_end(
 
 
 def run(
-    options: HostOptions, stop: threading.Event, give_up: Callable[[], bool], outputs: Outputs
+    options: HostOptions, stop: threading.Event, give_up: Callable[[], bool], outputs: Outputs,
+    bag_opener: BagOpener | None = None,
 ) -> int:
     """Run the host until its input ends or ``stop`` is set; ``give_up()``: a stop signal came,
-    so a slow viewer is not waited for. The exit code; HostErrors are the caller's to print."""
+    so a slow viewer is not waited for. The exit code; HostErrors are the caller's to print.
+    ``bag_opener``: the bag of ``options`` opening since before the app was imported (cli.py),
+    which the bag input takes (the caller closes an opener whose bag was never taken)."""
     with relay_errors():
         check_robot_name(options.robot)
     if options.list_topics:
@@ -295,7 +300,8 @@ def run(
     progress = None
     with ExitStack() as closing:
         source = open_input(
-            options, dispatcher, demo=demo, robot_files=robot_files, stop=stop, closing=closing
+            options, dispatcher, demo=demo, robot_files=robot_files, stop=stop, closing=closing,
+            bag_opener=bag_opener,
         )
         # The bag's extent from the input's own opening of it: rosbags parses every channel's
         # QoS when it opens an MCAP bag (nav2_turtlebot.mcap's four: 17-64 ms at load 4-5).

@@ -264,17 +264,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     signals = StopSignals(threading.Event())
     signals.install()
+    bag_opener = None
+    if args.bag is not None and not args.print_config:
+        from host_bridge.inputs.bag_opener import BagOpener
+
+        bag_opener = BagOpener(args.bag, args.robot)  # opens while the app is imported
     import_app_uncollected()
     from host_bridge import app
 
     outputs = app.Outputs()
     try:
-        code = app.run(host_options(args), signals.stop, lambda: signals.received, outputs)
+        code = app.run(host_options(args), signals.stop, lambda: signals.received, outputs,
+                       bag_opener)
     except HostError as err:
         print(f"swanky-host: error: {err}", file=sys.stderr)
         code = 2
     finally:
         complete = outputs.close()
+        if bag_opener is not None:
+            bag_opener.close()
     code = code if complete else max(code, 1)
     if outputs.sink is not None and outputs.sink.abandoned:
         # Rerun's exit handler would wait for the viewer that stopped answering, too.

@@ -70,7 +70,8 @@ RELAY_THIRD_PARTY = {"zenoh", "yaml", "jsonschema"}
 # Robot-side modules of the [bag] extra (rosbags, which brings numpy), with what they import at
 # module level beyond [relay]: the other robot modules import them inside functions only, so a
 # relay installed without [bag] never loads them (the sqlite3 bulk reader hands on the MCAP one's runs).
-BAG_MODULES = {"robot_relay.sources.mcap": {"numpy"}, "robot_relay.sources.sqlite": {"numpy"}}
+# sqlite.py: rosbags too, whose sqlite3 reader it opens without counting rows.
+BAG_MODULES = {"robot_relay.sources.mcap": {"numpy"}, "robot_relay.sources.sqlite": {"numpy", "rosbags"}}
 
 
 @dataclass(frozen=True, slots=True)

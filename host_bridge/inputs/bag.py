@@ -20,6 +20,7 @@ from pathlib import Path
 
 from host_bridge.core.columns import PackedPayloads
 from host_bridge.errors import InputError
+from host_bridge.inputs.bag_opener import BagOpener, open_bag
 from host_bridge.inputs.base import Deliver, MessageRun
 from robot_relay.errors import SourceError
 from robot_relay.sources.bag import BagSource
@@ -63,14 +64,6 @@ class BagExtent:
             end_ns=source.end_ns,
             types={info.topic: info.msgtype for info in source.catalog().topics},
         )
-
-
-def open_bag(path: Path, robot: str) -> BagSource:
-    """The bag opened (its index or metadata read, no message), or an InputError saying why not."""
-    try:
-        return BagSource(path, robot).open()
-    except SourceError as err:
-        raise InputError(str(err)) from err
 
 
 def bag_runs(
@@ -140,11 +133,15 @@ class BagInput:
     delivered on a thread of its own until its end or :meth:`close` (after the current run).
 
     The bag is opened once, by :meth:`extent` or else by the reading thread: opening an MCAP bag
-    parses every channel's QoS (rosbags), 8-64 ms for nav2_turtlebot.mcap's four."""
+    parses every channel's QoS (rosbags), 8-64 ms for nav2_turtlebot.mcap's four; a bag recorded
+    with ``--compression-mode file`` is decompressed whole, a sqlite3 one's tables read. With
+    ``opener`` (the bag at ``path`` opening on its thread since before the app was imported,
+    cli.py) the bag is taken from it instead."""
 
-    def __init__(self, path: Path, robot: str) -> None:
+    def __init__(self, path: Path, robot: str, opener: BagOpener | None = None) -> None:
         self.path = path
         self.robot = robot
+        self._opener = opener
         self.finished = threading.Event()
         """Set by the reading thread once it is done (:meth:`ended`): the app waits on it."""
         self.last_activity = time.monotonic()
@@ -160,7 +157,8 @@ class BagInput:
 
     def _opened(self) -> BagSource:
         if self._source is None:
-            self._source = open_bag(self.path, self.robot)
+            self._source = (open_bag(self.path, self.robot) if self._opener is None
+                            else self._opener.take())
         return self._source
 
     def start(self, deliver: Deliver) -> None:

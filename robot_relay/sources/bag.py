@@ -6,10 +6,11 @@ and the host has one decoding path. Like ``rosbags-convert``, it drops ``Header.
 expects the ROS 2 Header there); every other field keeps the bag's layout and names (CameraInfo
 ``D K R P``), and the definition sent along is generated from exactly those types.
 
-A rosbag2 is read with rosbags' plain rosbag2 ``Reader``, not ``AnyReader``: AnyReader parses
-every definition in the bag when it opens, so one it cannot parse (a Jazzy service event's
-``SRV:`` text) would refuse the whole bag, and a bag without definitions (Humble's sqlite3)
-would need a typestore. Forwarding raw CDR needs neither; the host decodes, topic by topic.
+A rosbag2 is read with rosbags' plain rosbag2 ``Reader`` (its sqlite3 files opened without
+counting rows: :class:`~robot_relay.sources.sqlite.Rosbag2Reader`), not ``AnyReader``: AnyReader
+parses every definition in the bag when it opens, so one it cannot parse (a Jazzy service event's
+``SRV:`` text) would refuse the whole bag, and a bag without definitions (Humble's sqlite3) would
+need a typestore. Forwarding raw CDR needs neither; the host decodes, topic by topic.
 ``swanky-host --bag`` (also its progress line) and ``swanky-relay --bag`` open bags only here.
 Their messages are read from a rosbag2 whose files are all indexed MCAP by the bulk reader of
 :mod:`robot_relay.sources.mcap`, or all sqlite3 by that of :mod:`robot_relay.sources.sqlite` (the
@@ -132,14 +133,14 @@ def _open_reader(paths: Sequence[Path], stack: ExitStack) -> Any:
         if ros1:  # AnyReader's import costs a rosbag2 run 6 ms it does not need
             from rosbags.highlevel import AnyReader
         else:
-            from rosbags.rosbag2 import Reader
+            from robot_relay.sources.sqlite import Rosbag2Reader
     except ModuleNotFoundError as err:
         msg = f"{ROSBAGS_MISSING} ({err})"
         raise SourceError(msg) from err
     try:
         if ros1:
             return stack.enter_context(AnyReader(list(paths)))
-        return stack.enter_context(Reader(paths[0]))
+        return stack.enter_context(Rosbag2Reader(paths[0]))
     except Exception as err:
         msg = f"bag {paths[0]} cannot be opened: {err}"
         raise SourceError(msg) from err

@@ -10,10 +10,12 @@ from pathlib import Path
 import pytest
 
 from host_bridge import app
+from host_bridge.cli import main as host_main
 from host_bridge.core.destinations import SinkOptions
 from host_bridge.errors import InputError
 from host_bridge.inputs.bag import BagInput
 from host_bridge.inputs.base import Deliver, InputItem
+from robot_relay.sources.bag import BagSource
 from tests.integration.robot_bags import Entry, joint_state, write_bag
 from tests.rrd import entity_rows
 
@@ -116,6 +118,28 @@ def test_the_host_converting_a_bag_returns_when_the_bag_ends(
     assert not thread.is_alive()
     assert outputs.close()
     assert codes == [0]
+    left = "/robot/joint_states/wheel_left_joint/position"
+    rows = entity_rows(out, left)[left]
+    assert sorted(row["Scalars:scalars"][0] for row in rows) == [float(i) for i in range(10)]
+
+
+def test_the_command_opens_its_bag_once_while_the_app_imports(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # cli.main opens the bag on a thread before importing the app (inputs/bag_opener.py); the
+    # progress line's extent and the conversion both read that opening.
+    opened: list[tuple[Path, str]] = []
+    open_source = BagSource.open
+
+    def counted(source: BagSource) -> BagSource:
+        opened.append((source.paths[0], threading.current_thread().name))
+        return open_source(source)
+
+    monkeypatch.setattr(BagSource, "open", counted)
+    out = tmp_path / "out.rrd"
+    bag = ten_joint_states(tmp_path / "bag")
+    assert host_main(["--bag", str(bag), "--save", str(out), "--no-blueprint"]) == 0
+    assert opened == [(bag, "bag-open")]
     left = "/robot/joint_states/wheel_left_joint/position"
     rows = entity_rows(out, left)[left]
     assert sorted(row["Scalars:scalars"][0] for row in rows) == [float(i) for i in range(10)]

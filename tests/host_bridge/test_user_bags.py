@@ -330,9 +330,11 @@ def test_relay_without_rosbags_says_what_to_install(
     bag = humble_bag(tmp_path / "humble")
     for name in [m for m in sys.modules if m == "rosbags" or m.startswith("rosbags.")]:
         monkeypatch.setitem(sys.modules, name, None)
+    # Imported by an earlier test, it would not import rosbags again.
+    monkeypatch.delitem(sys.modules, "robot_relay.sources.sqlite", raising=False)
     assert relay_main(["--bag", str(bag), "--robot", "tb3"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
         'swanky-relay: error: reading bags needs rosbags: pip install ".[relay,bag]" '
-        "(import of rosbags.rosbag2 halted; None in sys.modules)"
+        "(import of rosbags.interfaces halted; None in sys.modules)"
     ]

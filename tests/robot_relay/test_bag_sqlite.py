@@ -145,3 +145,46 @@ def test_a_read_error_mid_file_names_the_bag_and_where_it_stopped(tmp_path: Path
                                               r"time \d+ ns, after \d+ messages"):
             list(windows)
     assert LARGE_PAYLOAD < IMAGE_BYTES  # the images above are the large, uncopied kind
+
+
+# What each rosbag2 sqlite3 schema drops from the newest one rosbags' Writer writes (4: schema and
+# message_definitions tables, type hashes); 2 is Foxy's and Galactic's QoS column without a schema
+# table, 1 Dashing's and Eloquent's topics.
+OLDER_SCHEMAS = {
+    4: [],
+    2: ["DROP TABLE schema", "DROP TABLE message_definitions",
+        "ALTER TABLE topics DROP COLUMN type_description_hash"],
+    1: ["DROP TABLE schema", "DROP TABLE message_definitions",
+        "ALTER TABLE topics DROP COLUMN type_description_hash",
+        "ALTER TABLE topics DROP COLUMN offered_qos_profiles"],
+}
+
+
+@pytest.mark.parametrize("schema", sorted(OLDER_SCHEMAS))
+def test_a_sqlite3_file_opens_with_rosbags_connections_but_no_counts(tmp_path: Path, schema: int) -> None:
+    from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+
+    from robot_relay.sources.sqlite import Rosbag2Reader, UncountedSqlite3Reader
+
+    bag = sqlite_bag(tmp_path / "bag")
+    [db3] = bag.glob("*.db3")
+    with sqlite3.connect(db3) as db:
+        for statement in OLDER_SCHEMAS[schema]:
+            db.execute(statement)
+    db.close()
+    opened = []
+    for reader in (Sqlite3Reader(db3), UncountedSqlite3Reader(db3)):
+        reader.open()
+        opened.append((reader.schema, [c._replace(owner=None) for c in reader.connections]))
+        reader.close()
+    (rosbags_schema, counted), (schema_read, uncounted) = opened
+    assert schema_read == rosbags_schema == schema
+    assert [c.msgcount for c in counted] == [COUNTS[c.topic] for c in counted]
+    assert uncounted == [c._replace(msgcount=0) for c in counted]
+    if schema == 4:
+        assert {c.msgdef.format.name for c in uncounted} == {"MSG"}
+    with Rosbag2Reader(bag) as directory:  # a directory's: the counts are metadata.yaml's
+        storages = directory.storage.storages  # type: ignore[attr-defined]  # its DirectoryReader
+        assert [type(storage) for storage in storages] == [UncountedSqlite3Reader]
+        assert {c.topic: c.msgcount for c in directory.connections} == COUNTS
+        assert directory.message_count == sum(COUNTS.values())

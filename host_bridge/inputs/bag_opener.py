@@ -1,0 +1,66 @@
+"""A bag opened on a thread of its own while ``swanky-host`` imports the app.
+
+Opening a bag can take as long as importing the app (0.3-0.4 s on a quiet machine, most of it
+Rerun's SDK): rosbags decompresses a bag recorded with ``--compression-mode file`` whole at open
+(0.35 s for the 150 MB small-message file of ``benchmarks/bag_conversion.py``, 1.1 s for its
+600 MB large one) and counts the rows of a sqlite3 bag's every topic. Both run in C with the GIL
+released, so with a second core the import and the opening overlap. This module imports only the
+relay's bag source (rosbags and numpy load on the thread, inside ``BagSource.open``), so the thread
+starts before the import.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+from host_bridge.errors import InputError
+from robot_relay.errors import SourceError
+from robot_relay.sources.bag import BagSource
+
+
+def open_bag(path: Path, robot: str) -> BagSource:
+    """The bag opened (its index or metadata read, no message), or an InputError saying why not."""
+    try:
+        return BagSource(path, robot).open()
+    except SourceError as err:
+        raise InputError(str(err)) from err
+
+
+class BagOpener:
+    """:func:`open_bag` on a thread started at once; :meth:`take` waits for the bag."""
+
+    def __init__(self, path: Path, robot: str) -> None:
+        self.path = path
+        self._opened: BagSource | None = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(
+            target=self._open, args=(path, robot), name="bag-open", daemon=True
+        )
+        self._thread.start()
+
+    def _open(self, path: Path, robot: str) -> None:
+        try:
+            self._opened = open_bag(path, robot)
+        except BaseException as err:  # raised by take() on the app's thread
+            self._error = err
+
+    def take(self) -> BagSource:
+        """The opened bag, from now on the caller's to close; what opening raised (InputError:
+        the bag cannot be read), raised here."""
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        opened, self._opened = self._opened, None
+        if opened is None:
+            msg = f"bag {self.path} was taken already"
+            raise RuntimeError(msg)
+        return opened
+
+    def close(self) -> None:
+        """Close the bag unless :meth:`take` handed it on (the host ended before converting it:
+        an error in its options, ``--print-config``)."""
+        self._thread.join()
+        if self._opened is not None:
+            self._opened.close()
+            self._opened = None
