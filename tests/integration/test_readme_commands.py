@@ -12,8 +12,8 @@ the nested run skips this module, so it never recurses.
 
 Both commands install from the package index (pip's configured mirror here): minutes, so the
 copy and its venv are shared by both tests, as a user's clone is, and they run in the background
-from the start of the session (tests/conftest.py) at a lower CPU priority: the suite's other
-tests go on meanwhile, and these two only read what the commands did.
+from the first integration test on (tests/integration/conftest.py) at a lower CPU priority: the
+suite's other tests go on meanwhile, and these two only read what the commands did.
 """
 
 from __future__ import annotations
