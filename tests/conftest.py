@@ -57,13 +57,20 @@ def pytest_runtest_makereport(
     return report
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Two groups for pytest-xdist's two workers (``--dist loadgroup``, pyproject.toml): the
-    integration tests in one, in order, never two at once (they measure processes on a 2-core
-    machine); every other test in the other."""
-    for item in items:
-        group = "integration" if item.nodeid.startswith(INTEGRATION) else "unit"
-        item.add_marker(pytest.mark.xdist_group(group))
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """pytest-xdist's two workers (``-n 2``, pyproject.toml) get two work units: the integration
+    tests, run in order in one, never two at once (they measure processes on a 2-core machine),
+    and every other test in the other. By path, as xdist's own loadfile scheduler groups by file
+    (its xdist_group marks no longer group under pytest 9: they rename a node id pytest 9 no
+    longer reads)."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class TwoUnits(LoadScopeScheduling):  # type: ignore[misc]  # xdist is untyped
+        def _split_scope(self, nodeid: str) -> str:
+            return "integration" if nodeid.startswith(INTEGRATION) else "unit"
+
+    return TwoUnits(config, log)
 
 
 @pytest.fixture(autouse=True)
