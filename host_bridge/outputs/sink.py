@@ -14,7 +14,6 @@ from __future__ import annotations
 import errno
 import ipaddress
 import logging
-import math
 import os
 import re
 import shutil
@@ -90,6 +89,11 @@ FIRST_FILE_FLUSH_S = 0.5
 """A live file's first flush after its first data; each next one waits twice as long, up to
 LIVE_FILE_FLUSH_S: the robots' latched topics (model, map, /tf_static), which arrive first, are
 on disk within a second, for four more chunks per entity and file."""
+
+
+SPLIT_PROPERTY = "split"
+"""The recording property each file after the first of a split ``--save`` begins with: its
+number (out_1.rrd: 1)."""
 
 
 class Sink(Protocol):
@@ -271,8 +275,8 @@ class SavedFile:
     Rerun builds that index in memory until the file closes: a row per chunk in a column per
     timeline and component of the whole recording (re_log_encoding's RrdManifestBuilder), about
     5 KB a chunk for the demo robot, whose host grew by 1 MB/s with it in 0.2 s batches (Rerun's
-    default), 0.3 MB/s in 5 s ones (LIVE_FILE_FLUSH_S). So a live host's file is split after
-    ``split_s`` seconds of data, as ``ros2 bag record --max-bag-duration`` does: out.rrd is closed
+    default), 0.3 MB/s in 5 s ones (LIVE_FILE_FLUSH_S). So a live host's file is split every
+    ``split_s`` seconds, as ``ros2 bag record --max-bag-duration`` does: out.rrd is closed
     with its footer and renamed out_0.rrd, the recording goes on in out_1.rrd, and so on. Each
     file holds the static data (robot model, /tf_static, video codecs) and the layout logged
     before it, so it opens alone; all share the recording id, so ``rerun out_*.rrd`` opens them
@@ -292,9 +296,7 @@ class SavedFile:
         self.stream = _stream(recording_id, batcher)
         self.stream.set_sinks(rr.FileSink(str(path)))
         self.files = 1
-        self._split_s = math.inf if split_s is None else split_s
-        """Seconds of data after which the next data goes to a new file (inf: never, or no more)."""
-        self._first_data_at: float | None = None
+        self.first_data_at: float | None = None
         """When (monotonic) this file's first data was logged: a file's time starts with its data."""
         self._lock = threading.Lock()
         self._statics: dict[str, dict[rr.ComponentDescriptor, Any]] = {}
@@ -303,7 +305,7 @@ class SavedFile:
         self._worker: threading.Thread | None = None
         if split_s is not None:
             self._worker = threading.Thread(
-                target=self._flush, args=(split_s,), name="rrd-file", daemon=True)
+                target=self._flush_and_split, args=(split_s,), name="rrd-file", daemon=True)
             self._worker.start()
 
     @staticmethod
@@ -349,59 +351,52 @@ class SavedFile:
             send(self.stream)
             self._layout = send
 
-    def before_data(self) -> None:
-        """Called before data is logged, by the thread about to log it: a file that has had
-        ``split_s`` seconds of data is ended here and the recording goes on in the next, which
-        so always begins with data, as ``ros2 bag record`` splits on the write of the message that
-        is due. (Split by a timer instead, a host stopped just after a split left a last file with
-        nothing in it, and Rerun writes no footer into such a file.) It holds that thread up: 15-80
-        ms for the demo robot's 5 s files under load (the end of the file, its statics and layout
-        again in the next), once per file."""
-        began, files = self._first_data_at, self.files
-        if began is None:
-            self._first_data_at = time.monotonic()
-        elif time.monotonic() >= began + self._split_s:
-            with self._lock:
-                if self.files == files:  # not split by another logging thread meanwhile
-                    self._next_file()
-
-    def _flush(self, split_s: float) -> None:
+    def _flush_and_split(self, split_s: float) -> None:
         """Hand the file what the batcher holds every LIVE_FILE_FLUSH_S (``split_s`` if shorter),
-        FIRST_FILE_FLUSH_S after a file's first data, then twice as long each time."""
+        FIRST_FILE_FLUSH_S after a file's first data, then twice as long each time; go on in the
+        next file once this one has ``split_s`` seconds of data (its time starts with its first
+        data: a host waiting for robots makes no empty files)."""
+        splitting = True
         longest_flush_s = min(LIVE_FILE_FLUSH_S, split_s)
         flush_s = min(FIRST_FILE_FLUSH_S, longest_flush_s)
-        flushed_at, flushed_file = time.monotonic(), self.files
-        # Woken for the first flushes at least: each file's first rows are on disk within a second.
+        flushed_at = time.monotonic()
+        # Woken ten times per split period (and for the first flushes): a file ends within a
+        # tenth of it of being due.
         while not self._closing.wait(min(split_s / 10, FIRST_FILE_FLUSH_S)):
-            now = time.monotonic()
-            if self._first_data_at is None or flushed_file != self.files:
-                flush_s = min(FIRST_FILE_FLUSH_S, longest_flush_s)
-                flushed_at, flushed_file = now, self.files
-            elif now >= flushed_at + flush_s:
-                self.stream.flush()
-                flushed_at = now
-                flush_s = min(2 * flush_s, longest_flush_s)
+            now, began = time.monotonic(), self.first_data_at
+            if not splitting or began is None or now < began + split_s:
+                if began is None:  # nothing to hand over: each file's first rows come soon
+                    flush_s = min(FIRST_FILE_FLUSH_S, longest_flush_s)
+                elif now >= flushed_at + flush_s:
+                    self.stream.flush()
+                    flushed_at = now
+                    flush_s = min(2 * flush_s, longest_flush_s)
+                continue
+            try:
+                self._next_file()
+            except (OSError, RuntimeError) as err:
+                log.error("--save: cannot split the recording (%s); it goes on in %s, unsplit",
+                          err, self._name(self.files - 1))
+                splitting = False
+            flushed_at = time.monotonic()
 
     def _next_file(self) -> None:
-        """Go on in the next file (the lock held); the current one is ended with its footer."""
-        done, following = self._name(self.files - 1), self._name(self.files)
-        try:
+        with self._lock:
+            done, following = self._name(self.files - 1), self._name(self.files)
             # Rerun hands the current file what its batcher holds, ends it with the footer and
             # closes it before set_sinks returns.
             self.stream.set_sinks(rr.FileSink(str(following)))
-            if self.files == 1 and self._numbered:
+            self.files += 1
+            self.first_data_at = None
+            if self.files == 2 and self._numbered:
                 self.path.rename(done)
-        except (OSError, RuntimeError) as err:
-            log.error("--save: cannot split the recording (%s); it goes on in %s, unsplit",
-                      err, done)
-            self._split_s = math.inf
-            return
-        self.files += 1
-        self._first_data_at = time.monotonic()
-        for path, batches in self._statics.items():
-            self.stream.log(path, list(batches.values()), static=True)
-        if self._layout is not None:
-            self._layout(self.stream)
+            # Every file holds data of its own, so Rerun ends it with its footer even when the
+            # host stops before any other data comes (a file with nothing in it gets none).
+            self.stream.send_property(SPLIT_PROPERTY, rr.AnyValues(file=self.files - 1))
+            for path, batches in self._statics.items():
+                self.stream.log(path, list(batches.values()), static=True)
+            if self._layout is not None:
+                self._layout(self.stream)
         log.info("saved %s; the recording goes on in %s", done, following)
 
     def flush(self) -> None:
@@ -662,8 +657,6 @@ class RerunSink:
 
     def log(self, entries: Sequence[LogEntry], times: Mapping[str, int]) -> None:
         streams, natives = self._destinations()
-        if self._file is not None and entries:
-            self._file.before_data()
         for entry in entries:
             if isinstance(entry, ColumnsItem):
                 columns = list(entry.columns)
@@ -682,6 +675,9 @@ class RerunSink:
                     self._set_times(times if entry.times is None else entry.times)
                     for stream in streams:
                         stream.log(entry.path, *entry.archetypes)
+        if self._file is not None and self._file.first_data_at is None:
+            # After the entries: the file splits no sooner than split_s after they are in it.
+            self._file.first_data_at = time.monotonic()
 
     def _log_static(self, path: str, archetypes: Sequence[rr.AsComponents]) -> None:
         if self._viewing is not None:

@@ -109,10 +109,9 @@ def test_a_30_minute_recording_replayed_fast_is_split_into_files_rerun_accepts(
         assert host.wait(timeout=DONE_S) == 0, lines.text
     assert "Traceback" not in lines.text
     files, counts, data_s = check_saved(out, lines.text)
-    # A file ends with the first data after SPLIT_S seconds of its own (none while the host idles
-    # at the end). Less one: the data's receive times are the robot's, and the host's lag behind
-    # them, which decides when it logs, changes over the run.
-    assert len(files) >= data_s // SPLIT_S - 1 >= 3
+    # A file ends SPLIT_S seconds after its first data. Less one: the data's receive times are
+    # the robot's, and the host's lag behind them, which decides when it logs, changes over the run.
+    assert len(files) >= max(2, data_s // SPLIT_S - 1)
     sent = {"/odom": len(traffic.odom()), "/scan": len(traffic.scan_indices())}
     assert sent == {"/odom": RECORDING_S * ODOM_HZ, "/scan": RECORDING_S * SCAN_HZ}
     reliability(
