@@ -42,7 +42,6 @@ from robot_relay.wire import (
     COMPRESSION_FLAGS,
     COMPRESSION_PACKAGES,
     FLAG_BUNDLE,
-    Attachment,
     Catalog,
     ClockReading,
     RawMessage,
@@ -54,6 +53,7 @@ from robot_relay.wire import (
     clock_key,
     compressor,
     data_key,
+    pack_attachment,
     pack_bundle,
 )
 
@@ -156,6 +156,8 @@ class _TopicPublisher:
             )
         else:
             self.publisher = session.declare_publisher(self.key, **options)
+        # The source info of each plain sample (_put); read once, as Zenoh makes it anew per read.
+        self._publisher_id = None if info.latched else self.publisher.id
 
     @property
     def matching(self) -> bool:
@@ -174,13 +176,14 @@ class _TopicPublisher:
         # The listener reports changes only: a host that was already there counts too.
         callback(self.matching)
 
-    def offer(self, raw: RawMessage, receive_ns: int, now: float) -> float | None:
-        """Send ``raw`` or let it wait for its rate-cap period; returns when to flush, if due."""
+    def offer(self, raw: RawMessage, receive_ns: int, now: float | None = None) -> float | None:
+        """Send ``raw`` or let it wait for its rate-cap period (``now``: time.monotonic(), read
+        here if not given); returns when to flush, if due."""
         with self._lock:
             if self.limiter is None:
                 self._put(raw, receive_ns)
                 return None
-            ready = self.limiter.offer((raw, receive_ns), now)
+            ready = self.limiter.offer((raw, receive_ns), time.monotonic() if now is None else now)
             if ready is not None:
                 self._put(*ready)
             return self.limiter.due_at
@@ -202,18 +205,18 @@ class _TopicPublisher:
             # Per sample, so incompressible payloads (JPEG, noise) go as they are.
             if len(packed) < len(payload):
                 payload, flags = packed, self._flag
-        attachment = Attachment(self.sequence, receive_ns, raw.log_ns or 0, flags)
+        attachment = pack_attachment(self.sequence, receive_ns, raw.log_ns or 0, flags)
         # Plain samples carry the source info an AdvancedPublisher's would. Without it the
         # host's AdvancedSubscriber orders every sample of this session by timestamp and drops
         # any older than the last it delivered, i.e. every sample a higher-priority topic
         # overtook (a JointState sent just before a TF).
-        if self.info.latched:  # AdvancedPublisher.put sets its own (and takes no source_info)
-            self.publisher.put(payload, attachment=attachment.pack())
+        if self._publisher_id is None:  # latched: AdvancedPublisher.put sets its own
+            self.publisher.put(payload, attachment=attachment)
         else:
-            source_info = zenoh.SourceInfo(self.publisher.id, self.sequence)
+            source_info = zenoh.SourceInfo(self._publisher_id, self.sequence)
             shared = None if self._shared_memory is None else self._shared_memory.copy(payload)
             self.publisher.put(payload if shared is None else shared,
-                               attachment=attachment.pack(), source_info=source_info)
+                               attachment=attachment, source_info=source_info)
         self.sequence = (self.sequence + 1) & 0xFFFFFFFF
         self._on_sent(1, len(payload))
 
@@ -255,9 +258,10 @@ class _TopicPublisher:
             packed = self._compress(payload)
             if len(packed) < len(payload):
                 payload, flags = packed, flags | self._flag
-        attachment = Attachment(self.sequence, receive_ns, 0, flags)
-        source_info = zenoh.SourceInfo(self.publisher.id, self.sequence)
-        self.publisher.put(payload, attachment=attachment.pack(), source_info=source_info)
+        attachment = pack_attachment(self.sequence, receive_ns, 0, flags)
+        assert self._publisher_id is not None  # a latched topic's messages go alone (bundles)
+        source_info = zenoh.SourceInfo(self._publisher_id, self.sequence)
+        self.publisher.put(payload, attachment=attachment, source_info=source_info)
         self.sequence = (self.sequence + len(payloads)) & 0xFFFFFFFF
         self._on_sent(len(payloads), len(payload))
 
@@ -455,7 +459,9 @@ class Relay:
         publisher = self._publishers.get(raw.topic)
         if publisher is None:  # the topic vanished from the live graph meanwhile
             return
-        self._flusher.schedule(publisher, publisher.offer(raw, self.clock(), time.monotonic()))
+        due = publisher.offer(raw, self.clock())
+        if due is not None:
+            self._flusher.schedule(publisher, due)
 
     def publish_run(self, topic: str, payloads: Sequence[bytes | memoryview], log_ns: Sequence[int]) -> None:
         """Publish a run of ``topic``'s messages that are all due now (a replay that is behind,

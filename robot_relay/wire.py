@@ -145,6 +145,13 @@ def parse_cdr_encoding(encoding: str, key: str) -> str:
     return schema
 
 
+def pack_attachment(sequence: int, receive_ns: int, source_ns: int = 0, flags: int = 0) -> bytes:
+    """The bytes of ``Attachment(sequence, receive_ns, source_ns, flags)`` without making one:
+    the relay packs one per message."""
+    version = ATTACHMENT_VERSION if flags & FLAG_BUNDLE else SINGLE_MESSAGE_VERSION
+    return _ATTACHMENT.pack(version, flags, 0, sequence & 0xFFFFFFFF, receive_ns, source_ns, 0)
+
+
 @dataclass(frozen=True, slots=True)
 class Attachment:
     """Per-sample metadata sent beside the CDR bytes; for a bundle, ``sequence`` is its first
@@ -160,10 +167,7 @@ class Attachment:
         return bool(self.flags & FLAG_BUNDLE)
 
     def pack(self) -> bytes:
-        version = ATTACHMENT_VERSION if self.bundle else SINGLE_MESSAGE_VERSION
-        return _ATTACHMENT.pack(
-            version, self.flags, 0, self.sequence & 0xFFFFFFFF, self.receive_ns, self.source_ns, 0,
-        )
+        return pack_attachment(self.sequence, self.receive_ns, self.source_ns, self.flags)
 
     @classmethod
     def unpack(cls, data: bytes, key: str) -> Attachment:

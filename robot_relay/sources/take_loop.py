@@ -77,6 +77,9 @@ class TakeLoop:
         self._removed: list[RawSubscription] = []
         self._subscriptions: dict[int, RawSubscription] = {}
         self._stopped = False
+        # Set (under the lock) before the guard condition is triggered, read without it: the loop
+        # takes the lock only in the turns after a change, not once per message.
+        self._changed = False
 
     def subscribe(self, node_handle: Any, message_type: Any, info: TopicInfo, qos: Any,
                   forward: Take) -> RawSubscription:
@@ -86,18 +89,21 @@ class TakeLoop:
         subscription = RawSubscription(handle, message_type, forward, max(info.qos.depth, 1))
         with self._lock:
             self._added.append(subscription)
+            self._changed = True
         self._wake.trigger_guard_condition()
         return subscription
 
     def remove(self, subscription: RawSubscription) -> None:
         with self._lock:
             self._removed.append(subscription)
+            self._changed = True
         self._wake.trigger_guard_condition()
 
     def stop(self) -> None:
         """End :meth:`run` at its next turn (at once: the guard condition wakes it)."""
         with self._lock:
             self._stopped = True
+            self._changed = True
         self._wake.trigger_guard_condition()
 
     def _apply_changes(self) -> bool:
@@ -106,6 +112,7 @@ class TakeLoop:
             added, self._added = self._added, []
             removed, self._removed = self._removed, []
             stopped = self._stopped
+            self._changed = False
         for subscription in added:
             self._subscriptions[subscription.handle.pointer] = subscription
         for subscription in removed:
@@ -116,25 +123,33 @@ class TakeLoop:
     def run(self) -> None:
         """Wait, drain what is ready, and again, until :meth:`stop`."""
         wait_set = None
-        size = -1
         try:
             while self._apply_changes():
-                if len(self._subscriptions) != size:
-                    if wait_set is not None:
-                        wait_set.destroy_when_not_in_use()
-                    size = len(self._subscriptions)
-                    wait_set = self._rclpy.WaitSet(size, 1, 0, 0, 0, 0, self._context)
-                assert wait_set is not None
-                wait_set.clear_entities()
-                for subscription in self._subscriptions.values():
-                    wait_set.add_subscription(subscription.handle)
-                wait_set.add_guard_condition(self._wake)
-                wait_set.wait(WAIT_NS)
-                for pointer in wait_set.get_ready_entities("subscription"):
-                    self._subscriptions[pointer].drain()
+                if wait_set is not None:
+                    wait_set.destroy_when_not_in_use()
+                wait_set = self._rclpy.WaitSet(len(self._subscriptions), 1, 0, 0, 0, 0, self._context)
+                self._take_until_changed(wait_set)
         finally:
             if wait_set is not None:
                 wait_set.destroy_when_not_in_use()
+
+    def _take_until_changed(self, wait_set: Any) -> None:
+        """The loop's turns while its subscriptions stay the same, with everything a turn needs
+        bound once: a turn costs a message its rcl wait and take, little Python besides."""
+        handles = [subscription.handle for subscription in self._subscriptions.values()]
+        subscriptions = self._subscriptions
+        clear, add, add_guard = (wait_set.clear_entities, wait_set.add_subscription,
+                                 wait_set.add_guard_condition)
+        wait, ready = wait_set.wait, wait_set.get_ready_entities
+        wake = self._wake
+        while not self._changed:
+            clear()
+            for handle in handles:
+                add(handle)
+            add_guard(wake)
+            wait(WAIT_NS)
+            for pointer in ready("subscription"):
+                subscriptions[pointer].drain()
 
     def close(self) -> None:
         """Once :meth:`run` has returned (or never ran): destroy every subscription and the guard
