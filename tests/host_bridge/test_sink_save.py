@@ -22,7 +22,7 @@ from host_bridge.cli import main as host_main
 from host_bridge.core.contract import LogItem
 from host_bridge.core.destinations import SinkOptions
 from host_bridge.demo.bag import write_demo_bag
-from host_bridge.outputs.sink import RerunSink, split_path
+from host_bridge.outputs.sink import SPLIT_PROPERTY, RerunSink, split_path
 from tests.integration.procs import free_port
 from tests.rrd import entity_rows, verify
 
@@ -100,6 +100,26 @@ def test_a_file_is_split_after_its_first_data_not_while_the_host_waits(tmp_path:
     verify(*files)
     assert entity_rows(files[0], "/r/speed")  # the first file begins with the data
     assert sorted(row["ros_time"] for row in rows_in(files, "/r/speed")) == [step * NS for step in range(10)]
+
+
+def test_a_host_stopped_right_after_a_split_ends_its_last_file_with_the_footer(tmp_path: Path) -> None:
+    """The file begun by a split holds data of its own (the split property) even when nothing
+    is logged into it: Rerun writes no footer into a file with nothing in it."""
+    out = tmp_path / "out.rrd"
+    sink = RerunSink(SinkOptions(save=out, save_split_s=0.3))
+    for entries, times in items(0):
+        sink.log(entries, times)
+    deadline = time.monotonic() + 30
+    while not split_path(out, 1).exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    sink.close()  # nothing logged since the split
+    files = [split_path(out, 0), split_path(out, 1)]
+    assert sorted(tmp_path.iterdir()) == files
+    verify(*files)
+    assert [row["ros_time"] for row in rows_in(files, "/r/speed")] == [0]
+    assert "/r/speed" not in entity_rows(files[1])
+    property_path = f"/__properties/{SPLIT_PROPERTY}"
+    assert entity_rows(files[1], property_path) == {property_path: [{"file": [1], "static": True}]}
 
 
 def test_a_split_save_to_dev_null_writes_each_file_there(tmp_path: Path) -> None:
