@@ -23,6 +23,7 @@ from host_bridge.errors import SinkError
 from host_bridge.outputs import sink
 from tests.integration.procs import headless_viewer
 from tests.rrd import entity_rows
+from tests.viewer_port import default_viewer_port
 
 
 def test_viewer_beside_the_interpreter_is_found_without_path(
@@ -96,15 +97,16 @@ def test_readme_demo_command_without_venv_on_path_finds_the_viewer(tmp_path: Pat
     display: the real viewer is spawned (found beside the interpreter) and its failure named."""
     if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
         pytest.skip("this machine has a display: the viewer would open")
-    with socket.socket() as probe:
-        if probe.connect_ex(("127.0.0.1", sink.VIEWER_PORT)) == 0:
-            pytest.skip(f"port {sink.VIEWER_PORT} is taken: rr.spawn would reuse what listens there")
     host = Path(sysconfig.get_path("scripts")) / "swanky-host"
     env = {"PATH": "/usr/bin:/bin", "HOME": os.environ.get("HOME", str(tmp_path))}
-    done = subprocess.run(
-        [str(host), "--demo", "--duration", "5"], cwd=tmp_path, env=env, capture_output=True,
-        text=True, timeout=120, check=False,
-    )
+    with default_viewer_port():
+        with socket.socket() as probe:
+            if probe.connect_ex(("127.0.0.1", sink.VIEWER_PORT)) == 0:
+                pytest.skip(f"port {sink.VIEWER_PORT} is taken: rr.spawn would reuse what listens there")
+        done = subprocess.run(
+            [str(host), "--demo", "--duration", "5"], cwd=tmp_path, env=env, capture_output=True,
+            text=True, timeout=120, check=False,
+        )
     last = done.stderr.strip().splitlines()[-1]
     assert (done.returncode, last) == (2, (
         f"swanky-host: error: cannot spawn the Rerun viewer {host.parent / 'rerun'}: it exited "

@@ -34,6 +34,7 @@ import pytest
 from host_bridge.demo.robot import WHEEL_RADIUS
 from host_bridge.outputs.sink import VIEWER_PORT
 from tests.rrd import entity_rows
+from tests.viewer_port import default_viewer_port
 
 pytestmark = pytest.mark.integration
 
@@ -141,11 +142,13 @@ class QuickStartRun:
             copy = fresh_copy(self._directory)
             env = user_environment()
             verbatim = None
-            if has_display() or viewer_port_taken():
-                # A viewer would open (or rr.spawn would reuse the one listening): no verbatim run.
-                demo = self._run(f"{demo_command} {HEADLESS}", copy, env)
-            else:
-                verbatim = self._run(demo_command, copy, env)
+            with default_viewer_port():  # the verbatim demo spawns a viewer there
+                if has_display() or viewer_port_taken():
+                    # A viewer would open (or rr.spawn would reuse the one listening): no verbatim run.
+                    demo = self._run(f"{demo_command} {HEADLESS}", copy, env)
+                else:
+                    verbatim = self._run(demo_command, copy, env)
+            if verbatim is not None:
                 last_step = demo_command.rsplit("&&", 1)[1].strip()
                 demo = self._run(f"{last_step} {HEADLESS}", copy, env)
             tests = self._run(test_command, copy, {**env, NESTED: "1", "PYTEST_ADDOPTS": NESTED_TESTS})
