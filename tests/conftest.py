@@ -17,6 +17,8 @@ from tests.integration.procs import free_port, open_loopback
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 INTEGRATION = "tests/integration/"
+NICEST = 19
+"""The unit tests' worker's priority (nice): the lowest."""
 
 
 @pytest.fixture(scope="session")
@@ -82,8 +84,6 @@ def unit_tests_yield(request: pytest.FixtureRequest) -> None:
             and os.getpriority(os.PRIO_PROCESS, 0) < NICEST):
         os.setpriority(os.PRIO_PROCESS, 0, NICEST)
 
-
-NICEST = 19
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:
