@@ -121,6 +121,8 @@ def main() -> int:
                 stop(relay)
             stop(host)
         errors = host_log.read_text(errors="replace")
+        files = sorted(Path(tmp).glob("replay*.rrd"))
+        sizes_mb = [f.stat().st_size / 1e6 for f in files]
 
     part = replay_s / args.minutes
     peaks = []
@@ -129,6 +131,8 @@ def main() -> int:
         peaks.append(max(in_minute) if in_minute else 0)
     print(f"replay at {args.rate:g}x: {replay_s:.1f} s wall, {len(samples)} RSS samples of the "
           f"host every {args.interval:g} s; relay exit {relay_exit}, host exit {host_exit}")
+    print(f"--save wrote {len(files)} file(s), MB: "
+          + ", ".join(f"{size:.0f}" for size in sizes_mb))
     print("host peak RSS per bag minute (MB): "
           + ", ".join(f"{peak / 1024:.0f}" for peak in peaks))
     if not all(peaks):

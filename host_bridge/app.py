@@ -63,6 +63,8 @@ class HostOptions:
     record_mcap: Path | None = None
     stats: bool | None = None
     """None: on live, off for a bag."""
+    host_name: str | None = None
+    """One of several hosts sharing a viewer: its own ``/_stats/host/<name>/viewer_lag_ms``."""
     blueprint: Path | None = None
     send_layout: bool = True
     duration: float | None = None
@@ -288,13 +290,14 @@ def run(
         dispatcher.offload = outputs.offload = HeavyProcess(
             dispatcher, viewer, sink.recording_id, give_up)
     if sink.viewer_lag is not None:
-        from host_bridge.pipeline.thinning import ViewerThinning
+        from host_bridge.pipeline.thinning import ViewerThinning, lag_path
 
         if outputs.offload is not None:
             heavy = outputs.offload
             sink.viewer_lag.others.append(lambda: heavy.viewer_round_trip)
         dispatcher.offload = ViewerThinning(
-            dispatcher, sink, sink.viewer_lag, dispatcher.offload, stats=options.stats is not False)
+            dispatcher, sink, sink.viewer_lag, dispatcher.offload, stats=options.stats is not False,
+            path=lag_path(options.host_name))
     if options.urdf is not None:
         log_urdf_file(options.robot, options.urdf, dispatcher)
     progress = None

@@ -100,6 +100,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "shared viewer (default: a new id per run)",
     )
     out.add_argument(
+        "--host-name", type=host_name, metavar="NAME",
+        help="one of several hosts sharing a viewer (--recording-id): this host's viewer lag goes "
+        "to /_stats/host/NAME/viewer_lag_ms, apart from the others' (default: /_stats/host/...)",
+    )
+    out.add_argument(
         "--grpc-port", type=int, metavar="PORT", help="--serve-web: gRPC port the viewer reads (9876)"
     )
     out.add_argument(
@@ -167,6 +172,14 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def host_name(name: str) -> str:
+    """``--host-name``: one part of a Rerun entity path."""
+    if not name or "/" in name or name != name.strip():
+        msg = f"{name!r} is not a host name: one word of an entity path, without '/' or spaces"
+        raise argparse.ArgumentTypeError(msg)
+    return name
+
+
 def sink_options(args: argparse.Namespace) -> SinkOptions:
     options = SinkOptions(
         spawn=args.spawn,
@@ -199,6 +212,7 @@ def host_options(args: argparse.Namespace) -> app.HostOptions:
         list_topics=args.list,
         record_mcap=args.record_mcap,
         stats=args.stats,
+        host_name=args.host_name,
         blueprint=args.blueprint,
         send_layout=not args.no_blueprint,
         duration=args.duration,

@@ -85,6 +85,12 @@ SUSPEND_S = 5.0
 taking data (frozen, or its machine overloaded), and what it would be sent meanwhile would pile
 up in this process (Rerun's client holds up to 100 MiB, then blocks whoever logs, which would
 hold back the ``--save`` file and the other robots too)."""
+FILE_COLUMN_CHUNKS = 2000
+"""A live ``--save`` file ends sooner than its ``--save-split`` seconds once it was sent this many
+runs of columns. Each is a chunk of its own (send_columns skips the batcher), and Rerun's index of
+the file, which it holds in memory until the file ends, costs about 7 KB a chunk: a 10-minute demo
+bag replayed at 10x into one file (1,027 runs for each of its 30 Hz topics, 21,362 chunks,
+82 MB) grew the host by 158 MB (benchmarks/rss_replay.py). This many bounds it near 15 MB."""
 FIRST_FILE_FLUSH_S = 0.5
 """A live file's first flush after its first data; each next one waits twice as long, up to
 LIVE_FILE_FLUSH_S: the robots' latched topics (model, map, /tf_static), which arrive first, are
@@ -296,6 +302,8 @@ class SavedFile:
         self.stream = _stream(recording_id, batcher)
         self.stream.set_sinks(rr.FileSink(str(path)))
         self.files = 1
+        self.column_chunks = 0
+        """Runs of columns sent to this file (a chunk each in Rerun's index, not batched)."""
         self.first_data_at: float | None = None
         """When (monotonic) this file's first data was logged: a file's time starts with its data."""
         self._lock = threading.Lock()
@@ -355,16 +363,19 @@ class SavedFile:
         """Hand the file what the batcher holds every LIVE_FILE_FLUSH_S (``split_s`` if shorter),
         FIRST_FILE_FLUSH_S after a file's first data, then twice as long each time; go on in the
         next file once this one has ``split_s`` seconds of data (its time starts with its first
-        data: a host waiting for robots makes no empty files)."""
+        data: a host waiting for robots makes no empty files), or sooner once it was sent
+        FILE_COLUMN_CHUNKS runs of columns."""
         splitting = True
         longest_flush_s = min(LIVE_FILE_FLUSH_S, split_s)
         flush_s = min(FIRST_FILE_FLUSH_S, longest_flush_s)
         flushed_at = time.monotonic()
         # Woken ten times per split period (and for the first flushes): a file ends within a
-        # tenth of it of being due.
+        # tenth of it, or half a second, of being due.
         while not self._closing.wait(min(split_s / 10, FIRST_FILE_FLUSH_S)):
             now, began = time.monotonic(), self.first_data_at
-            if not splitting or began is None or now < began + split_s:
+            due = began is not None and (
+                now >= began + split_s or self.column_chunks >= FILE_COLUMN_CHUNKS)
+            if not splitting or not due:
                 if began is None:  # nothing to hand over: each file's first rows come soon
                     flush_s = min(FIRST_FILE_FLUSH_S, longest_flush_s)
                 elif now >= flushed_at + flush_s:
@@ -388,6 +399,7 @@ class SavedFile:
             self.stream.set_sinks(rr.FileSink(str(following)))
             self.files += 1
             self.first_data_at = None
+            self.column_chunks = 0
             if self.files == 2 and self._numbered:
                 self.path.rename(done)
             # Every file holds data of its own, so Rerun ends it with its footer even when the
@@ -668,6 +680,8 @@ class RerunSink:
                 ]
                 for stream in streams:
                     stream.send_columns(entry.path, indexes=indexes, columns=columns)
+                if self._file is not None and self._file.stream in streams:
+                    self._file.column_chunks += 1  # approximate: the threads' += may race
             elif isinstance(entry, LogItem):
                 if entry.static:
                     self._log_static(entry.path, entry.archetypes)

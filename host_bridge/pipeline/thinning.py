@@ -28,8 +28,9 @@ logs the heavy topics (offload.py: a viewer is then the one destination), it is 
 The user is told: a warning per robot and topic the first time it is thinned (stderr and
 ``/_swanky/warnings``), naming the rate the viewer gets; a line each time the viewer caught up,
 with what it was not sent; ``/_stats/host/viewer_lag_ms`` (each second, the most it was behind:
-round trip plus period) and ``/_stats/<robot><topic>/viewer_thinned`` (messages not sent to it
-in that second); the counts when the host stops.
+round trip plus period; ``/_stats/host/<name>/viewer_lag_ms`` with ``--host-name``) and
+``/_stats/<robot><topic>/viewer_thinned`` (messages not sent to it in that second); the counts
+when the host stops.
 """
 
 from __future__ import annotations
@@ -58,6 +59,13 @@ if TYPE_CHECKING:
 log = logging.getLogger("swanky.host")
 
 LAG_PATH = f"{STATS_ROOT}/host/viewer_lag_ms"
+"""Where a host logs how far behind its viewers are; ``/_stats/host/<name>/viewer_lag_ms`` for a
+host given ``--host-name`` (hosts of one fleet sharing a viewer, each its own series)."""
+
+
+def lag_path(host_name: str | None) -> str:
+    return LAG_PATH if host_name is None else f"{STATS_ROOT}/host/{host_name}/viewer_lag_ms"
+
 BEHIND_S = 0.5
 """A flush's round trip over this: the viewers are sent less."""
 CAUGHT_UP_S = 0.25
@@ -123,15 +131,16 @@ class ViewerThinning:
 
     def __init__(
         self, dispatcher: Dispatcher, sink: RerunSink, lag: ViewerLag,
-        inner: Offload | None = None, *, stats: bool = True,
+        inner: Offload | None = None, *, stats: bool = True, path: str = LAG_PATH,
         clock: Callable[[], float] = time.monotonic, wall_ns: Callable[[], int] = time.time_ns,
     ) -> None:
-        """``stats``: log the ``/_stats`` series (not with ``--no-stats``)."""
+        """``stats``: log the ``/_stats`` series (not with ``--no-stats``), the lag at ``path``."""
         self._dispatcher = dispatcher
         self._sink = sink
         self._lag = lag
         self._inner = inner
         self._stats = stats
+        self._path = path
         self._clock = clock
         self._wall_ns = wall_ns
         self._lanes = TypeLanes(dispatcher.registry)
@@ -227,7 +236,7 @@ class ViewerThinning:
         log.debug("viewer lag: %.0f ms at most in the last second; flush period %.2f s, heavy "
                   "interval %.2f s", behind * 1000, self.pace.period, self.pace.interval)
         times = {TIMELINE_RECEIVE: self._wall_ns()}
-        items = [LogItem(LAG_PATH, (rr.Scalars(behind * 1000),), times=times)]
+        items = [LogItem(self._path, (rr.Scalars(behind * 1000),), times=times)]
         with self._lock:
             for (robot, topic), state in sorted(self._topics.items()):
                 if state.thinned_in_episode or state.thinned_in_second:

@@ -219,3 +219,20 @@ def test_web_viewer_serves_the_recording_on_loopback_unless_told(
     assert note in err.splitlines()
     assert host.returncode == 0, err
     assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("name", ["east/1", "", " east"])
+def test_a_host_name_that_is_no_entity_path_part(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, name: str,
+) -> None:
+    with pytest.raises(SystemExit) as exited:
+        cli.main(["--host-name", name, "--save", str(tmp_path / "out.rrd")])
+    assert exited.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"swanky-host: error: argument --host-name: {name!r} is not a host name: one word of an "
+        "entity path, without '/' or spaces")
+
+
+def test_a_host_name_reaches_the_options() -> None:
+    parsed = cli.parse_args(["--host-name", "east", "--recording-id", "fleet"])
+    assert cli.host_options(parsed).host_name == "east"

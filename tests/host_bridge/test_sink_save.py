@@ -19,10 +19,11 @@ import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
 from host_bridge.cli import main as host_main
-from host_bridge.core.contract import LogItem
+from host_bridge.core.contract import ColumnsItem, LogItem
 from host_bridge.core.destinations import SinkOptions
 from host_bridge.demo.bag import write_demo_bag
-from host_bridge.outputs.sink import SPLIT_PROPERTY, RerunSink, split_path
+from host_bridge.outputs import sink as sink_module
+from host_bridge.outputs.sink import FEW_ROWS, SPLIT_PROPERTY, RerunSink, split_path
 from tests.integration.procs import free_port
 from tests.rrd import entity_rows, verify
 
@@ -120,6 +121,32 @@ def test_a_host_stopped_right_after_a_split_ends_its_last_file_with_the_footer(t
     assert "/r/speed" not in entity_rows(files[1])
     property_path = f"/__properties/{SPLIT_PROPERTY}"
     assert entity_rows(files[1], property_path) == {property_path: [{"file": [1], "static": True}]}
+
+
+def test_a_file_sent_many_runs_of_columns_ends_before_its_seconds(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Each run of columns is a chunk of Rerun's index of the file, held in memory until the
+    file ends: a fast replay's file ends after FILE_COLUMN_CHUNKS of them, not only by time."""
+    monkeypatch.setattr(sink_module, "FILE_COLUMN_CHUNKS", 5)
+    out = tmp_path / "out.rrd"
+    sink = RerunSink(SinkOptions(save=out, save_split_s=600.0))
+    rows = FEW_ROWS + 1  # more rows than are logged row by row
+    runs = 0
+    while not split_path(out, 2).exists() and runs < 300:  # the file's thread looks every 0.5 s
+        stamps = (runs * rows + np.arange(rows, dtype=np.int64)) * NS
+        sink.log([ColumnsItem("/r/speed", rr.Scalars.columns(scalars=stamps / NS), {"ros_time": stamps})],
+                 {})
+        runs += 1
+        time.sleep(0.1)
+    sink.close()
+    files = sorted(tmp_path.iterdir(), key=lambda path: int(path.stem.rsplit("_", 1)[1]))
+    assert len(files) == 3, f"{runs} runs of columns in 30 s"  # the seconds never ran out
+    verify(*files)
+    for path in files[:2]:  # 5 runs, or more when the look came late
+        assert len(entity_rows(path, "/r/speed")["/r/speed"]) >= 5 * rows
+    saved = sorted(row["ros_time"] for row in rows_in(files, "/r/speed"))
+    assert saved == [step * NS for step in range(runs * rows)]
 
 
 def test_a_split_save_to_dev_null_writes_each_file_there(tmp_path: Path) -> None:

@@ -94,10 +94,12 @@ def string_cdr(index: int) -> bytes:
     return bytes(STORE.serialize_cdr(T[STRING](data=f"status {index}"), STRING))
 
 
-def run_thinned(sink: RerunSink, clock: Clock) -> tuple[Dispatcher, ViewerThinning]:
+def run_thinned(
+    sink: RerunSink, clock: Clock, lag_path: str = thinning.LAG_PATH,
+) -> tuple[Dispatcher, ViewerThinning]:
     """Images at SENT_AT with the interval at INTERVAL_S, each with a small message beside it."""
     dispatcher = Dispatcher(sink)
-    thinner = ViewerThinning(dispatcher, sink, Lag(), clock=clock)  # type: ignore[arg-type]
+    thinner = ViewerThinning(dispatcher, sink, Lag(), clock=clock, path=lag_path)  # type: ignore[arg-type]
     dispatcher.offload = thinner
     thinner.pace.interval = INTERVAL_S
     for index, at in enumerate(SENT_AT):
@@ -163,13 +165,20 @@ def test_without_a_file_a_thinned_image_is_not_converted(tmp_path: Path) -> None
     assert (counters.received, counters.converted) == (5, 2)
 
 
-def test_the_lag_and_the_thinned_count_are_logged_into_the_file_up_to_the_stop(tmp_path: Path) -> None:
+@pytest.mark.parametrize(("host_name", "lag_path"), [
+    (None, "/_stats/host/viewer_lag_ms"),
+    ("east", "/_stats/host/east/viewer_lag_ms"),  # one of two hosts sharing a viewer
+])
+def test_the_lag_and_the_thinned_count_are_logged_into_the_file_up_to_the_stop(
+    tmp_path: Path, host_name: str | None, lag_path: str,
+) -> None:
     saved = tmp_path / "saved.rrd"
     sink = RerunSink(SinkOptions(save=saved))
-    _, thinner = run_thinned(sink, Clock())
+    _, thinner = run_thinned(sink, Clock(), thinning.lag_path(host_name))
     thinner.close()
     sink.close()
     rows = entity_rows(saved)
-    assert [row["Scalars:scalars"][0] for row in rows[thinning.LAG_PATH]][-1] == pytest.approx(600.0)
+    assert [path for path in rows if "viewer_lag_ms" in path] == [lag_path]
+    assert [row["Scalars:scalars"][0] for row in rows[lag_path]][-1] == pytest.approx(600.0)
     counts = rows[f"/_stats/{ROBOT}{IMAGE_TOPIC}/viewer_thinned"]
     assert sum(row["Scalars:scalars"][0] for row in counts) == 3
