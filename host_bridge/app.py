@@ -150,10 +150,11 @@ def start_layout(options: HostOptions, sink: RerunSink) -> BlueprintFollower | N
 def open_input(
     options: HostOptions, dispatcher: Dispatcher, *, demo: DemoPlan | None,
     robot_files: RobotFiles | None, stop: threading.Event, closing: ExitStack,
-    bag_opener: BagOpener | None = None,
+    bag_opener: BagOpener | None = None, layout: BlueprintFollower | None = None,
 ) -> Input:
     """The input the options name, with the taps that go with it; ``closing`` closes what was
-    opened (the input first, the Zenoh session last)."""
+    opened (the input first, the Zenoh session last). A live host given ``--recording-id``
+    shares ``layout``'s topics with the other hosts of that recording (shared_layout.py)."""
     from host_bridge.outputs.stats import StatsTap
 
     if options.bag is not None:
@@ -174,6 +175,10 @@ def open_input(
     if robot_files is not None:
         robot_files.attach(session)
         closing.callback(robot_files.detach)
+    if layout is not None and options.sink.recording_id is not None:
+        from host_bridge.outputs.shared_layout import SharedLayout
+
+        closing.callback(SharedLayout(session, options.sink.recording_id, layout).close)
     live = LiveInput(
         session, robots=robots, domain=options.domain, root_robot=options.robot,
         rmw_zenoh=options.rmw_zenoh,
@@ -304,7 +309,7 @@ def run(
     with ExitStack() as closing:
         source = open_input(
             options, dispatcher, demo=demo, robot_files=robot_files, stop=stop, closing=closing,
-            bag_opener=bag_opener,
+            bag_opener=bag_opener, layout=layout,
         )
         # The bag's extent from the input's own opening of it: rosbags parses every channel's
         # QoS when it opens an MCAP bag (nav2_turtlebot.mcap's four: 17-64 ms at load 4-5).

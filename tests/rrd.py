@@ -69,3 +69,24 @@ def verify(*paths: Path) -> None:
     assert done.returncode == 0, done.stdout + done.stderr
     for path in paths:
         assert len(RrdReader(path).store()) > 0, path
+
+
+def saved_views(path: Path) -> list[dict[str, Any]]:
+    """Views of every blueprint store in a .rrd: class, name, origin and contents queries."""
+    reader = RrdReader(path)
+    found: dict[str, dict[str, Any]] = {}
+    for store in reader.blueprints():
+        for chunk in reader.stream(store=store):
+            if not chunk.entity_path.startswith("/view/"):
+                continue
+            batch = chunk.to_record_batch()
+            # /view/<id> and its parts (/view/<id>/ViewContents, ...)
+            view = found.setdefault("/".join(chunk.entity_path.split("/")[:3]), {})
+            for column, key in (("ViewBlueprint:class_identifier", "class"),
+                                ("ViewBlueprint:display_name", "name"),
+                                ("ViewBlueprint:space_origin", "origin"),
+                                ("ViewContents:query", "contents")):
+                if column in batch.schema.names:
+                    value = batch.column(column).to_pylist()[-1]
+                    view[key] = value if key == "contents" else value[0]
+    return list(found.values())

@@ -234,6 +234,11 @@ class BlueprintFollower:
         self._registry = registry or default_registry()
         # Each topic as its latest type (a topic whose type changed is laid out as the new one).
         self._topics: dict[tuple[str, str], TopicEntry] = {}
+        self._peers: dict[str, frozenset[TopicEntry]] = {}
+        """Other hosts' topics, by host (shared_layout.py): they are laid out too."""
+        self.on_own_topics: Callable[[frozenset[TopicEntry]], None] | None = None
+        """Told this host's topics each time they changed (shared_layout.py shares them)."""
+        self._told: frozenset[TopicEntry] = frozenset()
         self._sent: frozenset[TopicEntry] = frozenset()
         self._lock = threading.Lock()
         self._timer: threading.Timer | None = None
@@ -245,10 +250,21 @@ class BlueprintFollower:
             if self._topics.get((robot, topic)) == entry or self._closed:
                 return
             self._topics[(robot, topic)] = entry
-            if self._timer is None:
-                self._timer = threading.Timer(self._interval, self._fire)
-                self._timer.daemon = True
-                self._timer.start()
+            self._start_timer()
+
+    def peer_topics(self, peer: str, topics: frozenset[TopicEntry]) -> None:
+        """Another host's topics (all of them: they replace what it said before)."""
+        with self._lock:
+            if self._peers.get(peer) == topics or self._closed:
+                return
+            self._peers[peer] = topics
+            self._start_timer()
+
+    def _start_timer(self) -> None:
+        if self._timer is None:
+            self._timer = threading.Timer(self._interval, self._fire)
+            self._timer.daemon = True
+            self._timer.start()
 
     def _fire(self) -> None:
         with self._lock:
@@ -256,7 +272,11 @@ class BlueprintFollower:
             self._send_if_changed()
 
     def _send_if_changed(self) -> None:
-        topics = frozenset(self._topics.values())
+        own = frozenset(self._topics.values())
+        if own != self._told and self.on_own_topics is not None:
+            self.on_own_topics(own)
+            self._told = own
+        topics = own.union(*self._peers.values())
         if topics == self._sent:
             return
         self._send(build_blueprint(topics, registry=self._registry, stats=self._stats))

@@ -24,6 +24,7 @@ from host_bridge.table.registry import default_registry
 from robot_relay.wire import RawMessage
 from tests.host_bridge.sensor_test_support import convert, make_ctx
 from tests.host_bridge.test_dispatch import float_cdr, string_cdr
+from tests.rrd import saved_views
 
 ROBOT_TOPICS = {
     "/scan": "sensor_msgs/msg/LaserScan",
@@ -257,27 +258,6 @@ def test_dispatcher_tells_the_follower_of_each_topic_once(tmp_path: Path) -> Non
 @pytest.fixture(scope="module")
 def demo_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_demo_bag(tmp_path_factory.mktemp("blueprint") / "demo", 1.0)
-
-
-def saved_views(path: Path) -> list[dict[str, Any]]:
-    """Views of every blueprint store in a .rrd: class, name, origin and contents queries."""
-    reader = RrdReader(path)
-    found: dict[str, dict[str, Any]] = {}
-    for store in reader.blueprints():
-        for chunk in reader.stream(store=store):
-            if not chunk.entity_path.startswith("/view/"):
-                continue
-            batch = chunk.to_record_batch()
-            # /view/<id> and its parts (/view/<id>/ViewContents, ...)
-            view = found.setdefault("/".join(chunk.entity_path.split("/")[:3]), {})
-            for column, key in (("ViewBlueprint:class_identifier", "class"),
-                                ("ViewBlueprint:display_name", "name"),
-                                ("ViewBlueprint:space_origin", "origin"),
-                                ("ViewContents:query", "contents")):
-                if column in batch.schema.names:
-                    value = batch.column(column).to_pylist()[-1]
-                    view[key] = value if key == "contents" else value[0]
-    return list(found.values())
 
 
 def test_save_holds_the_layout_of_the_topics_converted(demo_bag: Path, tmp_path: Path) -> None:

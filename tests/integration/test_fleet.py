@@ -1,5 +1,6 @@
 """A fleet beyond one host: three relays and two hosts meet at a Zenoh router on loopback; each
-host takes its subset of robots with ``--robots`` and sees exactly those."""
+host takes its subset of robots with ``--robots`` and sees exactly those, and lays out every
+robot of the recording they share (host_bridge/outputs/shared_layout.py)."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from tests.integration.procs import command, free_port, running
 from tests.integration.router import router_command, wait_for_port
-from tests.rrd import entity_rows
+from tests.rrd import entity_rows, saved_views
 
 pytestmark = pytest.mark.integration
 
@@ -87,6 +88,10 @@ def test_two_hosts_split_three_relays_through_a_router(shared_data: Path, tmp_pa
         assert logged_fixes(rows[f"/{robot}/gps/fix"]) == expected, robot
     # Same recording id: a viewer both hosts send to shows one fleet, not two recordings.
     assert {recording_id(path) for path in saved.values()} == {"fleet-test"}
+    # One layout whichever host sent it last: each lays out the other's robots too.
+    for path in saved.values():
+        assert {view["name"] for view in saved_views(path) if view.get("class") == "3D"} == {
+            "All robots 3D", "east-a 3D", "east-b 3D", "west-c 3D"}, path.name
     assert {r["TextLog:text"][0] for r in west["/_swanky/robots"]} == {
         "robot west-c joined (swanky relay)", "robot west-c left (swanky relay)"
     }
