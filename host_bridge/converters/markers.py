@@ -117,12 +117,11 @@ def _solid(marker_type: int, scale: tuple[float, float, float],
     """The geometry of a CUBE, SPHERE or CYLINDER (the pose places it), made once per size and
     colour: such a topic usually moves a few shapes about, and Rerun's archetype constructor
     was a quarter of converting a cube marker."""
-    half_sizes, color = [np.array(scale) / 2], _bytes([rgba])
-    if marker_type == CUBE:
-        return (rr.Boxes3D(centers=_ORIGIN, half_sizes=half_sizes, colors=color, fill_mode=_SOLID),)
-    if marker_type == SPHERE:
-        return (rr.Ellipsoids3D(centers=_ORIGIN, half_sizes=half_sizes, colors=color,
-                                fill_mode=_SOLID),)
+    color = _bytes([rgba])
+    if marker_type in (CUBE, SPHERE):
+        shape = rr.Boxes3D if marker_type == CUBE else rr.Ellipsoids3D
+        return (shape(centers=_ORIGIN, half_sizes=[np.array(scale) / 2], colors=color,
+                      fill_mode=_SOLID),)
     # Axis along z, height scale.z, diameter scale.x (Rerun cylinders are circular).
     return (rr.Cylinders3D(centers=_ORIGIN, lengths=[scale[2]], radii=[scale[0] / 2], colors=color,
                            fill_mode=_SOLID),)
