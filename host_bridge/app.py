@@ -184,9 +184,13 @@ def open_input(
         rmw_zenoh=options.rmw_zenoh,
     )
     if options.stats is not False:
+        from host_bridge.pipeline.thinning import ViewerThinning
+
+        thinning = dispatcher.offload
         stats: RawOutput = StatsTap(
             dispatcher.sink, dispatcher.counters, session=session, robots=robots,
             host_dropped=live.queues.dropped_when_taken, clocks=live.clocks,
+            hold_s=(thinning.stats_hold_s if isinstance(thinning, ViewerThinning) else lambda: 0.0),
         )
         dispatcher.add_tap(stats)
         closing.callback(stats.close)  # after the input's: its queues' last drops are counted

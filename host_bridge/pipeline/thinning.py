@@ -46,6 +46,7 @@ import rerun as rr
 
 from host_bridge.core.contract import STATS_ROOT, TIMELINE_RECEIVE, WARNINGS_PATH, LogItem
 from host_bridge.inputs.queues import TypeLanes
+from host_bridge.outputs.stats import HELD_S
 from host_bridge.outputs.viewer_lag import LONGEST_PERIOD_S, SHORTEST_PERIOD_S
 from host_bridge.table.registry import Lane
 
@@ -201,6 +202,11 @@ class ViewerThinning:
         log.warning("%s", text)
         self._sink.log([LogItem(WARNINGS_PATH, (rr.TextLog(text, level=rr.TextLogLevel.WARN),))],
                        {TIMELINE_RECEIVE: self._wall_ns()})
+
+    def stats_hold_s(self) -> float:
+        """How long ``/_stats`` rows are held before they are logged (stats.HeldRows): while
+        the viewers take data in too slowly for the shortest flush period, HELD_S."""
+        return HELD_S if self.pace.period > SHORTEST_PERIOD_S else 0.0
 
     # -- the control loop -------------------------------------------------------------------
 

@@ -205,6 +205,35 @@ def test_stats_tap_logs_scalars_into_rerun(tmp_path: Path) -> None:
                                     (T0 + 2 * S, pytest.approx(450 - 200))]
 
 
+class LogCalls:
+    """A stand-in sink: each ``log`` call's (entity path, receive time) pairs."""
+
+    def __init__(self) -> None:
+        self.calls: list[list[tuple[str, int]]] = []
+
+    def log(self, items: list[Any], times: dict[str, int]) -> None:
+        self.calls.append([(item.path, item.times[TIMELINE_RECEIVE]) for item in items])
+
+
+def test_rows_held_for_a_slow_viewer_are_logged_together_in_order() -> None:
+    """While the viewers take data in slowly (thinning.py), a host's /_stats rows of several
+    seconds are logged at once (one chunk per series, not one per second); none is lost."""
+    sink, hold_s = LogCalls(), [5.0]
+    seconds = iter(range(20))
+    tap = StatsTap(sink, {}, clock=lambda: T0 + next(seconds) * S + 950 * MS,  # type: ignore[arg-type]
+                   hold_s=lambda: hold_s[0])
+    for second in range(8):  # second k's batch closes second k - 1
+        tap([live("/scan", T0 + second * S + i * 100 * MS, 10 * second + i) for i in range(10)])
+    rate = "/_stats/tb3/scan/rate_hz"
+    calls = [[at for path, at in call if path == rate] for call in sink.calls]
+    assert calls == [[T0 + k * S for k in range(1, 7)]]  # held from second 1's row to 6's
+    hold_s[0] = 0.0  # the viewer caught up: each row as it comes
+    tap([live("/scan", T0 + 8 * S, 80)])
+    tap.close()
+    calls = [[at for path, at in call if path == rate] for call in sink.calls]
+    assert calls == [[T0 + k * S for k in range(1, 7)], [T0 + 7 * S, T0 + 8 * S]]
+
+
 def as_run(messages: list[RawMessage]) -> MessageRun:
     """``messages`` (one topic) as the run a relay's bundles bring: arrays, payloads packed."""
     first = messages[0]

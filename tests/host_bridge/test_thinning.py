@@ -14,6 +14,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from host_bridge.core.destinations import SinkOptions
 from host_bridge.outputs.sink import RerunSink
+from host_bridge.outputs.stats import HELD_S
 from host_bridge.outputs.viewer_lag import LONGEST_PERIOD_S, SHORTEST_PERIOD_S
 from host_bridge.pipeline import thinning
 from host_bridge.pipeline.dispatch import Dispatcher
@@ -182,3 +183,13 @@ def test_the_lag_and_the_thinned_count_are_logged_into_the_file_up_to_the_stop(
     assert [row["Scalars:scalars"][0] for row in rows[lag_path]][-1] == pytest.approx(600.0)
     counts = rows[f"/_stats/{ROBOT}{IMAGE_TOPIC}/viewer_thinned"]
     assert sum(row["Scalars:scalars"][0] for row in counts) == 3
+
+
+def test_stats_are_held_only_while_the_viewer_takes_data_in_slowly(tmp_path: Path) -> None:
+    sink = RerunSink(SinkOptions(save=tmp_path / "saved.rrd"))
+    thinner = ViewerThinning(Dispatcher(sink), sink, Lag(), clock=Clock())  # type: ignore[arg-type]
+    assert thinner.stats_hold_s() == 0.0
+    thinner.pace.period = LONGEST_PERIOD_S  # batched longer: the viewer is slow to answer
+    assert thinner.stats_hold_s() == HELD_S
+    thinner.close()
+    sink.close()
