@@ -70,8 +70,14 @@ RELAY_THIRD_PARTY = {"zenoh", "yaml", "jsonschema"}
 # Robot-side modules of the [bag] extra (rosbags, which brings numpy), with what they import at
 # module level beyond [relay]: the other robot modules import them inside functions only, so a
 # relay installed without [bag] never loads them (the sqlite3 bulk reader hands on the MCAP one's runs).
-# sqlite.py: rosbags too, whose sqlite3 reader it opens without counting rows.
-BAG_MODULES = {"robot_relay.sources.mcap": {"numpy"}, "robot_relay.sources.sqlite": {"numpy", "rosbags"}}
+# sqlite.py: rosbags too, whose sqlite3 reader it opens without counting rows; mcap_stream.py:
+# rosbags' connections and zstandard (in [bag] for it); rosbag2.py:
+# rosbags' reader and the YAML parser it reads metadata.yaml with.
+BAG_MODULES = {
+    "robot_relay.sources.mcap": {"numpy"}, "robot_relay.sources.sqlite": {"numpy", "rosbags"},
+    "robot_relay.sources.mcap_stream": {"rosbags", "zstandard"},
+    "robot_relay.sources.rosbag2": {"rosbags", "ruamel"},
+}
 
 
 @dataclass(frozen=True, slots=True)

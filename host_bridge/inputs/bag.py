@@ -134,7 +134,7 @@ class BagInput:
 
     The bag is opened once, by :meth:`extent` or else by the reading thread: opening an MCAP bag
     parses every channel's QoS (rosbags), 8-64 ms for nav2_turtlebot.mcap's four; a bag recorded
-    with ``--compression-mode file`` is decompressed whole, a sqlite3 one's tables read. With
+    with ``--compression-mode file`` starts its decompression, a sqlite3 one's tables are read. With
     ``opener`` (the bag at ``path`` opening on its thread since before the app was imported,
     cli.py) the bag is taken from it instead."""
 

@@ -1,10 +1,10 @@
 """A bag opened on a thread of its own while ``swanky-host`` imports the app.
 
-Opening a bag can take as long as importing the app (0.3-0.4 s on a quiet machine, most of it
-Rerun's SDK): rosbags decompresses a bag recorded with ``--compression-mode file`` whole at open
-(0.35 s for the 150 MB small-message file of ``benchmarks/bag_conversion.py``, 1.1 s for its
-600 MB large one) and counts the rows of a sqlite3 bag's every topic. Both run in C with the GIL
-released, so with a second core the import and the opening overlap. This module imports only the
+Opening a bag can take a good part of importing the app (0.3-0.4 s on a quiet machine, most of
+it Rerun's SDK): rosbags reads every channel's QoS and a sqlite3 bag's tables, and a bag recorded
+with ``--compression-mode file`` starts decompressing there (robot_relay/sources/mcap_stream.py:
+its thread decompresses ahead of the reader while the app imports; zstd runs in C with the GIL
+released), so with a second core the import and the opening overlap. This module imports only the
 relay's bag source (rosbags and numpy load on the thread, inside ``BagSource.open``), so the thread
 starts before the import.
 """

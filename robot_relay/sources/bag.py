@@ -7,7 +7,8 @@ expects the ROS 2 Header there); every other field keeps the bag's layout and na
 ``D K R P``), and the definition sent along is generated from exactly those types.
 
 A rosbag2 is read with rosbags' plain rosbag2 ``Reader`` (its sqlite3 files opened without
-counting rows: :class:`~robot_relay.sources.sqlite.Rosbag2Reader`), not ``AnyReader``: AnyReader
+counting rows, a file recorded with ``--compression-mode file`` streamed rather than decompressed
+at open: :class:`~robot_relay.sources.rosbag2.Rosbag2Reader`), not ``AnyReader``: AnyReader
 parses every definition in the bag when it opens, so one it cannot parse (a Jazzy service event's
 ``SRV:`` text) would refuse the whole bag, and a bag without definitions (Humble's sqlite3) would
 need a typestore. Forwarding raw CDR needs neither; the host decodes, topic by topic.
@@ -15,8 +16,8 @@ need a typestore. Forwarding raw CDR needs neither; the host decodes, topic by t
 Their messages are read from a rosbag2 whose files are all indexed MCAP by the bulk reader of
 :mod:`robot_relay.sources.mcap`, or all sqlite3 by that of :mod:`robot_relay.sources.sqlite` (the
 same messages in the same order, with no Python per record unpaced; a bag recorded with
-``--compression-mode file`` too, from the files rosbags decompressed); :meth:`BagSource.messages`
-reads every bag through rosbags, the reference.
+``--compression-mode file`` too, as it is decompressed: :mod:`robot_relay.sources.mcap_stream`);
+:meth:`BagSource.messages` reads every bag through rosbags, the reference.
 
 Needs rosbags (``pip install ".[relay,bag]"``); the live ROS 2 source does not.
 """
@@ -133,7 +134,7 @@ def _open_reader(paths: Sequence[Path], stack: ExitStack) -> Any:
         if ros1:  # AnyReader's import costs a rosbag2 run 6 ms it does not need
             from rosbags.highlevel import AnyReader
         else:
-            from robot_relay.sources.sqlite import Rosbag2Reader
+            from robot_relay.sources.rosbag2 import Rosbag2Reader
     except ModuleNotFoundError as err:
         msg = f"{ROSBAGS_MISSING} ({err})"
         raise SourceError(msg) from err
@@ -458,8 +459,8 @@ class BagSource:
 
     def mcap_storages(self) -> list[tuple[Path, dict[int, TopicInfo]]] | None:
         """A rosbag2 stored as MCAP without message compression: :meth:`_storages` as each MCAP
-        file's path (rosbags' decompressed copy for a bag recorded with ``--compression-mode
-        file``) with its channels. None for any other bag."""
+        file's path with its channels (a bag recorded with ``--compression-mode file``: rosbags'
+        decompressed copy, when the streaming reader did not take it). None for any other bag."""
         from rosbags.rosbag2.storage_mcap import McapReader
 
         storages = self._storages()
@@ -471,8 +472,10 @@ class BagSource:
         """A rosbag2 without message compression: its storage files, as rosbags opened them, in
         the order :meth:`messages` reads them, each with the info of every connection id read
         from it, as rosbags matches them to the bag's connections. None for any other bag. A bag
-        recorded with ``--compression-mode file`` gives the files rosbags decompressed when it
-        opened the bag (into a temporary directory it removes when closed).
+        recorded with ``--compression-mode file`` gives its file as streamed (:class:`~robot_relay.
+        sources.mcap_stream.StreamedMcap`), or, where the stream reader does not take it, the
+        file rosbags decompressed when it opened the bag (into a temporary directory it removes
+        when closed).
 
         For the bulk readers (:meth:`bulk_files`), which must yield what :meth:`messages`
         would."""
@@ -567,6 +570,14 @@ class BagSource:
             from robot_relay.sources.sqlite import Sqlite3File
 
             return [Sqlite3File(self.paths[0], storage, channels) for storage, channels in storages]
+        from robot_relay.sources.mcap_stream import StreamedMcap, StreamedMcapFile
+
+        if all(isinstance(storage, StreamedMcap) for storage, _ in storages):
+            streamed: list[McapFile] = [StreamedMcapFile(storage, channels)
+                                        for storage, channels in storages]
+            for opened in streamed:
+                self._stack.callback(opened.close)
+            return streamed
         mcap_files = self.mcap_storages()
         if mcap_files is None:
             return None

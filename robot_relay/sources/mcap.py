@@ -53,24 +53,29 @@ from robot_relay.wire import TopicInfo
 log = logging.getLogger("swanky.relay")
 
 MAGIC = b"\x89MCAP0\r\n"
+OP_HEADER = 0x01
 OP_FOOTER = 0x02
+OP_SCHEMA = 0x03
+OP_CHANNEL = 0x04
 OP_MESSAGE = 0x05
 OP_CHUNK = 0x06
 OP_MESSAGE_INDEX = 0x07
 OP_CHUNK_INDEX = 0x08
+OP_DATA_END = 0x0F
 FOOTER_SIZE = 1 + 8 + 20 + len(MAGIC)
 # A Message record: opcode, length, channel u16, sequence u32, log time u64, publish time u64.
 MESSAGE_HEADER = 1 + 8 + 2 + 4 + 8 + 8
 # Payloads from this size on are handed on as memoryviews of the chunk, smaller ones copied.
 LARGE_PAYLOAD = 64 * 1024
 
-_U16 = struct.Struct("<H")
-_U32 = struct.Struct("<I")
-_U64 = struct.Struct("<Q")
-_RECORD = struct.Struct("<BQ")
+U16 = struct.Struct("<H")
+U32 = struct.Struct("<I")
+U64 = struct.Struct("<Q")
+RECORD = struct.Struct("<BQ")
 _CHUNK_INDEX_HEAD = struct.Struct("<QQQQI")
-_CHUNK_HEAD = struct.Struct("<QQQI")
+CHUNK_HEAD = struct.Struct("<QQQI")
 _INDEX_ENTRY = np.dtype([("log_time", "<u8"), ("offset", "<u8")])
+Buffer = bytes | memoryview | mmap.mmap
 
 
 class NotIndexedError(Exception):
@@ -93,27 +98,34 @@ class Chunk:
     compressed_size: int
     uncompressed_size: int
     crc: int
-    message_indexes: tuple[tuple[int, int], ...]  # (channel id, file offset of its MessageIndex)
+    message_indexes: tuple[tuple[int, int], ...]  # (channel id, offset of its MessageIndex)
     indexed_at: int  # where the chunk index says the chunk is: file_offset unless repaired
+    buffer: Buffer
+    """What ``records_offset`` is a place in: the file's map, or the Chunk record's content as a
+    stream of the file gave it (:mod:`robot_relay.sources.mcap_stream`)."""
+    index_buffer: Buffer
+    """What the message indexes' offsets are places in: the file's map, or the MessageIndex
+    records after the chunk in the stream."""
 
 
-def _string(buffer: mmap.mmap, at: int) -> tuple[str, int]:
-    (size,) = _U32.unpack_from(buffer, at)
-    return buffer[at + 4 : at + 4 + size].decode(), at + 4 + size
+def string_at(buffer: Buffer, at: int) -> tuple[str, int]:
+    """The MCAP string at ``at`` and where it ends."""
+    (size,) = U32.unpack_from(buffer, at)
+    return str(buffer[at + 4 : at + 4 + size], "utf-8"), at + 4 + size
 
 
 def _chunk_record(
-    buffer: mmap.mmap, file_offset: int, compression: str, compressed_size: int
+    buffer: Buffer, file_offset: int, compression: str, compressed_size: int
 ) -> tuple[int, int] | None:
     """(where its records start, its CRC) of the Chunk record at ``file_offset`` if there is one
     with this compression and compressed size, else None."""
     if not 0 <= file_offset < len(buffer):
         return None
     try:
-        op, _ = _RECORD.unpack_from(buffer, file_offset)
-        _, _, _, crc = _CHUNK_HEAD.unpack_from(buffer, file_offset + _RECORD.size)
-        stored, records_at = _string(buffer, file_offset + _RECORD.size + _CHUNK_HEAD.size)
-        (records_size,) = _U64.unpack_from(buffer, records_at)
+        op, _ = RECORD.unpack_from(buffer, file_offset)
+        _, _, _, crc = CHUNK_HEAD.unpack_from(buffer, file_offset + RECORD.size)
+        stored, records_at = string_at(buffer, file_offset + RECORD.size + CHUNK_HEAD.size)
+        (records_size,) = U64.unpack_from(buffer, records_at)
     except (struct.error, UnicodeDecodeError):
         return None
     if op != OP_CHUNK or stored != compression or records_size != compressed_size:
@@ -127,7 +139,7 @@ def _chunk(buffer: mmap.mmap, at: int) -> Chunk:
     start_ns, end_ns, indexed_at, length, map_size = _CHUNK_INDEX_HEAD.unpack_from(buffer, at)
     at += _CHUNK_INDEX_HEAD.size
     indexes = tuple(struct.iter_unpack("<HQ", buffer[at : at + map_size]))
-    compression, at = _string(buffer, at + map_size + 8)
+    compression, at = string_at(buffer, at + map_size + 8)
     compressed_size, uncompressed_size = struct.unpack_from("<QQ", buffer, at)
     file_offset = indexed_at
     found = _chunk_record(buffer, file_offset, compression, compressed_size)
@@ -150,7 +162,7 @@ def _chunk(buffer: mmap.mmap, at: int) -> Chunk:
         msg = f"the chunk at byte {file_offset} has no message index"
         raise NotIndexedError(msg)
     return Chunk(file_offset, start_ns, end_ns, records_offset, compression, compressed_size,
-                 uncompressed_size, crc, tuple(sorted(indexes)), indexed_at)
+                 uncompressed_size, crc, tuple(sorted(indexes)), indexed_at, buffer, buffer)
 
 
 def read_chunks(buffer: mmap.mmap) -> list[Chunk]:
@@ -159,8 +171,8 @@ def read_chunks(buffer: mmap.mmap) -> list[Chunk]:
         msg = "not an MCAP file"
         raise NotIndexedError(msg)
     footer = len(buffer) - FOOTER_SIZE
-    op, _ = _RECORD.unpack_from(buffer, footer)
-    (summary_start,) = _U64.unpack_from(buffer, footer + _RECORD.size)
+    op, _ = RECORD.unpack_from(buffer, footer)
+    (summary_start,) = U64.unpack_from(buffer, footer + RECORD.size)
     if buffer[-len(MAGIC) :] != MAGIC or op != OP_FOOTER:
         msg = "the file has no MCAP footer (a recording cut short)"
         raise NotIndexedError(msg)
@@ -170,8 +182,8 @@ def read_chunks(buffer: mmap.mmap) -> list[Chunk]:
     chunks = []
     at = summary_start
     while at < footer:
-        op, size = _RECORD.unpack_from(buffer, at)
-        at += _RECORD.size
+        op, size = RECORD.unpack_from(buffer, at)
+        at += RECORD.size
         if op == OP_CHUNK_INDEX:
             chunks.append(_chunk(buffer, at))
         at += size
@@ -206,15 +218,16 @@ DECOMPRESSORS: Mapping[str, Callable[[memoryview, int], bytes]] = {
 
 @dataclass(slots=True)
 class _Loaded:
-    """A chunk's records in memory: ``data`` (bytes, or the file's map for an uncompressed
-    chunk), a memoryview of it, and where the records start in it."""
+    """A chunk's records in memory: ``data`` (bytes, or for an uncompressed chunk the buffer it
+    lies in: the file's map, or a view of the stream's), a memoryview of it, and where the
+    records start in it."""
 
-    data: bytes | mmap.mmap
+    data: Buffer
     view: memoryview
     base: int
 
 
-def _groups(chunks: Sequence[Chunk]) -> Iterator[list[Chunk]]:
+def overlapping_groups(chunks: Sequence[Chunk]) -> Iterator[list[Chunk]]:
     """Chunks (sorted by start time) in groups whose time ranges overlap: every message of a
     later group is later than every message of an earlier one, so each group sorts alone."""
     group: list[Chunk] = []
@@ -298,7 +311,7 @@ class McapFile:
         parts: list[tuple[int, int, npt.NDArray[np.void]]] = []
         for number, chunk in enumerate(group):
             try:
-                parts += [(number, channel, self._entries(channel, at))
+                parts += [(number, channel, self._entries(chunk, channel, at))
                           for channel, at in chunk.message_indexes if channel in self.channels]
             except _DamagedChunkError as damage:
                 self._skip(chunk, str(damage))
@@ -321,20 +334,26 @@ class McapFile:
         order = np.lexsort((offsets, file_offsets, log_ns))
         return numbers[order], offsets[order], channels[order], log_ns[order]
 
-    def _entries(self, channel: int, at: int) -> npt.NDArray[np.void]:
+    @staticmethod
+    def _entries(chunk: Chunk, channel: int, at: int) -> npt.NDArray[np.void]:
         """The entries of the chunk's MessageIndex record of ``channel`` at ``at``."""
+        buffer = chunk.index_buffer
         try:
-            op, _ = _RECORD.unpack_from(self._map, at)
-            (stored,) = _U16.unpack_from(self._map, at + _RECORD.size)
-            (size,) = _U32.unpack_from(self._map, at + _RECORD.size + 2)
+            op, _ = RECORD.unpack_from(buffer, at)
+            (stored,) = U16.unpack_from(buffer, at + RECORD.size)
+            (size,) = U32.unpack_from(buffer, at + RECORD.size + 2)
             if op != OP_MESSAGE_INDEX or stored != channel or size % _INDEX_ENTRY.itemsize:
                 raise ValueError
             entries: npt.NDArray[np.void] = np.frombuffer(
-                self._map, _INDEX_ENTRY, size // _INDEX_ENTRY.itemsize, at + _RECORD.size + 6)
+                buffer, _INDEX_ENTRY, size // _INDEX_ENTRY.itemsize, at + RECORD.size + 6)
             return np.array(entries)  # a copy: the map may close
         except (struct.error, ValueError) as err:  # ValueError: it runs past the end of the file
             msg = f"its message index at byte {at} is not one"
             raise _DamagedChunkError(msg) from err
+
+    def _chunk_groups(self) -> Iterator[list[Chunk]]:
+        """The file's chunks in groups to sort alone (:func:`overlapping_groups`), in order."""
+        return overlapping_groups(self.chunks)
 
     def _skip(self, chunk: Chunk, why: str) -> None:
         """Note a damaged chunk for the warning, with what its index says it held."""
@@ -343,7 +362,7 @@ class McapFile:
             if channel in self.channels:
                 topic = self.channels[channel].topic
                 try:
-                    count = len(self._entries(channel, at))
+                    count = len(self._entries(chunk, channel, at))
                 except _DamagedChunkError:
                     held[topic] = None
                     continue
@@ -354,12 +373,13 @@ class McapFile:
         self._skipped.append(f"the chunk at byte {chunk.file_offset} ({what or 'no'} messages "
                              f"per its index) is skipped: {why}")
 
-    def _load(self, chunk: Chunk) -> _Loaded:
-        records = memoryview(self._map)[
+    @staticmethod
+    def _load(chunk: Chunk) -> _Loaded:
+        records = memoryview(chunk.buffer)[
             chunk.records_offset : chunk.records_offset + chunk.compressed_size]
         if chunk.compression:
             try:
-                data: bytes | mmap.mmap = DECOMPRESSORS[chunk.compression](
+                data: Buffer = DECOMPRESSORS[chunk.compression](
                     records, chunk.uncompressed_size)
             except Exception as err:
                 msg = f"{chunk.compression} does not decompress it ({err})"
@@ -369,7 +389,7 @@ class McapFile:
                 msg = f"{len(data)} bytes decompressed, {chunk.uncompressed_size} expected"
                 raise _DamagedChunkError(msg)
         else:
-            data, base = self._map, chunk.records_offset
+            data, base = chunk.buffer, chunk.records_offset
             if chunk.compressed_size != chunk.uncompressed_size:
                 raise _DamagedChunkError("uncompressed sizes differ")
         view = memoryview(data)
@@ -403,34 +423,11 @@ class McapFile:
         starts = loaded.base + offsets + MESSAGE_HEADER
         return starts, loaded.base + offsets + 9 + lengths
 
-    def _unindexed_messages(self, chunk: Chunk, loaded: _Loaded) -> None:
+    @staticmethod
+    def _unindexed_messages(chunk: Chunk, loaded: _Loaded) -> None:
         """Raise if the chunk holds a message record its index leaves out (rosbags, walking the
-        records, would read it): walk the records in the gaps between indexed messages."""
-        entries = [
-            np.frombuffer(self._map, _INDEX_ENTRY, _U32.unpack_from(self._map, at + 11)[0] // 16,
-                          at + _RECORD.size + 6)["offset"].astype(np.int64)
-            for _, at in chunk.message_indexes
-        ]
-        offsets = np.sort(np.concatenate(entries)) if entries else np.zeros(0, np.int64)
-        records = np.frombuffer(loaded.data, np.uint8, chunk.uncompressed_size, loaded.base)
-        lengths = _numbers_at(records, "<u8")[offsets + 1]
-        del records
-        ends = offsets + 9 + lengths.astype(np.int64)
-        gap_starts = np.concatenate(([0], ends))
-        gap_ends = np.concatenate((offsets, [chunk.uncompressed_size]))
-        overlapping = gap_starts > gap_ends
-        if overlapping.any():
-            raise _DamagedChunkError(f"records overlap at {int(gap_starts[np.argmax(overlapping)])}")
-        gaps = gap_starts < gap_ends  # most messages follow one another: nothing to walk
-        for start, end in zip(gap_starts[gaps].tolist(), gap_ends[gaps].tolist(), strict=True):
-            at = start
-            while at < end:
-                op, record_size = _RECORD.unpack_from(loaded.data, loaded.base + at)
-                if op == OP_MESSAGE:
-                    raise _DamagedChunkError(f"the message at {at} is not indexed")
-                at += _RECORD.size + record_size
-            if at != end:
-                raise _DamagedChunkError(f"records overlap at {at}")
+        records, would read it)."""
+        gap_records(chunk, loaded)
 
     def _ranges(self) -> Iterator[tuple[Mapping[int, _Loaded], list[npt.NDArray[np.int64]]]]:
         """The wanted channels' messages in rosbags' order, in ranges whose chunks are all
@@ -438,7 +435,7 @@ class McapFile:
         and end, channel, log time). The chunks change once the next range is asked for.
         Each pass (a looped replay reads the file again) ends with its own warnings."""
         self._outside, self._skipped = 0, []
-        for group in _groups(self.chunks):
+        for group in self._chunk_groups():
             numbers, offsets, channels, log_ns = self._index(group)
             starts, ends = np.empty_like(offsets), np.empty_like(offsets)
             # Each chunk's messages in yielding order: it loads before its first, goes after its last.
@@ -541,6 +538,44 @@ def _numbers_at(records: npt.NDArray[np.uint8], dtype: str) -> npt.NDArray[np.ge
     size = np.dtype(dtype).itemsize
     rows = max(len(records) - size + 1, 0)
     return as_strided(records, (rows, size), (1, 1), writeable=False).view(dtype)[:, 0]
+
+
+def gap_records(chunk: Chunk, loaded: _Loaded) -> list[tuple[int, int, int]]:
+    """The records of a loaded chunk between its indexed messages (a chunk's schemas and
+    channels: rosbags' writer puts them there) as (opcode, where its content starts in
+    ``loaded.data``, where it ends), walked in the gaps between the messages; a message record
+    among them (its index leaves it out, and rosbags, walking the records, would read it) or
+    records that overlap raise _DamagedChunkError."""
+    indexes = chunk.index_buffer
+    entries = [
+        np.frombuffer(indexes, _INDEX_ENTRY, U32.unpack_from(indexes, at + 11)[0] // 16,
+                      at + RECORD.size + 6)["offset"].astype(np.int64)
+        for _, at in chunk.message_indexes
+    ]
+    offsets = np.sort(np.concatenate(entries)) if entries else np.zeros(0, np.int64)
+    records = np.frombuffer(loaded.data, np.uint8, chunk.uncompressed_size, loaded.base)
+    lengths = _numbers_at(records, "<u8")[offsets + 1]
+    del records
+    ends = offsets + 9 + lengths.astype(np.int64)
+    gap_starts = np.concatenate(([0], ends))
+    gap_ends = np.concatenate((offsets, [chunk.uncompressed_size]))
+    overlapping = gap_starts > gap_ends
+    if overlapping.any():
+        raise _DamagedChunkError(f"records overlap at {int(gap_starts[np.argmax(overlapping)])}")
+    found = []
+    gaps = gap_starts < gap_ends  # most messages follow one another: nothing to walk
+    for start, end in zip(gap_starts[gaps].tolist(), gap_ends[gaps].tolist(), strict=True):
+        at = start
+        while at < end:
+            op, record_size = RECORD.unpack_from(loaded.data, loaded.base + at)
+            if op == OP_MESSAGE:
+                raise _DamagedChunkError(f"the message at {at} is not indexed")
+            content = loaded.base + at + RECORD.size
+            found.append((op, content, content + record_size))
+            at += RECORD.size + record_size
+        if at != end:
+            raise _DamagedChunkError(f"records overlap at {at}")
+    return found
 
 
 def _payloads(

@@ -15,8 +15,8 @@ writes) is skipped and counted, and one warning after the file names the bag and
 BagSource's rosbags path does; a read error in the middle of the file (a corrupt page) ends it
 with a SourceError naming the bag and where reading stopped.
 
-A rosbag2 directory is opened through :class:`Rosbag2Reader`, rosbags' reader but for the rows it
-counts at open (:class:`UncountedSqlite3Reader`).
+A rosbag2 directory's sqlite3 files are opened by :class:`UncountedSqlite3Reader`, rosbags' reader
+but for the rows it counts at open (:class:`~robot_relay.sources.rosbag2.Rosbag2Reader`).
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ import logging
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -38,10 +37,8 @@ from rosbags.interfaces import (
     MessageDefinition,
     MessageDefinitionFormat,
 )
-from rosbags.rosbag2 import Reader
 from rosbags.rosbag2.errors import ReaderError
 from rosbags.rosbag2.metadata import parse_qos
-from rosbags.rosbag2.reader import DirectoryReader
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
 from robot_relay.errors import SourceError
@@ -110,20 +107,6 @@ class UncountedSqlite3Reader(Sqlite3Reader):
                 f"SELECT id, name, type, serialization_format{qos}{digest} FROM topics ORDER BY id"
             )
         ]
-
-
-class _Rosbag2Directory(DirectoryReader):
-    STORAGE_PLUGINS: Mapping[str, Any] = MappingProxyType(
-        {**DirectoryReader.STORAGE_PLUGINS, "sqlite3": UncountedSqlite3Reader})
-
-
-class Rosbag2Reader(Reader):
-    """rosbags' rosbag2 ``Reader``, its directories' sqlite3 files opened by
-    :class:`UncountedSqlite3Reader`; a bare .db3 file (whose counts are the bag's) as rosbags
-    opens it."""
-
-    STORAGE_PLUGINS: Mapping[str, Any] = MappingProxyType(
-        {**Reader.STORAGE_PLUGINS, "dir": _Rosbag2Directory})
 
 
 @dataclass(frozen=True, slots=True)

@@ -330,8 +330,9 @@ def test_relay_without_rosbags_says_what_to_install(
     bag = humble_bag(tmp_path / "humble")
     for name in [m for m in sys.modules if m == "rosbags" or m.startswith("rosbags.")]:
         monkeypatch.setitem(sys.modules, name, None)
-    # Imported by an earlier test, it would not import rosbags again.
-    monkeypatch.delitem(sys.modules, "robot_relay.sources.sqlite", raising=False)
+    # Imported by an earlier test, they would not import rosbags again.
+    for module in ("rosbag2", "mcap_stream", "sqlite"):
+        monkeypatch.delitem(sys.modules, f"robot_relay.sources.{module}", raising=False)
     assert relay_main(["--bag", str(bag), "--robot", "tb3"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [

@@ -164,7 +164,8 @@ OLDER_SCHEMAS = {
 def test_a_sqlite3_file_opens_with_rosbags_connections_but_no_counts(tmp_path: Path, schema: int) -> None:
     from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
-    from robot_relay.sources.sqlite import Rosbag2Reader, UncountedSqlite3Reader
+    from robot_relay.sources.rosbag2 import Rosbag2Reader
+    from robot_relay.sources.sqlite import UncountedSqlite3Reader
 
     bag = sqlite_bag(tmp_path / "bag")
     [db3] = bag.glob("*.db3")
