@@ -7,7 +7,7 @@ Each robot is the demo's simulated swanky_bot (``host_bridge/demo``: Imu, TF, od
 states, ground-truth pose and a step-time series at 30 Hz, LaserScan 360 rays at 5 Hz, a 160x120
 RGB-D camera at 5 Hz: image, depth image, depth cloud and camera_info, battery at 1 Hz, rosout,
 and the latched /tf_static, robot description and walls), its bag written by the demo's own
-writer and replayed (looping, real time) by the demo's own relay (``demo.run.relay_bag``). The
+writer and replayed (looping, real time) by the demo's own relays (``demo.relays.relay_bags``). The
 robots' relays run in one process of their own, as they would on the robots: the host's figures
 are the host's alone (the relays still share this machine's cores; the messages each robot
 delivered, against the baseline's, show whether they kept real time).
@@ -108,11 +108,11 @@ from live_capacity import received_ns  # noqa: E402  (beside this script)
 from host_bridge.app import HostOptions, open_input, start_layout  # noqa: E402
 from host_bridge.core.contract import WARNINGS_PATH  # noqa: E402
 from host_bridge.core.destinations import SinkOptions  # noqa: E402
+from host_bridge.demo.relays import relay_bags  # noqa: E402
 from host_bridge.demo.run import (  # noqa: E402
     DEMO_ROBOT,
     demo_robot_names,
     free_loopback_port,
-    relay_bag,
     write_bags,
 )
 from host_bridge.inputs.base import InputItem, InputProblem, MessageRun  # noqa: E402
@@ -445,21 +445,21 @@ def publish_and_exit(phase: Phase) -> NoReturn:
 
 
 def relay_fleet(endpoint: str, bags: Path, count: int, *, router: bool) -> int:
-    """The robots' side: one demo relay per robot, threads of this process, until SIGTERM;
-    through the router each a Zenoh client of it, as deploy/zenoh-router.json5 has robots."""
+    """The robots' side: the demo's relays (a Zenoh session each, one thread pacing them all),
+    until SIGTERM; through the router each a Zenoh client of it, as deploy/zenoh-router.json5
+    has robots."""
     stop, failed = threading.Event(), threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    mode = "client" if router else None
-    relays = [threading.Thread(target=relay_bag, args=(bags / robot, robot, endpoint, stop, failed),
-                               kwargs={"mode": mode}, name=f"relay-{robot}", daemon=True)
-              for robot in robot_names(count, router=router)]
-    for relay in relays:
-        relay.start()
+    robots = robot_names(count, router=router)
+    relays = threading.Thread(
+        target=relay_bags, args=({robot: bags / robot for robot in robots}, endpoint, stop, failed),
+        kwargs={"mode": "client" if router else None, "host_wait_s": JOIN_TIMEOUT_S},
+        name="relays", daemon=True)
+    relays.start()
     while not stop.wait(0.2):
         if failed.is_set():
             return 1
-    for relay in relays:
-        relay.join(timeout=5.0)
+    relays.join(timeout=30.0)
     return 0
 
 
