@@ -9,14 +9,16 @@ import numpy as np
 import pytest
 
 from host_bridge.core.columns import PackedPayloads
-from host_bridge.core.contract import TIMELINE_LOG, TIMELINE_RECEIVE
+from host_bridge.core.contract import TIMELINE_LOG, TIMELINE_RECEIVE, ColumnsItem, RowsColumn
 from host_bridge.core.counters import TopicCounters, sequence_gap, sequence_gaps
 from host_bridge.core.destinations import SinkOptions
+from host_bridge.core.rerun_private import column_values
 from host_bridge.inputs.base import MessageRun
 from host_bridge.inputs.clocks import ClockEstimate
 from host_bridge.outputs.sink import RerunSink
 from host_bridge.outputs.stats import (
     HostDrops,
+    QuietZeros,
     RelayRates,
     StatsTap,
     StatsTracker,
@@ -157,8 +159,18 @@ def test_convert_time_from_the_dispatcher_counters() -> None:
         "/_stats/tb3/scan/rate_hz",
     ]
     load = items["/_stats/tb3/host/convert_load_percent"]
-    assert load.archetypes[0].scalars.as_arrow_array().to_pylist() == [pytest.approx(1.0)]  # type: ignore[attr-defined]
-    assert load.times == {TIMELINE_RECEIVE: T0 + S}
+    assert row_value(load) == pytest.approx(1.0)
+    assert {name: values.tolist() for name, values in load.times.items()} == {TIMELINE_RECEIVE: [T0 + S]}
+    assert row_value(items["/_stats/tb3/scan/convert_ms"]) == pytest.approx(2.5)
+
+
+def row_value(item: ColumnsItem) -> float:
+    """The value of a one-row Scalars item (a slice of the batch its period's rows share)."""
+    (column,) = item.columns
+    assert isinstance(column, RowsColumn)
+    first, end = column.row_offsets.tolist()
+    assert end == first + 1
+    return float(column_values(column)[first].as_py())
 
 
 def test_relay_rates_between_reports() -> None:
@@ -203,6 +215,47 @@ def test_stats_tap_logs_scalars_into_rerun(tmp_path: Path) -> None:
     # The host clock is read once per run (as it is taken from the input queue).
     assert series("latency_ms") == [(T0 + S, pytest.approx(950 - 450)),
                                     (T0 + 2 * S, pytest.approx(450 - 200))]
+
+
+def test_a_drop_count_is_logged_where_it_changes_and_every_ten_periods_else() -> None:
+    quiet = QuietZeros(every=10, period_ns=S)
+    drops = [0] * 12 + [3, 0, 2, 2] + [0] * 14
+    logged = [row for n, count in enumerate(drops)
+              for row in quiet.rows("/d", TIMELINE_RECEIVE, T0 + (n + 1) * S, float(count))]
+    assert logged == [
+        (T0 + S, 0.0),  # the first period
+        (T0 + 11 * S, 0.0),  # ten periods on
+        (T0 + 12 * S, 0.0), (T0 + 13 * S, 3.0),  # the run begins after period 12 ...
+        (T0 + 14 * S, 0.0), (T0 + 15 * S, 2.0), (T0 + 16 * S, 2.0),
+        (T0 + 17 * S, 0.0),  # ... and ends at 17
+        (T0 + 27 * S, 0.0),
+    ]
+    assert quiet.skipped() == [("/d", TIMELINE_RECEIVE, T0 + 30 * S)]  # logged when the host stops
+
+
+def test_stats_tap_logs_each_drop_count_where_it_changes_and_the_last_zero_at_stop(
+    tmp_path: Path,
+) -> None:
+    out = tmp_path / "stats.rrd"
+    sink = RerunSink(SinkOptions(save=out))
+    clock = iter(T0 + n * S for n in range(100))
+    tap = StatsTap(sink, {}, clock=lambda: next(clock))
+    sequence = 0
+    for second in range(25):
+        sequence += 2 if second == 15 else 1  # one /scan message lost in second 15
+        tap([live("/scan", T0 + second * S + 500 * MS, sequence)])
+    tap.close()
+    sink.close()
+    rows = entity_rows(out)
+
+    def series(name: str) -> list[tuple[int, Any]]:
+        return [(r[TIMELINE_RECEIVE], r["Scalars:scalars"][0]) for r in rows[f"/_stats/tb3/scan/{name}"]]
+
+    assert len(series("rate_hz")) == 24  # the 25th second is still open
+    assert series("drops") == [
+        (T0 + S, 0.0), (T0 + 11 * S, 0.0), (T0 + 15 * S, 0.0), (T0 + 16 * S, 1.0),
+        (T0 + 17 * S, 0.0), (T0 + 24 * S, 0.0),  # the last closed period, at stop
+    ]
 
 
 def as_run(messages: list[RawMessage]) -> MessageRun:
