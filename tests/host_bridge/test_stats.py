@@ -10,7 +10,7 @@ import pytest
 
 from host_bridge.core.columns import PackedPayloads
 from host_bridge.core.contract import TIMELINE_LOG, TIMELINE_RECEIVE, ColumnsItem, RowsColumn
-from host_bridge.core.counters import TopicCounters, sequence_gap, sequence_gaps
+from host_bridge.core.counters import SHORT_RUN, TopicCounters, sequence_gap, sequence_gaps
 from host_bridge.core.destinations import SinkOptions
 from host_bridge.core.rerun_private import column_values
 from host_bridge.inputs.base import MessageRun
@@ -300,3 +300,7 @@ def test_sequence_gaps_of_a_run_sum_the_gaps_between_its_messages() -> None:
     assert sequence_gaps(3, np.array(numbers, np.int64)) == gaps == 1 + 2 + 0 + 0 + 1
     assert sequence_gaps(None, np.array(numbers, np.int64)) == 2 + 0 + 0 + 1  # nothing before
     assert sequence_gaps(7, np.array([], np.int64)) == 0
+    # A run as long as SHORT_RUN or longer is summed with numpy: the same sums.
+    longer = numbers + [n * 3 for n in range(1, SHORT_RUN)]
+    gaps = sum(sequence_gap(last, n) for last, n in zip([3, *longer], longer, strict=False))
+    assert sequence_gaps(3, np.array(longer, np.int64)) == gaps == 1 + 2 + 0 + 0 + 1 + 0 + 14 * 2
