@@ -646,11 +646,11 @@ def phase_line(name: str, phase: Phase) -> str:
 
 
 def robot_table(phase: Phase) -> None:
-    print(f"  {'robot':<8}{'small/s':>8}{'p50 ms':>8}{'p99 ms':>8}{'small drops':>12}"
+    print(f"  {'robot':<8}{'small/s':>8}{'p50 ms':>10}{'p99 ms':>10}{'small drops':>12}"
           f"{'heavy/s':>8}{'converted':>10}{'replaced':>9}{'link gaps':>10}")
     for f in phase.figures:
-        print(f"  {f.robot:<8}{f.arrived['small'] / phase.seconds:>8.1f}{f.small_p50_ms:>8.2f}"
-              f"{f.small_p99_ms:>8.2f}{f.queue_drops['small']:>12}"
+        print(f"  {f.robot:<8}{f.arrived['small'] / phase.seconds:>8.1f}{f.small_p50_ms:>10.1f}"
+              f"{f.small_p99_ms:>10.1f}{f.queue_drops['small']:>12}"
               f"{f.arrived['heavy'] / phase.seconds:>8.1f}{f.converted['heavy']:>10}"
               f"{f.queue_drops['heavy']:>9}{sum(f.link_drops.values()):>10}")
 
