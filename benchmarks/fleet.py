@@ -71,7 +71,7 @@ robot's ``/imu`` (every robot present, none short), the entities outside every r
 (which both hosts write: ``/_stats/host/viewer_lag_ms`` gets both hosts' series interleaved) and
 the hosts' warnings. After its window a host flushes what it logged to the viewer, then ends.
 
-The bags took 45-52 s to simulate on this shared 2-core machine (load 8 to 13), each phase
+The bags took 14-86 s to simulate on this shared 2-core machine (load 3.5 to 20), each phase
 30-45 s; a phase's process ends right after its window, without draining what its queues hold.
 
     .venv/bin/python benchmarks/fleet.py [--robots 25] [--seconds 15] [--warmup 5] [--slam]
@@ -670,7 +670,8 @@ def report(base: Phase, fleet: Phase) -> None:
     robot_table(fleet)
     kept = per_second(fleet, "small", "arrived") / per_second(base, "small", "arrived")
     print(f"small messages arrived per robot per second, fleet / baseline: {kept:.2f} "
-          "(below 1: the relays' process, on the same cores, fell behind real time)")
+          "(below 1: behind real time before the host's queues, in the relays' process on the same "
+          "cores or in Zenoh's links to a host that reads them late)")
     waiting = sum(f.waiting["small"] for f in fleet.figures)
     behind_s = waiting / fleet.robots / per_second(base, "small", "arrived")
     print(f"small messages converted per robot per second: {per_second(fleet, 'small', 'converted'):.1f} "
