@@ -3,13 +3,14 @@
 that robot would, the whole fleet paced by one thread.
 
 One thread per robot, each reading its bag and sleeping until its next message was due, cost a
-fleet of 25 one wake-up per message (5,000 a second) and a turn at the GIL each: the 25 demo
-relays in one process delivered a quarter of real time beside a busy host
-(``benchmarks/fleet.py --robots 25``). Here one thread merges the robots' timelines and wakes
+fleet of 25 one wake-up per message (5,150 a second) and a turn at the GIL each, which in
+``swanky-host --demo`` is the host's. Here one thread merges the robots' timelines and wakes
 once per :data:`TICK_S` at most, publishing every message due by then, each robot's as runs of a
 topic (``Relay.publish_run``, as a bag replay that is behind publishes them: a run of one is a
 single message on the wire, a longer one a bundle). The wire stays each robot's own: its
-session, publishers, sequence numbers, catalog, clock query and liveliness token.
+session, publishers, sequence numbers, catalog, clock query and liveliness token. 25 demo relays
+keep real time in a process of their own for about 0.2 of a core (benchmarks/RESULTS.md, issue
+24), the thread per robot too when not starved of CPU.
 """
 
 from __future__ import annotations
