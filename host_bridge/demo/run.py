@@ -2,7 +2,8 @@
 
 The simulator (:mod:`host_bridge.demo.bag`) writes one real rosbag2 per robot; for each robot an
 in-process relay replays its bag (looping, real time) over a loopback Zenoh link to this host,
-exactly as ``swanky-relay --bag`` on that robot would. Robots are named ``sim``, ``sim2``,
+exactly as ``swanky-relay --bag`` on that robot would (:mod:`host_bridge.demo.relays`: one
+thread paces them all). Robots are named ``sim``, ``sim2``,
 ``sim3``...; they drive the same loop through the same apartment, spread evenly along it, each
 with its own frames (``sim2/base_link``), drifting odometry and sensors.
 """
@@ -23,12 +24,11 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from host_bridge.demo.bag import write_demo_bag
+from host_bridge.demo.relays import relay_bags
 from host_bridge.demo.robot import lap_length
 from host_bridge.errors import ConfigError
 from host_bridge.inputs.base import Deliver, Input
-from robot_relay.relay import Relay
-from robot_relay.session import ZenohOptions, open_session
-from robot_relay.sources.bag import BagSource
+from robot_relay.session import ZenohOptions
 
 log = logging.getLogger("swanky.demo")
 
@@ -36,12 +36,12 @@ DEMO_ROBOT = "sim"
 DEMO_BAG_SECONDS = 60.0
 """About one lap: a replay that loops starts again close to where it ended."""
 MAX_DEMO_ROBOTS = 25
-"""The issue's fleet on one PC. No port or thread limit sets it (one endpoint, one relay thread
-per robot), what each robot costs does: its bag is simulated before the demo starts (1.7-2.1 s
-of CPU and 25 MB of temporary disk per 40 s of bag; 25 robots' bags took 158 s on this shared
-2-core machine under a load of 15), and the host's memory grows (``swanky-host --demo --robots
-25 --duration 30 --save``: peak RSS 1.7 GB, SLAM on). A larger fleet is one of relays, on a
-bigger PC."""
+"""The issue's fleet on one PC. No port or thread limit sets it (one endpoint, one Zenoh session
+per robot, one thread pacing them all), what each robot costs does: its bag is simulated before
+the demo starts (1.7-2.1 s of CPU and 25 MB of temporary disk per 40 s of bag; 25 robots' bags
+took 158 s on this shared 2-core machine under a load of 15), and the host's memory grows
+(``swanky-host --demo --robots 25 --duration 30 --save``: peak RSS 1.7 GB, SLAM on). A larger
+fleet is one of relays, on a bigger PC."""
 HOST_WAIT_SECONDS = 30.0
 BAG_MARGIN_SECONDS = 10.0
 
@@ -142,31 +142,6 @@ def write_bags(
         return None
 
 
-def relay_bag(
-    bag: Path, robot: str, endpoint: str, stop: threading.Event, host_stop: threading.Event,
-    *, mode: str | None = None,
-) -> None:
-    """Robot ``robot``'s relay: replays ``bag`` (looping, real time) to the host at
-    ``endpoint`` (a router's, with ``mode`` "client": benchmarks/fleet.py) until ``stop``;
-    sets ``host_stop`` if it fails."""
-    try:
-        session = open_session(ZenohOptions(mode=mode, connect=(endpoint,), multicast_scouting=False))
-        try:
-            with BagSource(bag, robot, rate=1.0, loop=True, sleep=stop.wait) as source:
-                relay = Relay(session, source.catalog())
-                if relay.wait_for_host(HOST_WAIT_SECONDS, stop):
-                    relay.publish_all(source.messages(), stop)
-                elif not stop.is_set():
-                    log.error("demo relay %r: the host did not subscribe within %.0f s",
-                              robot, HOST_WAIT_SECONDS)
-                relay.close()
-        finally:
-            session.close()
-    except Exception:
-        log.exception("demo relay %r failed; stopping the demo", robot)
-        host_stop.set()
-
-
 class DemoInput:
     """The :class:`~host_bridge.inputs.base.Input` of ``--demo``: writes the bags, starts one
     relay per robot, and hands on what ``live`` (the host's live input, listening on the plan's
@@ -180,7 +155,7 @@ class DemoInput:
         self._stop = stop
         self._seconds = demo_bag_seconds(duration)
         self._relay_stop = threading.Event()
-        self._relays: list[threading.Thread] = []
+        self._relays: threading.Thread | None = None
         self._bags = tempfile.TemporaryDirectory(prefix="swanky-demo-")
 
     @property
@@ -197,15 +172,12 @@ class DemoInput:
             return
         log.info("demo: bags written in %.1f s; relaying them over %s",
                  time.monotonic() - started, self.plan.endpoint)
-        self._relays = [
-            threading.Thread(
-                target=relay_bag, args=(bag, robot, self.plan.endpoint, self._relay_stop, self._stop),
-                name=f"demo-relay-{robot}", daemon=True,
-            )
-            for bag, robot in zip(bags, robots, strict=True)
-        ]
-        for relay in self._relays:
-            relay.start()
+        self._relays = threading.Thread(
+            target=relay_bags,
+            args=(dict(zip(robots, bags, strict=True)), self.plan.endpoint, self._relay_stop, self._stop),
+            kwargs={"host_wait_s": HOST_WAIT_SECONDS}, name="demo-relays", daemon=True,
+        )
+        self._relays.start()
         self._live.start(deliver)
 
     def ended(self) -> bool:
@@ -214,6 +186,6 @@ class DemoInput:
     def close(self) -> None:
         self._live.close()
         self._relay_stop.set()
-        for relay in self._relays:
-            relay.join(timeout=5.0)
+        if self._relays is not None:
+            self._relays.join(timeout=5.0 + 0.2 * len(self.plan.robots))
         self._bags.cleanup()

@@ -466,6 +466,14 @@ class RobotQueues:
                 for topic, count in _summed(lane.dropped for lane in robot.lanes).items()
             }
 
+    @property
+    def waiting(self) -> dict[str, tuple[int, int]]:
+        """Messages waiting per robot, of its small topics and of its heavy ones (a host that
+        converts slower than they arrive holds them here)."""
+        with self._lock:
+            return {name: (robot.small.messages, robot.heavy.messages)
+                    for name, robot in self._robots.items()}
+
     def dropped_when_taken(self, robot: str) -> Mapping[str, int]:
         """``robot``'s messages dropped per topic, as counted when the thread of that topic took
         the batch it hands over now: each older than every message of its topic still to be

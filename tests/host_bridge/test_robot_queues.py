@@ -230,6 +230,7 @@ def test_heavy_topics_go_to_a_thread_of_their_own_keeping_only_their_newest() ->
     queues.put(typed("a", "/points", CLOUD, 201))  # replaces 200
     queues.put(typed("a", "/imu", IMU, 4))
     queues.put(typed("b", "/camera", IMAGE, 150))  # another robot's own
+    assert queues.waiting == {"a": (5, 2), "b": (0, 1)}  # (small, heavy), the replaced ones gone
     assert delivered(queues, 8) == {
         "robot-a": [("/imu", 0), ("/imu", 1), ("/imu", 2), ("/imu", 3), ("/imu", 4)],
         "robot-a-heavy": [("/camera", 102), ("/points", 201)],

@@ -9,14 +9,16 @@ import numpy as np
 import pytest
 
 from host_bridge.core.columns import PackedPayloads
-from host_bridge.core.contract import TIMELINE_LOG, TIMELINE_RECEIVE
-from host_bridge.core.counters import TopicCounters, sequence_gap, sequence_gaps
+from host_bridge.core.contract import TIMELINE_LOG, TIMELINE_RECEIVE, ColumnsItem, RowsColumn
+from host_bridge.core.counters import SHORT_RUN, TopicCounters, sequence_gap, sequence_gaps
 from host_bridge.core.destinations import SinkOptions
+from host_bridge.core.rerun_private import column_values
 from host_bridge.inputs.base import MessageRun
 from host_bridge.inputs.clocks import ClockEstimate
 from host_bridge.outputs.sink import RerunSink
 from host_bridge.outputs.stats import (
     HostDrops,
+    QuietZeros,
     RelayRates,
     StatsTap,
     StatsTracker,
@@ -157,8 +159,18 @@ def test_convert_time_from_the_dispatcher_counters() -> None:
         "/_stats/tb3/scan/rate_hz",
     ]
     load = items["/_stats/tb3/host/convert_load_percent"]
-    assert load.archetypes[0].scalars.as_arrow_array().to_pylist() == [pytest.approx(1.0)]  # type: ignore[attr-defined]
-    assert load.times == {TIMELINE_RECEIVE: T0 + S}
+    assert row_value(load) == pytest.approx(1.0)
+    assert {name: values.tolist() for name, values in load.times.items()} == {TIMELINE_RECEIVE: [T0 + S]}
+    assert row_value(items["/_stats/tb3/scan/convert_ms"]) == pytest.approx(2.5)
+
+
+def row_value(item: ColumnsItem) -> float:
+    """The value of a one-row Scalars item (a slice of the batch its period's rows share)."""
+    (column,) = item.columns
+    assert isinstance(column, RowsColumn)
+    first, end = column.row_offsets.tolist()
+    assert end == first + 1
+    return float(column_values(column)[first].as_py())
 
 
 def test_relay_rates_between_reports() -> None:
@@ -212,7 +224,8 @@ class LogCalls:
         self.calls: list[list[tuple[str, int]]] = []
 
     def log(self, items: list[Any], times: dict[str, int]) -> None:
-        self.calls.append([(item.path, item.times[TIMELINE_RECEIVE]) for item in items])
+        self.calls.append([(item.path, int(np.asarray(item.times[TIMELINE_RECEIVE]).flat[0]))
+                           for item in items])
 
 
 def test_rows_held_for_a_slow_viewer_are_logged_together_in_order() -> None:
@@ -229,9 +242,50 @@ def test_rows_held_for_a_slow_viewer_are_logged_together_in_order() -> None:
     assert calls == [[T0 + k * S for k in range(1, 7)]]  # held from second 1's row to 6's
     hold_s[0] = 0.0  # the viewer caught up: each row as it comes
     tap([live("/scan", T0 + 8 * S, 80)])
-    tap.close()
+    tap.close()  # logs the last quiet zero of the drops (QuietZeros), no rate row
     calls = [[at for path, at in call if path == rate] for call in sink.calls]
-    assert calls == [[T0 + k * S for k in range(1, 7)], [T0 + 7 * S, T0 + 8 * S]]
+    assert calls == [[T0 + k * S for k in range(1, 7)], [T0 + 7 * S, T0 + 8 * S], []]
+
+
+def test_a_drop_count_is_logged_where_it_changes_and_every_ten_periods_else() -> None:
+    quiet = QuietZeros(every=10, period_ns=S)
+    drops = [0] * 12 + [3, 0, 2, 2] + [0] * 14
+    logged = [row for n, count in enumerate(drops)
+              for row in quiet.rows("/d", TIMELINE_RECEIVE, T0 + (n + 1) * S, float(count))]
+    assert logged == [
+        (T0 + S, 0.0),  # the first period
+        (T0 + 11 * S, 0.0),  # ten periods on
+        (T0 + 12 * S, 0.0), (T0 + 13 * S, 3.0),  # the run begins after period 12 ...
+        (T0 + 14 * S, 0.0), (T0 + 15 * S, 2.0), (T0 + 16 * S, 2.0),
+        (T0 + 17 * S, 0.0),  # ... and ends at 17
+        (T0 + 27 * S, 0.0),
+    ]
+    assert quiet.skipped() == [("/d", TIMELINE_RECEIVE, T0 + 30 * S)]  # logged when the host stops
+
+
+def test_stats_tap_logs_each_drop_count_where_it_changes_and_the_last_zero_at_stop(
+    tmp_path: Path,
+) -> None:
+    out = tmp_path / "stats.rrd"
+    sink = RerunSink(SinkOptions(save=out))
+    clock = iter(T0 + n * S for n in range(100))
+    tap = StatsTap(sink, {}, clock=lambda: next(clock))
+    sequence = 0
+    for second in range(25):
+        sequence += 2 if second == 15 else 1  # one /scan message lost in second 15
+        tap([live("/scan", T0 + second * S + 500 * MS, sequence)])
+    tap.close()
+    sink.close()
+    rows = entity_rows(out)
+
+    def series(name: str) -> list[tuple[int, Any]]:
+        return [(r[TIMELINE_RECEIVE], r["Scalars:scalars"][0]) for r in rows[f"/_stats/tb3/scan/{name}"]]
+
+    assert len(series("rate_hz")) == 24  # the 25th second is still open
+    assert series("drops") == [
+        (T0 + S, 0.0), (T0 + 11 * S, 0.0), (T0 + 15 * S, 0.0), (T0 + 16 * S, 1.0),
+        (T0 + 17 * S, 0.0), (T0 + 24 * S, 0.0),  # the last closed period, at stop
+    ]
 
 
 def as_run(messages: list[RawMessage]) -> MessageRun:
@@ -276,3 +330,7 @@ def test_sequence_gaps_of_a_run_sum_the_gaps_between_its_messages() -> None:
     assert sequence_gaps(3, np.array(numbers, np.int64)) == gaps == 1 + 2 + 0 + 0 + 1
     assert sequence_gaps(None, np.array(numbers, np.int64)) == 2 + 0 + 0 + 1  # nothing before
     assert sequence_gaps(7, np.array([], np.int64)) == 0
+    # A run as long as SHORT_RUN or longer is summed with numpy: the same sums.
+    longer = numbers + [n * 3 for n in range(1, SHORT_RUN)]
+    gaps = sum(sequence_gap(last, n) for last, n in zip([3, *longer], longer, strict=False))
+    assert sequence_gaps(3, np.array(longer, np.int64)) == gaps == 1 + 2 + 0 + 0 + 1 + 0 + 14 * 2
