@@ -17,6 +17,7 @@ import zenoh
 from host_bridge.demo.bag import write_demo_bag
 from host_bridge.demo.messages import TOPICS
 from host_bridge.demo.relays import _Timeline, relay_bags
+from robot_relay.policy import builtin_policy
 from robot_relay.relay import Relay
 from robot_relay.sources.bag import BagSource
 from robot_relay.wire import Attachment, Catalog, RawMessage, bundle_count, catalog_key
@@ -98,8 +99,15 @@ def test_every_robot_gets_its_bag_paced_on_its_own_wire(tmp_path: Path) -> None:
             if r != robot:
                 continue
             sequences = [sequence for sequence, _ in numbered]
-            # Each topic's own numbers, none lost or repeated, in order.
-            assert sequences == list(range(len(sequences))), (robot, topic)
+            info = next(info for info in catalogs[robot].topics if info.topic == topic)
+            if builtin_policy(info.msgtype, info.qos).congestion == "drop":
+                # A sensor stream drops under congestion (robot_relay/policy.py): a message
+                # may miss a Zenoh queue full at the start (sim2's first depth image did, 3 runs
+                # in 8); the rest in order, none repeated.
+                assert sequences == sorted(set(sequences)), (robot, topic)
+                assert len(sequences) >= len(range(sequences[-1] + 1)) - 2, (robot, topic)
+            else:  # each topic's own numbers, none lost or repeated, in order
+                assert sequences == list(range(len(sequences))), (robot, topic)
         # Paced: a pass of the bag takes its span (never less; more on a loaded machine), not
         # the moment an unpaced replay would.
         assert span_s - 0.2 <= arrivals[in_bag - 1] - arrivals[0] <= span_s + 2.0
