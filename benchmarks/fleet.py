@@ -50,10 +50,11 @@ of each other through the router and connect directly, so the data would not pas
 robots are the README's two groups, east-1, west-1, east-2, ... (the same demo robots). Two
 phases, each with its own Rerun viewer process without a window (``rerun --port N --save
 FILE.rrd``, ``tests/integration/procs.saving_viewer``) that its hosts log to under the recording
-id ``fleet``, as ``swanky-host --recording-id fleet --rerun-addr`` does: the layout it follows
-the topics with, how far behind the viewer is (``/_stats/host/viewer_lag_ms``) and heavy topics
-thinned for a viewer behind; only their conversion stays on the host's threads (no converter
-process), so the host's CPU is its process's:
+id ``fleet``, as ``swanky-host --recording-id fleet --host-name east --rerun-addr`` does: the
+layout it follows the topics with (shared with the other host: host_bridge/outputs/shared_layout.py),
+how far behind the viewer is (``/_stats/host/<group>/viewer_lag_ms`` with two hosts) and heavy
+topics thinned for a viewer behind; only their conversion stays on the host's threads (no
+converter process), so the host's CPU is its process's:
 
 - one host, ``--robots '*'``: the whole fleet;
 - two hosts, ``--robots 'east-$*'`` and ``--robots 'west-$*'``, each a process of its own,
@@ -66,9 +67,9 @@ messages dropped, each as a ratio where one reads as one. Both hosts run on this
 cores, so two hosts against one says what splitting the fleet over two processes buys (a GIL
 each) and costs, not what a second PC's cores would add. Then what each viewer saved: its
 recordings (one: both hosts' data in ``fleet``), the blueprints the hosts sent (each made the
-active one, so the layout shown is the last host's, naming its robots only), rows of each
-robot's ``/imu`` (every robot present, none short), the entities outside every robot's paths
-(which both hosts write: ``/_stats/host/viewer_lag_ms`` gets both hosts' series interleaved) and
+active one; each names every robot of both hosts once their topics were shared, so the layout
+shown is the whole fleet's whichever host sent last), rows of each robot's ``/imu`` (every robot
+present, none short), the entities outside every robot's paths (each host's own viewer lag) and
 the hosts' warnings. After its window a host flushes what it logged to the viewer, then ends.
 
 The bags took 14-86 s to simulate on this shared 2-core machine (load 3.5 to 20), each phase
@@ -379,9 +380,11 @@ whose CPU over the window is measured too, names to pids) and ``warmup`` passed 
                                 on_new_topic=None if layout is None else layout.topic_seen)
         closing.callback(dispatcher.close)
         if sink.viewer_lag is not None:
-            from host_bridge.pipeline.thinning import ViewerThinning
+            from host_bridge.pipeline.thinning import ViewerThinning, lag_path
 
-            dispatcher.offload = ViewerThinning(dispatcher, sink, sink.viewer_lag)
+            dispatcher.offload = ViewerThinning(dispatcher, sink, sink.viewer_lag,
+                                                path=lag_path(None if via is None or via.group == "all"
+                                                              else via.group))  # --host-name east
         if slam:
             from host_bridge.slam.feeder import SlamTap
             from host_bridge.table.config import HostConfig
@@ -392,9 +395,10 @@ whose CPU over the window is measured too, names to pids) and ``warmup`` passed 
             closing.callback(slam_tap.close)
             dispatcher.add_tap(slam_tap)
         options = HostOptions(zenoh=zenoh, rmw_zenoh=False,
-                              robots=f"{DEMO_ROBOT}$*" if via is None else GROUPS[via.group])
+                              robots=f"{DEMO_ROBOT}$*" if via is None else GROUPS[via.group],
+                              sink=SinkOptions(recording_id=None if via is None else RECORDING_ID))
         live = open_input(options, dispatcher, demo=None, robot_files=None,
-                          stop=threading.Event(), closing=closing)
+                          stop=threading.Event(), closing=closing, layout=layout)
         assert isinstance(live, LiveInput)
         timing = FleetTiming(dispatcher, registry)
         live.start(timing)
