@@ -77,6 +77,7 @@ def test_a_new_input_runs_through_the_host_into_a_saved_recording(
     def open_input(
         options: app.HostOptions, dispatcher: Dispatcher, *, demo: object,
         robot_files: object, stop: threading.Event, closing: ExitStack, bag_opener: object = None,
+        layout: object = None,
     ) -> Input:
         """Step 3: built where app.open_input builds the others (its flag is step 2)."""
         source: Input = ThermometerLogInput(log_file, options.robot)
