@@ -174,7 +174,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 def host_name(name: str) -> str:
     """``--host-name``: one part of a Rerun entity path."""
-    if not name or "/" in name or name != name.strip():
+    if not name or "/" in name or any(char.isspace() for char in name):
         msg = f"{name!r} is not a host name: one word of an entity path, without '/' or spaces"
         raise argparse.ArgumentTypeError(msg)
     return name

@@ -221,7 +221,7 @@ def test_web_viewer_serves_the_recording_on_loopback_unless_told(
     assert "Traceback" not in err
 
 
-@pytest.mark.parametrize("name", ["east/1", "", " east"])
+@pytest.mark.parametrize("name", ["east/1", "", " east", "east 1"])
 def test_a_host_name_that_is_no_entity_path_part(
     capsys: pytest.CaptureFixture[str], tmp_path: Path, name: str,
 ) -> None:
