@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from host_bridge.core.contract import WARNINGS_PATH
+from host_bridge.inputs.zenoh import CATALOG_TIMEOUT_S
 from tests.host_bridge.test_user_bags import convert, humble_bag, texts
 from tests.integration.procs import command, free_port, running
 from tests.rrd import entity_rows
@@ -41,7 +42,11 @@ def test_relay_replays_a_humble_bag_as_the_host_converts_it(tmp_path: Path) -> N
              for rs in (rows["/robot/global_costmap/costmap_raw"],
                         offline["/robot/global_costmap/costmap_raw"])]
     assert grids[0] == grids[1] == [[100, 255, 1, 0, 50, 99]]
-    warnings = texts(rows[WARNINGS_PATH])
+    # Besides the type named: a relay whose catalog came late (the query unanswered, 1 full
+    # suite run in 3 on the 2-core machine, 2026-11-29) is said too, and its topics decode with
+    # the bundled Humble types all the same (the rows above).
+    late = f"robot robot did not answer its catalog (swanky/robot/catalog) within {CATALOG_TIMEOUT_S} s"
+    warnings = [text for text in texts(rows[WARNINGS_PATH]) if late not in text]
     assert len(warnings) == 1, warnings
     [warning] = warnings
     assert warning.startswith("[robot] /sensor/reading: type my_msgs/msg/Reading has no definition")
