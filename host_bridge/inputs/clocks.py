@@ -70,6 +70,11 @@ READY_TIMEOUT_S = 2.0
 SUSPECT_LATENCY_NS = 1_000_000_000
 SUSPECT_GAP_S = 0.25
 """At most one query prompted by a relay's data in this time."""
+SLEW = 0.5
+"""How fast a correction moves a relay's receive times back to a better estimate: by half the
+time that passes on the relay's clock, so they still advance at half speed (in order) and a
+320 ms change is made in 640 ms. Any rate below 1 keeps the order; a slower one keeps times
+known to be off for longer."""
 FAR_OFF_NS = 1_000_000_000
 """A relay clock further than this from the PC's is warned about (once per robot)."""
 
@@ -105,6 +110,37 @@ class ClockEstimate:
     uncertainty_ns: int
     at_ns: int
     jumped: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Correction:
+    """What a relay's receive time ``t`` (on its clock) loses to land on the PC's: ``to_ns``,
+    the estimate's offset, reached from ``from_ns`` at :data:`SLEW` from ``since_ns`` (the
+    relay's clock when the estimate came) when it moves times back; pure."""
+
+    from_ns: int
+    to_ns: int
+    since_ns: int
+
+    @classmethod
+    def at_once(cls, estimate: ClockEstimate) -> Correction:
+        return cls(estimate.offset_ns, estimate.offset_ns, estimate.at_ns + estimate.offset_ns)
+
+    def offset_ns(self, relay_ns: int) -> int:
+        """The offset applied to a time ``relay_ns`` stamped by the relay."""
+        if self.to_ns <= self.from_ns:
+            return self.to_ns
+        slewed = self.from_ns + int(SLEW * max(0, relay_ns - self.since_ns))
+        return min(self.to_ns, slewed)
+
+    def then(self, estimate: ClockEstimate) -> Correction:
+        """The correction once ``estimate`` came: slewed to from where this one is then, when
+        it moves times back and the clock did not step."""
+        since = estimate.at_ns + estimate.offset_ns
+        now = self.offset_ns(since)
+        if estimate.jumped or estimate.offset_ns <= now:
+            return Correction.at_once(estimate)
+        return Correction(now, estimate.offset_ns, since)
 
 
 def bound_ns(sample: ClockSample, now_ns: int) -> int:
@@ -184,13 +220,17 @@ class _Follower:
         self.wake = threading.Event()
         self.stop = threading.Event()
         self.prompted = 0.0
+        self.published = False
+        """Whether an estimate of this relay's clock was given out."""
         self.thread: threading.Thread | None = None
 
 
 class RelayClocks:
     """Follows the clock of every relay that joins (one thread each, :meth:`follow`) and gives
-    its offset from the PC's (:meth:`offset_ns`, 0 until measured). Problems go to ``report``
-    (the input's queues): a relay that does not answer, a clock off by more than a second."""
+    its offset from the PC's (:meth:`offset_ns`, 0 until measured) and the correction of its
+    receive times (:meth:`correction_ns`, slewed to a new estimate: :class:`Correction`).
+    Problems go to ``report`` (the input's queues): a relay that does not answer, a clock off
+    by more than a second."""
 
     def __init__(self, session: zenoh.Session, report: Callable[[InputProblem], None]) -> None:
         self._session = session
@@ -199,6 +239,7 @@ class RelayClocks:
         self._followers: dict[str, _Follower] = {}
         # Read on Zenoh's threads for every sample, written whole: no lock needed.
         self._estimates: dict[str, ClockEstimate] = {}
+        self._corrections: dict[str, Correction] = {}
         self._watchers: list[ClockWatcher] = []
         self._said: set[tuple[str, type[Exception]]] = set()
         self._closed = False
@@ -212,6 +253,12 @@ class RelayClocks:
         """``robot``'s relay clock minus the PC's, as last estimated; 0 until then."""
         estimate = self._estimates.get(robot)
         return 0 if estimate is None else estimate.offset_ns
+
+    def correction_ns(self, robot: str, relay_ns: int) -> int:
+        """What ``robot``'s relay time ``relay_ns`` loses to land on the PC's clock; 0 until
+        measured."""
+        correction = self._corrections.get(robot)
+        return 0 if correction is None else correction.offset_ns(relay_ns)
 
     def follow(self, robot: str) -> None:
         """Measure ``robot``'s clock anew (its relay joined: a rebooted robot may have another
@@ -308,6 +355,12 @@ class RelayClocks:
             if self._followers.get(follower.robot) is not follower:
                 return  # replaced by a newer relay's measurement
             self._estimates[follower.robot] = estimate
+            previous = self._corrections.get(follower.robot)
+            # A relay that joined anew may run another clock: its first estimate applies at once.
+            self._corrections[follower.robot] = (
+                Correction.at_once(estimate) if previous is None or not follower.published
+                else previous.then(estimate))
+            follower.published = True
             watchers = list(self._watchers)
         for watcher in watchers:
             watcher(follower.robot, estimate)

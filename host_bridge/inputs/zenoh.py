@@ -281,7 +281,10 @@ class ZenohInput:
         and warned about (once per topic), so it cannot change how the topic's real messages
         are converted."""
         if info is None or info.msgtype == raw.msgtype:
-            offset = self.clocks.offset_ns(raw.robot)
+            # A bundle's messages share the relay's receive time (the bundle's).
+            receive_ns = raw.receive_ns[0] if isinstance(raw, MessageRun) and raw.receive_ns is not None \
+                and len(raw.receive_ns) else raw.receive_ns
+            offset = 0 if receive_ns is None else self.clocks.correction_ns(raw.robot, int(receive_ns))
             self._put(_delivered(raw, info, offset), info is not None and info.latched)
         else:
             key = (raw.robot, raw.topic)

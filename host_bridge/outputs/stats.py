@@ -535,7 +535,7 @@ class StatsTap:
             log.debug("%s", err)
             return
         if self._clocks is not None:
-            offset = self._clocks.offset_ns(report.robot)
+            offset = self._clocks.correction_ns(report.robot, report.time_ns)
             report = dataclasses.replace(report, time_ns=report.time_ns - offset)
         self._reports.append(report)  # zenoh's thread; logged on the host's thread
 

@@ -4,15 +4,24 @@ own delay."""
 
 from __future__ import annotations
 
+import itertools
 import random
 
 import pytest
 
-from host_bridge.inputs.clocks import MAX_DRIFT, ClockEstimate, ClockEstimator, ClockSample
+from host_bridge.inputs.clocks import (
+    MAX_DRIFT,
+    SLEW,
+    ClockEstimate,
+    ClockEstimator,
+    ClockSample,
+    Correction,
+)
 
 START_NS = 1_700_000_000 * 10**9
 MS = 1_000_000
 OFFSET_NS = 7_500 * MS
+HOURS_NS = 2 * 3600 * 10**9
 
 
 def round_trip(
@@ -123,3 +132,47 @@ def test_a_round_trip_a_step_made_negative_is_ignored() -> None:
     assert stepped.round_trip_ns < 0
     assert estimator.add(stepped) is None
     assert estimator.estimate == first
+
+
+def corrected(correction: Correction, relay_ns: list[int]) -> list[int]:
+    return [t - correction.offset_ns(t) for t in relay_ns]
+
+
+def test_a_refined_estimate_that_moves_times_back_is_slewed_to_in_order() -> None:
+    # The bad-link test's run: a first burst over a congested link gave -320 ms ±421 ms, a
+    # later round trip 0 ±100 ms; stepping put a 30 Hz topic's next messages before its last.
+    coarse = ClockEstimate(-320 * MS, 421 * MS, START_NS)
+    refined = ClockEstimate(0, 100 * MS, START_NS + 2000 * MS)
+    correction = Correction.at_once(coarse).then(refined)
+    period = 33 * MS
+    relay_ns = [START_NS + 1000 * MS + i * period for i in range(100)]  # the relay's clock: the PC's
+    times = corrected(correction, relay_ns)
+    assert all(b > a for a, b in itertools.pairwise(times))
+    # Before the refined estimate came: the old correction; 640 ms after it: the new one.
+    assert times[0] == relay_ns[0] + 320 * MS
+    assert correction.offset_ns(refined.at_ns) == -320 * MS
+    settled = refined.at_ns + int(320 * MS / SLEW)
+    assert correction.offset_ns(settled - 10 * MS) < 0
+    assert correction.offset_ns(settled) == 0
+    assert correction.offset_ns(settled + 10**9) == 0
+
+
+def test_a_correction_that_moves_times_later_or_follows_a_step_applies_at_once() -> None:
+    old = Correction.at_once(ClockEstimate(0, 100 * MS, START_NS))
+    later = old.then(ClockEstimate(-300 * MS, MS, START_NS + 1000 * MS))
+    assert later.offset_ns(START_NS + 1000 * MS) == -300 * MS
+    # The relay's clock stepped two hours ahead: followed at once (jumped), not over four hours.
+    stepped = old.then(ClockEstimate(HOURS_NS, MS, START_NS + 1000 * MS, jumped=True))
+    assert stepped.offset_ns(START_NS + 1000 * MS + HOURS_NS) == HOURS_NS
+
+
+def test_an_estimate_during_a_slew_continues_from_where_the_slew_is() -> None:
+    correction = Correction.at_once(ClockEstimate(-400 * MS, 400 * MS, START_NS)).then(
+        ClockEstimate(0, 200 * MS, START_NS + 1000 * MS))
+    midway = START_NS + 1400 * MS  # the relay's clock 400 ms into the slew: half of it made
+    assert correction.offset_ns(midway) == -200 * MS
+    # A third estimate, -100 ms, comes then (the relay's clock: its time plus the offset).
+    again = correction.then(ClockEstimate(-100 * MS, 100 * MS, midway + 100 * MS))
+    assert again.offset_ns(midway - 50 * MS) == -200 * MS
+    assert again.offset_ns(midway + 100 * MS) == -200 * MS + int(SLEW * 100 * MS)
+    assert again.offset_ns(midway + 10**9) == -100 * MS
