@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 
 from host_bridge.core.destinations import SinkOptions
 from host_bridge.core.resources import ResourceResolver, RobotFetch, parse_package_path
+from host_bridge.core.shards import Shard
 from host_bridge.errors import PartialConvertError, SinkError, relay_errors
 from host_bridge.inputs.base import Input
 from host_bridge.inputs.robot_files import RobotFiles
@@ -77,6 +78,10 @@ class HostOptions:
     slam: bool = False
     """Host-side SLAM for every robot (the config's slam: block may also turn it on per robot)."""
     save_map: Path | None = None
+    workers: int = 1
+    """Live: host processes converting the robots, each its shard of them (workers.py)."""
+    shard: Shard | None = None
+    """Set in each of those processes: the robots it converts."""
 
 
 @dataclass
@@ -181,7 +186,7 @@ def open_input(
         closing.callback(SharedLayout(session, options.sink.recording_id, layout).close)
     live = LiveInput(
         session, robots=robots, domain=options.domain, root_robot=options.robot,
-        rmw_zenoh=options.rmw_zenoh,
+        rmw_zenoh=options.rmw_zenoh, shard=options.shard,
     )
     if options.stats is not False:
         from host_bridge.pipeline.thinning import ViewerThinning
@@ -189,6 +194,7 @@ def open_input(
         thinning = dispatcher.offload
         stats: RawOutput = StatsTap(
             dispatcher.sink, dispatcher.counters, session=session, robots=robots,
+            owns=None if options.shard is None else options.shard.owns,
             host_dropped=live.queues.dropped_when_taken, clocks=live.clocks,
             hold_s=(thinning.stats_hold_s if isinstance(thinning, ViewerThinning) else lambda: 0.0),
         )
@@ -270,6 +276,10 @@ def run(
         demo = configure_demo(options.robots)  # checks --robots N before a viewer opens
     if options.blueprint is not None:
         check_blueprint_file(options.blueprint, APPLICATION_ID)
+    if options.workers > 1:
+        from host_bridge.workers import run_workers
+
+        return run_workers(options, demo, stop)
     # Live robots serve the meshes this PC lacks (robot_relay/files.py).
     robot_files = None if options.bag is not None else RobotFiles()
     meshes = resolver(options.package_path, None if robot_files is None else robot_files.fetch)

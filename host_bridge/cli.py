@@ -13,7 +13,7 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -24,6 +24,7 @@ from robot_relay.session import add_zenoh_arguments, zenoh_options
 if TYPE_CHECKING:
     # Imported when the host runs, not for --help: the app loads Rerun and the converters.
     from host_bridge import app
+    from host_bridge.inputs.bag_opener import BagOpener
 
 log = logging.getLogger("swanky.host")
 
@@ -122,6 +123,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "--blueprint", type=Path, metavar="FILE.rbl",
         help="send this saved Rerun blueprint instead of Swanky's layout",
     )
+    source.add_argument(
+        "--workers", type=worker_count, default=1, metavar="N",
+        help="live: convert the robots in N processes, each robot in one (spread by name), into "
+        "one recording: one process converts about one core's worth of messages (default 1)",
+    )
     slam = parser.add_argument_group("mapping (host-side 2D SLAM from /scan and odometry)")
     slam.add_argument(
         "--slam", action="store_true",
@@ -170,6 +176,21 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     add_zenoh_arguments(parser)
     return parser.parse_args(argv)
+
+
+MAX_WORKERS = 64
+
+
+def worker_count(text: str) -> int:
+    """``--workers``: 1 to :data:`MAX_WORKERS` processes."""
+    try:
+        count = int(text)
+    except ValueError:
+        count = 0
+    if not 1 <= count <= MAX_WORKERS:
+        msg = f"{text!r} is not a number of worker processes: 1 to {MAX_WORKERS}"
+        raise argparse.ArgumentTypeError(msg)
+    return count
 
 
 def host_name(name: str) -> str:
@@ -224,6 +245,7 @@ def host_options(args: argparse.Namespace) -> app.HostOptions:
         strict=args.strict,
         slam=not args.no_slam and (args.slam or args.save_map is not None or args.demo),
         save_map=args.save_map,
+        workers=args.workers,
     )
 
 
@@ -237,10 +259,10 @@ class StopSignals:
         self.received = False
 
     def install(self) -> None:
-        signal.signal(signal.SIGINT, self._on_signal)
-        signal.signal(signal.SIGTERM, self._on_signal)
+        signal.signal(signal.SIGINT, self.on_signal)
+        signal.signal(signal.SIGTERM, self.on_signal)
 
-    def _on_signal(self, signum: int, frame: object) -> None:
+    def on_signal(self, signum: int, frame: object) -> None:
         name = signal.Signals(signum).name
         if self.received:  # the user does not want to wait for the files and viewers
             print(f"swanky-host: {name} again, exiting at once", file=sys.stderr, flush=True)
@@ -283,13 +305,34 @@ def main(argv: Sequence[str] | None = None) -> int:
         from host_bridge.inputs.bag_opener import BagOpener
 
         bag_opener = BagOpener(args.bag, args.robot)  # opens while the app is imported
+    return run_app(lambda: host_options(args), signals, bag_opener)
+
+
+def run_worker(options: app.HostOptions, level: int) -> int:
+    """One of ``--workers N`` processes (host_bridge/workers.py starts it): the host of its
+    shard's robots. Ctrl-C reaches every process of the terminal; the workers leave it to the
+    process that started them, which stops them with SIGTERM once and waits for their files."""
+    assert options.shard is not None
+    logging.basicConfig(
+        level=level, format=f"%(name)s ({options.shard.name}): %(levelname)s: %(message)s"
+    )
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signals = StopSignals(threading.Event())
+    signal.signal(signal.SIGTERM, signals.on_signal)
+    return run_app(lambda: options, signals)
+
+
+def run_app(
+    options: Callable[[], app.HostOptions], signals: StopSignals, bag_opener: BagOpener | None = None
+) -> int:
+    """The host with ``options()`` (made once the app is imported) until it ends or ``signals``
+    stop it; its exit code."""
     import_app_uncollected()
     from host_bridge import app
 
     outputs = app.Outputs()
     try:
-        code = app.run(host_options(args), signals.stop, lambda: signals.received, outputs,
-                       bag_opener)
+        code = app.run(options(), signals.stop, lambda: signals.received, outputs, bag_opener)
     except HostError as err:
         print(f"swanky-host: error: {err}", file=sys.stderr)
         code = 2

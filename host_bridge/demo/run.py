@@ -142,9 +142,53 @@ def write_bags(
         return None
 
 
+class DemoRelays:
+    """The robots' side of ``--demo``: writes the bags, then replays each through a relay of its
+    own to the host at the plan's endpoint (``mode`` "client": a router's, as ``--workers``
+    runs it)."""
+
+    def __init__(
+        self, plan: DemoPlan, stop: threading.Event, duration: float | None, mode: str | None = None
+    ) -> None:
+        self.plan = plan
+        self._stop = stop
+        self._mode = mode
+        self._seconds = demo_bag_seconds(duration)
+        self._relay_stop = threading.Event()
+        self._relays: threading.Thread | None = None
+        self._bags = tempfile.TemporaryDirectory(prefix="swanky-demo-")
+
+    def write(self) -> list[Path] | None:
+        """The robots' bags, watching the host's stop (None once it is set)."""
+        robots = list(self.plan.robots)
+        log.info("demo: simulating %s for %.0f s", ", ".join(robots), self._seconds)
+        started = time.monotonic()
+        bags = write_bags(Path(self._bags.name), robots, self._seconds, self._stop)
+        if bags is not None:
+            log.info("demo: bags written in %.1f s; relaying them over %s",
+                     time.monotonic() - started, self.plan.endpoint)
+        return bags
+
+    def start(self, bags: list[Path]) -> None:
+        self._relays = threading.Thread(
+            target=relay_bags,
+            args=(dict(zip(self.plan.robots, bags, strict=True)), self.plan.endpoint,
+                  self._relay_stop, self._stop),
+            kwargs={"mode": self._mode, "host_wait_s": HOST_WAIT_SECONDS}, name="demo-relays",
+            daemon=True,
+        )
+        self._relays.start()
+
+    def close(self) -> None:
+        self._relay_stop.set()
+        if self._relays is not None:
+            self._relays.join(timeout=5.0 + 0.2 * len(self.plan.robots))
+        self._bags.cleanup()
+
+
 class DemoInput:
-    """The :class:`~host_bridge.inputs.base.Input` of ``--demo``: writes the bags, starts one
-    relay per robot, and hands on what ``live`` (the host's live input, listening on the plan's
+    """The :class:`~host_bridge.inputs.base.Input` of ``--demo``: the robots' relays
+    (:class:`DemoRelays`) and what ``live`` (the host's live input, listening on the plan's
     endpoint) receives from them."""
 
     def __init__(
@@ -152,11 +196,7 @@ class DemoInput:
     ) -> None:
         self.plan = plan
         self._live = live
-        self._stop = stop
-        self._seconds = demo_bag_seconds(duration)
-        self._relay_stop = threading.Event()
-        self._relays: threading.Thread | None = None
-        self._bags = tempfile.TemporaryDirectory(prefix="swanky-demo-")
+        self._relays = DemoRelays(plan, stop, duration)
 
     @property
     def last_activity(self) -> float:
@@ -164,20 +204,10 @@ class DemoInput:
 
     def start(self, deliver: Deliver) -> None:
         """Write the bags (watching the host's stop), then start the relays and the live input."""
-        robots = list(self.plan.robots)
-        log.info("demo: simulating %s for %.0f s", ", ".join(robots), self._seconds)
-        started = time.monotonic()
-        bags = write_bags(Path(self._bags.name), robots, self._seconds, self._stop)
+        bags = self._relays.write()
         if bags is None:
             return
-        log.info("demo: bags written in %.1f s; relaying them over %s",
-                 time.monotonic() - started, self.plan.endpoint)
-        self._relays = threading.Thread(
-            target=relay_bags,
-            args=(dict(zip(robots, bags, strict=True)), self.plan.endpoint, self._relay_stop, self._stop),
-            kwargs={"host_wait_s": HOST_WAIT_SECONDS}, name="demo-relays", daemon=True,
-        )
-        self._relays.start()
+        self._relays.start(bags)
         self._live.start(deliver)
 
     def ended(self) -> bool:
@@ -185,7 +215,4 @@ class DemoInput:
 
     def close(self) -> None:
         self._live.close()
-        self._relay_stop.set()
-        if self._relays is not None:
-            self._relays.join(timeout=5.0 + 0.2 * len(self.plan.robots))
-        self._bags.cleanup()
+        self._relays.close()

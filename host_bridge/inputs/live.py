@@ -8,6 +8,7 @@ import logging
 
 import zenoh
 
+from host_bridge.core.shards import Shard
 from host_bridge.errors import relay_errors
 from host_bridge.inputs.base import Deliver, gathered
 from host_bridge.inputs.queues import RobotQueues
@@ -37,14 +38,16 @@ class LiveInput:
         domain: int = 0,
         root_robot: str = "robot",
         rmw_zenoh: bool = True,
+        shard: Shard | None = None,
     ) -> None:
         self.queues = RobotQueues()
-        self._relays = ZenohInput(session, robots=robots, queues=self.queues)
+        self._relays = ZenohInput(session, robots=robots, queues=self.queues, shard=shard)
         self.clocks = self._relays.clocks
         """The relays' clocks against the PC's (rmw_zenoh robots have no relay to ask: their
         receive times are the host's own)."""
         self._receivers: list[ZenohInput | RmwZenohInput] = [self._relays]
-        if rmw_zenoh:
+        # rmw_zenoh robots announce no relay to spread by: the first worker reads them all.
+        if rmw_zenoh and (shard is None or shard.index == 0):
             self._receivers.append(RmwZenohInput(session, domain, robots, root_robot, self.queues))
         self._closed = False
 

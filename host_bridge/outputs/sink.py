@@ -48,6 +48,7 @@ APPLICATION_ID = "swanky"
 ALL_INTERFACES = ("0.0.0.0", "::")
 VIEWER_PORT = 9876
 """Where ``--spawn`` starts the viewer (Rerun's default), and a ``--serve-web`` gRPC default."""
+SPAWNED_VIEWER_URL = f"rerun+http://{LOOPBACK}:{VIEWER_PORT}/proxy"
 WEB_PORT = 9090
 """``rr.serve_web_viewer``'s default HTTP port."""
 REDAP_DEFAULT_PORT = 51234
@@ -434,6 +435,43 @@ class SavedFile:
                      self.path.parent / f"{self.path.stem}_*{self.path.suffix}")
 
 
+def spawn_viewer(stream: rr.RecordingStream | None = None) -> ViewerAddress:
+    """Start Rerun's viewer on :data:`VIEWER_PORT` (``--spawn``; one for all of ``--workers``),
+    and check it listens; SinkError saying why not."""
+    executable = viewer_executable()
+    if executable is None:
+        msg = (
+            f"cannot spawn the Rerun viewer: no 'rerun' executable beside {sys.executable} "
+            "or on PATH; install rerun-sdk (pip install \".[host]\") or use --save FILE.rrd, "
+            "--serve-web or --rerun-addr URL"
+        )
+        raise SinkError(msg)
+    try:
+        rr.spawn(
+            port=VIEWER_PORT, connect=False, recording=stream, executable_path=executable
+        )
+    except Exception as err:
+        msg = (
+            f"cannot spawn the Rerun viewer {executable} ({err}); on a machine without a "
+            "screen use --save FILE.rrd or --serve-web"
+        )
+        raise SinkError(msg) from err
+    viewer = ViewerAddress(
+        f"rerun+http://{LOOPBACK}:{VIEWER_PORT}/proxy (the spawned viewer)", LOOPBACK,
+        VIEWER_PORT, spawned=True,
+    )
+    if _probe(viewer) is not None:
+        # rr.spawn only warns when the viewer dies at once: without this check every later
+        # flush would wait for it.
+        msg = (
+            f"cannot spawn the Rerun viewer {executable}: it exited without listening on "
+            f"port {VIEWER_PORT} ({_why_no_window()}); on a machine without a screen use "
+            "--save FILE.rrd or --serve-web"
+        )
+        raise SinkError(msg)
+    return viewer
+
+
 class RerunSink:
     """Logs converter output with the message's timelines, into one recording stream for the
     viewers (``--spawn``, ``--rerun-addr``, ``--serve-web``) and one for a ``--save`` file
@@ -523,40 +561,10 @@ class RerunSink:
         return sink
 
     def _spawn(self, stream: rr.RecordingStream) -> rr.GrpcSink:
-        executable = viewer_executable()
-        if executable is None:
-            msg = (
-                f"cannot spawn the Rerun viewer: no 'rerun' executable beside {sys.executable} "
-                "or on PATH; install rerun-sdk (pip install \".[host]\") or use --save FILE.rrd, "
-                "--serve-web or --rerun-addr URL"
-            )
-            raise SinkError(msg)
-        try:
-            rr.spawn(
-                port=VIEWER_PORT, connect=False, recording=stream, executable_path=executable
-            )
-        except Exception as err:
-            msg = (
-                f"cannot spawn the Rerun viewer {executable} ({err}); on a machine without a "
-                "screen use --save FILE.rrd or --serve-web"
-            )
-            raise SinkError(msg) from err
-        viewer = ViewerAddress(
-            f"rerun+http://{LOOPBACK}:{VIEWER_PORT}/proxy (the spawned viewer)", LOOPBACK,
-            VIEWER_PORT, spawned=True,
-        )
-        if _probe(viewer) is not None:
-            # rr.spawn only warns when the viewer dies at once: without this check every later
-            # flush would wait for it.
-            msg = (
-                f"cannot spawn the Rerun viewer {executable}: it exited without listening on "
-                f"port {VIEWER_PORT} ({_why_no_window()}); on a machine without a screen use "
-                "--save FILE.rrd or --serve-web"
-            )
-            raise SinkError(msg)
+        viewer = spawn_viewer(stream)
         self._viewers.append(viewer)
-        self._viewer_urls.append(f"rerun+http://{LOOPBACK}:{VIEWER_PORT}/proxy")
-        return rr.GrpcSink(self._viewer_urls[-1])
+        self._viewer_urls.append(SPAWNED_VIEWER_URL)
+        return rr.GrpcSink(SPAWNED_VIEWER_URL)
 
     def _serve_grpc(self, options: SinkOptions) -> rr.GrpcServerSink:
         port = options.grpc_port or VIEWER_PORT

@@ -496,6 +496,7 @@ class StatsTap:
         *,
         session: zenoh.Session | None = None,
         robots: str = "*",
+        owns: Callable[[str], bool] | None = None,
         host_dropped: HostDropped | None = None,
         clock: Callable[[], int] = time.time_ns,
         clocks: RelayClocks | None = None,
@@ -509,6 +510,8 @@ class StatsTap:
         self._rates = RelayRates()
         self._reports: collections.deque[RelayReport] = collections.deque(maxlen=1000)
         self._clocks = clocks
+        self._owns = owns
+        """Whose relay reports this host logs (one worker of several: its shard's)."""
         self._estimates: collections.deque[tuple[str, ClockEstimate]] = collections.deque(maxlen=1000)
         self._quiet = QuietZeros(period_ns=self.tracker.period_ns)
         if clocks is not None:
@@ -533,6 +536,8 @@ class StatsTap:
                 raise WireError(msg)
         except WireError as err:
             log.debug("%s", err)
+            return
+        if self._owns is not None and not self._owns(report.robot):
             return
         if self._clocks is not None:
             offset = self._clocks.correction_ns(report.robot, report.time_ns)

@@ -9,6 +9,7 @@ to check another output of the same run (e.g. ``--record-mcap``), add its flag t
 
 from __future__ import annotations
 
+import itertools
 import math
 import subprocess
 import time
@@ -362,3 +363,41 @@ def check_fleet_recording(mcap: Path, robots: tuple[str, ...], imported: Path) -
     for robot in robots:  # each scan once, under its robot's root
         assert sum(not row["static"] for row in rows[f"/{robot}/scan"]) == counted[f"/{robot}/scan"]
     assert "/scan" not in rows
+
+
+def test_workers_split_a_fleet_demo_over_processes_into_one_recording(tmp_path: Path) -> None:
+    """``--demo --robots 4 --workers 2``: each robot converted by the one worker its name gives
+    (core/shards.py), in that worker's file, every IMU message of the run; both files one
+    recording, each laying out all four robots (the workers share their layout)."""
+    from host_bridge.core.shards import Shard
+
+    robots = ("sim", "sim2", "sim3", "sim4")
+    seconds = 6
+    with running(command("host_bridge.cli", "--demo", "--robots", "4", "--workers", "2",
+                         "--duration", str(seconds), "--no-slam",
+                         "--save", str(tmp_path / "fleet.rrd"))) as proc:
+        _, stderr = proc.communicate(timeout=TIMEOUT_S)
+    assert proc.returncode == 0, stderr[-3000:]
+    assert "2 workers (pids " in stderr
+    files = {index: tmp_path / f"fleet-worker{index}.rrd" for index in (0, 1)}
+    assert sorted(path.name for path in tmp_path.glob("*.rrd")) == sorted(p.name for p in files.values())
+    verify(*files.values())
+    from tests.integration.test_fleet import recording_id
+    from tests.rrd import saved_views
+
+    assert len({recording_id(path) for path in files.values()}) == 1
+    for index, path in files.items():
+        rows = entity_rows(path)
+        owned = [robot for robot in robots if Shard(index, 2).owns(robot)]
+        assert owned, "crc32 gives each worker some of sim..sim4"
+        assert {p.split("/")[1] for p in rows if not p.startswith("/_")} == set(owned), path.name
+        for robot in owned:
+            assert f"swanky.host (worker{index}): INFO: robot {robot} joined" in stderr
+            # 30 Hz for the run's seconds, less the relays' start: none lost between them.
+            imu = [row for row in rows[f"/{robot}/imu/linear_acceleration"] if not row["static"]]
+            assert len(imu) >= 30 * (seconds - 2), (robot, len(imu))
+            stamps = [row["ros_time"] for row in imu]
+            assert stamps == sorted(set(stamps))
+            assert max(b - a for a, b in itertools.pairwise(stamps)) < 1.5e9 / 30, robot  # none lost
+        assert {view["name"] for view in saved_views(path) if view.get("class") == "3D"} >= {
+            f"{robot} 3D" for robot in robots}, path.name
