@@ -365,27 +365,30 @@ def check_fleet_recording(mcap: Path, robots: tuple[str, ...], imported: Path) -
     assert "/scan" not in rows
 
 
+@pytest.mark.filterwarnings("ignore:RRD file has no footer")  # the viewer's own file
 def test_workers_split_a_fleet_demo_over_processes_into_one_recording(tmp_path: Path) -> None:
-    """``--demo --robots 4 --workers 2``: each robot converted by the one worker its name gives
-    (core/shards.py), in that worker's file, every IMU message of the run; both files one
-    recording, each laying out all four robots (the workers share their layout)."""
+    """``--demo --robots 4 --workers 2`` into a viewer and files: each robot converted by the
+    one worker its name gives (core/shards.py), in that worker's file, every IMU message of the
+    run; the viewer gets one recording of all four robots, each worker's viewer lag apart, and
+    both files lay out all four robots (the workers share their layout)."""
     from host_bridge.core.shards import Shard
+    from tests.integration.procs import saving_viewer
+    from tests.integration.test_fleet import recording_id
+    from tests.rrd import saved_views
 
     robots = ("sim", "sim2", "sim3", "sim4")
     seconds = 6
-    with running(command("host_bridge.cli", "--demo", "--robots", "4", "--workers", "2",
-                         "--duration", str(seconds), "--no-slam",
-                         "--save", str(tmp_path / "fleet.rrd"))) as proc:
+    viewed = tmp_path / "viewer.rrd"
+    with saving_viewer(viewed) as (url, _), running(command(
+            "host_bridge.cli", "--demo", "--robots", "4", "--workers", "2", "--duration", str(seconds),
+            "--no-slam", "--save", str(tmp_path / "fleet.rrd"), "--rerun-addr", url)) as proc:
         _, stderr = proc.communicate(timeout=TIMEOUT_S)
     assert proc.returncode == 0, stderr[-3000:]
     assert "2 workers (pids " in stderr
     files = {index: tmp_path / f"fleet-worker{index}.rrd" for index in (0, 1)}
-    assert sorted(path.name for path in tmp_path.glob("*.rrd")) == sorted(p.name for p in files.values())
+    assert sorted(path.name for path in tmp_path.glob("fleet*.rrd")) == sorted(p.name for p in files.values())
     verify(*files.values())
-    from tests.integration.test_fleet import recording_id
-    from tests.rrd import saved_views
-
-    assert len({recording_id(path) for path in files.values()}) == 1
+    assert len({recording_id(path) for path in [*files.values(), viewed]}) == 1
     for index, path in files.items():
         rows = entity_rows(path)
         owned = [robot for robot in robots if Shard(index, 2).owns(robot)]
@@ -401,3 +404,6 @@ def test_workers_split_a_fleet_demo_over_processes_into_one_recording(tmp_path: 
             assert max(b - a for a, b in itertools.pairwise(stamps)) < 1.5e9 / 30, robot  # none lost
         assert {view["name"] for view in saved_views(path) if view.get("class") == "3D"} >= {
             f"{robot} 3D" for robot in robots}, path.name
+    shown = entity_rows(viewed)
+    assert {p.split("/")[1] for p in shown if not p.startswith("/_")} == set(robots)
+    assert {f"/_stats/host/worker{index}/viewer_lag_ms" for index in (0, 1)} <= set(shown)
