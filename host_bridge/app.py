@@ -276,10 +276,6 @@ def run(
         demo = configure_demo(options.robots)  # checks --robots N before a viewer opens
     if options.blueprint is not None:
         check_blueprint_file(options.blueprint, APPLICATION_ID)
-    if options.workers > 1:
-        from host_bridge.workers import run_workers
-
-        return run_workers(options, demo, stop)
     # Live robots serve the meshes this PC lacks (robot_relay/files.py).
     robot_files = None if options.bag is not None else RobotFiles()
     meshes = resolver(options.package_path, None if robot_files is None else robot_files.fetch)

@@ -15,7 +15,7 @@ import sys
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NoReturn
 
 from host_bridge.core.destinations import LOOPBACK, SAVE_SPLIT_S, SinkOptions
 from host_bridge.errors import HostError
@@ -308,7 +308,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_app(lambda: host_options(args), signals, bag_opener)
 
 
-def run_worker(options: app.HostOptions, level: int) -> int:
+def worker_process(options: app.HostOptions, level: int) -> NoReturn:
     """One of ``--workers N`` processes (host_bridge/workers.py starts it): the host of its
     shard's robots. Ctrl-C reaches every process of the terminal; the workers leave it to the
     process that started them, which stops them with SIGTERM once and waits for their files."""
@@ -319,7 +319,7 @@ def run_worker(options: app.HostOptions, level: int) -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signals = StopSignals(threading.Event())
     signal.signal(signal.SIGTERM, signals.on_signal)
-    return run_app(lambda: options, signals)
+    sys.exit(run_app(lambda: options, signals))
 
 
 def run_app(
@@ -332,7 +332,13 @@ def run_app(
 
     outputs = app.Outputs()
     try:
-        code = app.run(options(), signals.stop, lambda: signals.received, outputs, bag_opener)
+        chosen = options()
+        if chosen.workers > 1 and not (chosen.list_topics or chosen.print_config):
+            from host_bridge.workers import run_workers
+
+            code = run_workers(chosen, signals.stop, worker_process)
+        else:
+            code = app.run(chosen, signals.stop, lambda: signals.received, outputs, bag_opener)
     except HostError as err:
         print(f"swanky-host: error: {err}", file=sys.stderr)
         code = 2

@@ -31,7 +31,7 @@ import signal
 import sys
 import threading
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -44,7 +44,6 @@ if TYPE_CHECKING:
     from multiprocessing.process import BaseProcess
 
     from host_bridge.app import HostOptions
-    from host_bridge.demo.run import DemoPlan
 
 log = logging.getLogger("swanky.host")
 
@@ -91,14 +90,22 @@ def check_workers(options: HostOptions) -> None:
         raise ConfigError(msg)
 
 
-def run_workers(options: HostOptions, demo: DemoPlan | None, stop: threading.Event) -> int:
-    """Route the robots to ``options.workers`` worker processes until they end or ``stop``;
-    the worst of their exit codes."""
-    from host_bridge.demo.run import DemoRelays, free_loopback_port
+WorkerMain = Callable[["HostOptions", int], None]
+"""A worker process's entry (cli.worker_process): its options and logging level."""
+
+
+def run_workers(options: HostOptions, stop: threading.Event, worker_main: WorkerMain) -> int:
+    """Route the robots to ``options.workers`` processes running ``worker_main`` until they end
+    or ``stop``; the worst of their exit codes."""
+    from host_bridge.demo.run import DemoRelays, configure_demo, free_loopback_port
     from host_bridge.inputs.live import open_host_session
-    from host_bridge.outputs.sink import SPAWNED_VIEWER_URL, spawn_viewer
+    from host_bridge.outputs.blueprint import check_blueprint_file
+    from host_bridge.outputs.sink import APPLICATION_ID, SPAWNED_VIEWER_URL, spawn_viewer
 
     check_workers(options)
+    demo = configure_demo(options.robots) if options.demo else None  # before a viewer opens
+    if options.blueprint is not None:
+        check_blueprint_file(options.blueprint, APPLICATION_ID)
     recording_id = options.sink.recording_id or str(uuid.uuid4())
     zenoh = options.zenoh if demo is None else demo.host_zenoh(options.zenoh)
     endpoint = demo.endpoint if demo is not None else f"tcp/127.0.0.1:{free_loopback_port()}"
@@ -124,7 +131,7 @@ def run_workers(options: HostOptions, demo: DemoPlan | None, stop: threading.Eve
         context = multiprocessing.get_context("spawn")  # never fork a process running Zenoh
         processes = [
             context.Process(
-                target=_worker_main, name=f"swanky-host {shard.name}",
+                target=worker_main, name=f"swanky-host {shard.name}",
                 args=(worker_options(options, shard, endpoint=endpoint, robots=robots,
                                      viewer=viewer, recording_id=recording_id),
                       logging.getLogger().level),
@@ -160,9 +167,3 @@ def _stop_all(processes: Sequence[BaseProcess]) -> None:
             log.error("%s did not stop within %.0f s; terminating it", process.name, STOP_WAIT_S)
             process.terminate()
             process.join(5.0)
-
-
-def _worker_main(options: HostOptions, level: int) -> None:
-    from host_bridge.cli import run_worker
-
-    sys.exit(run_worker(options, level))

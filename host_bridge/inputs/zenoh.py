@@ -216,12 +216,11 @@ class ZenohInput:
         """Hand the subscriber's samples to :meth:`_on_sample` until it is undeclared (those
         received before are handed on first)."""
         while True:
-            sample = samples.try_recv()  # without letting go of the GIL while samples wait
-            if sample is None:
-                try:
-                    sample = samples.recv()
-                except zenoh.ZError:  # undeclared, and every sample taken
-                    return
+            try:
+                # Without letting go of the GIL while samples wait; blocking when none does.
+                sample = samples.try_recv() or samples.recv()
+            except zenoh.ZError:  # undeclared, and every sample taken
+                return
             try:
                 self._on_sample(sample)
             except Exception:  # a bug on one sample must not stop the robots' data
