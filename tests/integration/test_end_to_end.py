@@ -138,3 +138,43 @@ def test_rerun_addr_streams_to_a_running_rerun_server(shared_data: Path, tmp_pat
     with pytest.warns(Warning, match="no footer"):
         rows = entity_rows(received)["/robot/scan"]
     assert scans(rows) == expected_scans(bag)
+
+
+def test_relay_replays_a_file_compressed_bag_into_a_host(tmp_path: Path) -> None:
+    """``swanky-relay --bag`` on a ``ros2 bag record --compression-mode file`` bag (one
+    .mcap.zstd, streamed as it is decompressed: robot_relay/sources/mcap_stream.py): every
+    message reaches the host, each topic's count as in the bag, and every image is drawn."""
+    from collections import Counter
+
+    from mcap.writer import CompressionType
+
+    from tests.host_bridge.inputs.test_mcap_stream import (
+        file_compressed,
+        mcap_messages,
+        rosbags_messages,
+        write_mcap,
+    )
+
+    messages = mcap_messages()
+    bag = file_compressed(tmp_path / "bag", write_mcap(tmp_path / "plain.mcap", CompressionType.NONE),
+                          messages)
+    assert [path.suffixes for path in bag.glob("*.mcap*")] == [[".mcap", ".zstd"]]
+    sent = rosbags_messages(bag)
+    port = free_port()
+    out = tmp_path / "out.rrd"
+    with running(command("host_bridge.cli", "-l", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting",
+                         "--robots", "zrel", "--no-stats", "--save", str(out), "--until-idle", "4")) as host:
+        relay = running(command("robot_relay.cli", "--robot", "zrel", "--bag", str(bag), "-e",
+                                f"tcp/127.0.0.1:{port}", "--no-multicast-scouting", "--wait-for-host", "30"))
+        with relay as replaying:
+            _, relay_err = replaying.communicate(timeout=120)
+        assert replaying.returncode == 0, relay_err
+        assert f"replay finished, {len(sent)} messages sent" in relay_err
+        _, stderr = host.communicate(timeout=120)
+    assert host.returncode == 0, stderr[-3000:]
+    received = {fields[1]: int(fields[3]) for fields in map(str.split, stderr.splitlines())
+                if len(fields) > 4 and fields[0] == "zrel"}
+    assert received == dict(Counter(message[1] for message in sent)) == {
+        "/chatter": 120, "/tie": 120, "/camera/image_raw": 40}
+    images = [row for row in entity_rows(out)["/zrel/camera/image_raw"] if not row["static"]]
+    assert len(images) == 40
