@@ -148,12 +148,8 @@ def test_relay_replays_a_file_compressed_bag_into_a_host(tmp_path: Path) -> None
 
     from mcap.writer import CompressionType
 
-    from tests.host_bridge.inputs.test_mcap_stream import (
-        file_compressed,
-        mcap_messages,
-        rosbags_messages,
-        write_mcap,
-    )
+    from tests.host_bridge.inputs.test_mcap import mcap_messages, rosbags_messages, write_mcap
+    from tests.host_bridge.inputs.test_mcap_stream import file_compressed
 
     messages = mcap_messages()
     bag = file_compressed(tmp_path / "bag", write_mcap(tmp_path / "plain.mcap", CompressionType.NONE),
