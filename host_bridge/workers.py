@@ -145,13 +145,26 @@ def run_workers(options: HostOptions, stop: threading.Event, worker_main: Worker
                  len(processes), ", ".join(str(process.pid) for process in processes), recording_id)
         if relays is not None and bags is not None:
             relays.start(bags)
+        failed: set[int] = set()
         while not stop.is_set() and any(process.is_alive() for process in processes):
             stop.wait(POLL_S)
-    codes = [process.exitcode for process in processes]
-    for shard, code in zip(shards, codes, strict=True):
-        if code:
-            print(f"swanky-host: {shard.name} exited with code {code}", file=sys.stderr)
-    return max((code if code is not None and code >= 0 else 1) for code in codes)
+            _say_failed(shards, processes, failed)
+    _say_failed(shards, processes, failed)
+    return max((code if code is not None and code >= 0 else 1) for code in
+               (process.exitcode for process in processes))
+
+
+def _say_failed(shards: Sequence[Shard], processes: Sequence[BaseProcess], said: set[int]) -> None:
+    """Name each worker that ended with an error, once, as it ends: its robots are no longer
+    converted, the other workers' are."""
+    for shard, process in zip(shards, processes, strict=True):
+        code = process.exitcode
+        if code and shard.index not in said:
+            said.add(shard.index)
+            how = f"was killed by signal {-code}" if code < 0 else f"exited with code {code}"
+            print(f"swanky-host: {shard.name} (pid {process.pid}) {how}: its robots are no longer "
+                  f"converted (those whose name's crc32 % {shard.count} is {shard.index}); the other "
+                  "workers go on", file=sys.stderr, flush=True)
 
 
 def _stop_all(processes: Sequence[BaseProcess]) -> None:

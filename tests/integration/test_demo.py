@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import os
 import subprocess
 import time
 from dataclasses import dataclass
@@ -407,3 +408,40 @@ def test_workers_split_a_fleet_demo_over_processes_into_one_recording(tmp_path: 
     shown = entity_rows(viewed)
     assert {p.split("/")[1] for p in shown if not p.startswith("/_")} == set(robots)
     assert {f"/_stats/host/worker{index}/viewer_lag_ms" for index in (0, 1)} <= set(shown)
+
+
+def test_a_worker_that_dies_is_named_and_the_other_goes_on(tmp_path: Path) -> None:
+    """One of two workers killed mid-run (a host that vanishes): the command names it and whose
+    robots it converted as it dies, the other worker's robots are converted to the end into a
+    complete file, and the exit code says something failed."""
+    import re
+    import signal as signals
+
+    from host_bridge.core.shards import Shard
+    from tests.integration.robot_bags import Lines
+
+    seconds = 10
+    with running(command("host_bridge.cli", "--demo", "--robots", "4", "--workers", "2",
+                         "--duration", str(seconds), "--no-slam", "--no-stats",
+                         "--save", str(tmp_path / "fleet.rrd"))) as proc:
+        lines = Lines(proc)
+        started = lines.wait_for("2 workers (pids ", timeout=TIMEOUT_S)
+        match = re.search(r"pids (\d+), (\d+)\)", started)
+        assert match is not None, started
+        doomed = int(match.group(2))
+        for index in (0, 1):
+            lines.wait_for(f"swanky.host (worker{index}): INFO: robot ", timeout=60)
+        # The demo's relays start once every robot's host subscribed: killed after, not before.
+        time.sleep(3)
+        os.kill(doomed, signals.SIGKILL)
+        said = lines.wait_for("worker1 (pid", timeout=10)
+        assert proc.wait(timeout=TIMEOUT_S) == 1
+    assert said.strip() == (
+        f"swanky-host: worker1 (pid {doomed}) was killed by signal 9: its robots are no longer "
+        "converted (those whose name's crc32 % 2 is 1); the other workers go on")
+    survivor = tmp_path / "fleet-worker0.rrd"
+    verify(survivor)
+    rows = entity_rows(survivor)
+    for robot in (robot for robot in ("sim", "sim2", "sim3", "sim4") if Shard(0, 2).owns(robot)):
+        imu = [row for row in rows[f"/{robot}/imu/linear_acceleration"] if not row["static"]]
+        assert len(imu) >= 30 * (seconds - 4), (robot, len(imu))  # to the end, past the kill
