@@ -8,7 +8,9 @@ path: :class:`~host_bridge.outputs.blueprint.TopicEntry`), and lays out theirs b
 every host sends the same layout, whichever comes last.
 
 Keys: ``swanky/@layout/<recording id>/<Zenoh id of the host>``; each host puts its topics there
-when they change and answers a query there (a host that starts later asks ``.../*``). ``@layout``
+when they change and answers a query there (a host that starts later asks ``.../*``), and puts
+them again when it first hears from another host: that host's query may have gone out before it
+could reach this one (``.ci/run`` once saw a late host's layout miss the first host's). ``@layout``
 is a verbatim chunk: no robot's ``swanky/*/...`` subscription or query matches it. A peer's
 topics stay in the layout after the peer stopped, as its data stays in the recording.
 """
@@ -43,6 +45,9 @@ def encode_topics(topics: Iterable[TopicEntry]) -> bytes:
     return json.dumps([[t.robot, t.topic, t.msgtype, t.entity_path] for t in sorted(topics)]).encode()
 
 
+NO_TOPICS = encode_topics(())
+
+
 def decode_topics(payload: bytes) -> frozenset[TopicEntry]:
     """A peer's topics; ValueError when the payload is not a list of four strings each."""
     try:
@@ -67,7 +72,8 @@ class SharedLayout:
         prefix = layout_prefix(recording_id)
         self._own_key = f"{prefix}/{session.zid()}"
         self._follower = follower
-        self._own = encode_topics(())
+        self._own = NO_TOPICS
+        self._peers: set[str] = set()
         self._publisher = session.declare_publisher(self._own_key)
         self._queryable = session.declare_queryable(self._own_key, self._on_query)
         self._subscriber = session.declare_subscriber(f"{prefix}/*", self._on_sample)
@@ -94,7 +100,11 @@ class SharedLayout:
         except ValueError as err:
             log.warning("layout shared at %s: ignored, %s", key, err)
             return
+        met = key not in self._peers
+        self._peers.add(key)
         self._follower.peer_topics(key, topics)
+        if met and self._own != NO_TOPICS:
+            self._publisher.put(self._own)
 
     def close(self) -> None:
         self._follower.on_own_topics = None
