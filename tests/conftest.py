@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from collections.abc import Generator, Iterator
 from dataclasses import asdict
 from pathlib import Path
@@ -26,6 +27,16 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared test data not found at {SHARED_DATA} (clone ../shared beside the repo)")
     return SHARED_DATA
+
+
+@pytest.fixture
+def keep_signal_handlers() -> Iterator[None]:
+    """For tests that call a command's main(), which installs its own SIGINT/SIGTERM handlers:
+    pytest's come back afterwards."""
+    saved = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    for signum, handler in saved.items():
+        signal.signal(signum, handler)
 
 
 @pytest.fixture

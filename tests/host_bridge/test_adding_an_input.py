@@ -5,10 +5,8 @@ that is read back."""
 
 from __future__ import annotations
 
-import signal
 import threading
 import time
-from collections.abc import Iterator
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -59,13 +57,7 @@ class ThermometerLogInput:
             self._thread.join()
 
 
-@pytest.fixture(autouse=True)
-def keep_signal_handlers() -> Iterator[None]:
-    """main() installs its own SIGINT/SIGTERM handlers; pytest's come back afterwards."""
-    saved = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
-    yield
-    for signum, handler in saved.items():
-        signal.signal(signum, handler)
+pytestmark = pytest.mark.usefixtures("keep_signal_handlers")  # main() installs its own
 
 
 def test_a_new_input_runs_through_the_host_into_a_saved_recording(

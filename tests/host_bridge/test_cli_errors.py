@@ -8,7 +8,6 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -19,14 +18,7 @@ from robot_relay import cli as relay_cli
 from tests.integration.procs import free_port
 from tests.integration.robot_bags import Entry, joint_state, tf_message, transform, write_bag
 
-
-@pytest.fixture(autouse=True)
-def keep_signal_handlers() -> Iterator[None]:
-    """main() installs its own SIGINT/SIGTERM handlers; pytest's come back afterwards."""
-    saved = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
-    yield
-    for signum, handler in saved.items():
-        signal.signal(signum, handler)
+pytestmark = pytest.mark.usefixtures("keep_signal_handlers")  # main() installs its own
 
 
 @pytest.fixture

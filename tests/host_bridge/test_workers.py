@@ -4,8 +4,6 @@ in tests/integration/test_demo.py."""
 
 from __future__ import annotations
 
-import signal
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -20,12 +18,7 @@ from robot_relay.session import ZenohOptions
 DEMO_FLEET = ["sim", *(f"sim{i}" for i in range(2, 26))]
 
 
-@pytest.fixture(autouse=True)
-def keep_signal_handlers() -> Iterator[None]:
-    saved = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
-    yield
-    for signum, handler in saved.items():
-        signal.signal(signum, handler)
+pytestmark = pytest.mark.usefixtures("keep_signal_handlers")  # main() installs its own
 
 
 @pytest.mark.parametrize("count", [1, 2, 3, 4])
