@@ -12,7 +12,6 @@ import logging
 import os
 import signal
 import sys
-import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
@@ -20,6 +19,7 @@ from typing import TYPE_CHECKING, NoReturn
 from host_bridge.core.destinations import LOOPBACK, SAVE_SPLIT_S, SinkOptions
 from host_bridge.errors import HostError
 from robot_relay.session import add_zenoh_arguments, zenoh_options
+from robot_relay.signals import StopSignals
 
 if TYPE_CHECKING:
     # Imported when the host runs, not for --help: the app loads Rerun and the converters.
@@ -249,29 +249,6 @@ def host_options(args: argparse.Namespace) -> app.HostOptions:
     )
 
 
-class StopSignals:
-    """SIGINT and SIGTERM: the first stops the host cleanly (a saved .rrd is completed), a second
-    exits at once, as swanky-relay does. Everything the main thread waits on is bounded in short
-    steps (sink.py, app.wait_for_end), so the handler always gets to run within about a second."""
-
-    def __init__(self, stop: threading.Event) -> None:
-        self.stop = stop
-        self.received = False
-
-    def install(self) -> None:
-        signal.signal(signal.SIGINT, self.on_signal)
-        signal.signal(signal.SIGTERM, self.on_signal)
-
-    def on_signal(self, signum: int, frame: object) -> None:
-        name = signal.Signals(signum).name
-        if self.received:  # the user does not want to wait for the files and viewers
-            print(f"swanky-host: {name} again, exiting at once", file=sys.stderr, flush=True)
-            os._exit(128 + signum)
-        self.received = True
-        log.info("%s: stopping (again to force)", name)
-        self.stop.set()
-
-
 def import_app_uncollected() -> None:
     """Import :mod:`host_bridge.app` (Rerun, numpy, pyarrow, the converters) with the garbage
     collector off, then freeze what it made.
@@ -298,7 +275,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(name)s: %(levelname)s: %(message)s",
     )
-    signals = StopSignals(threading.Event())
+    signals = StopSignals("swanky-host", log)
     signals.install()
     bag_opener = None
     if args.bag is not None and not args.print_config:
@@ -317,8 +294,8 @@ def worker_process(options: app.HostOptions, level: int) -> NoReturn:
         level=level, format=f"%(name)s ({options.shard.name}): %(levelname)s: %(message)s"
     )
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signals = StopSignals(threading.Event())
-    signal.signal(signal.SIGTERM, signals.on_signal)
+    signals = StopSignals("swanky-host", log)
+    signals.install(signal.SIGTERM)
     sys.exit(run_app(lambda: options, signals))
 
 

@@ -8,13 +8,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import faulthandler
 import logging
 import os
-import signal
 import socket
 import sys
-import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import NoReturn
@@ -23,6 +20,7 @@ from robot_relay import app
 from robot_relay.config import RelayConfig, load_relay_config
 from robot_relay.errors import RelayError
 from robot_relay.session import add_zenoh_arguments, zenoh_options
+from robot_relay.signals import StopSignals
 from robot_relay.wire import ROBOT_NAME_PATTERN
 
 STOP_DEADLINE_S = 15.0
@@ -112,27 +110,16 @@ def relay_options(args: argparse.Namespace, config: RelayConfig) -> app.RelayOpt
 def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(levelname)s: %(message)s")
     args = parse_args(argv)
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: object) -> None:
-        if stop.is_set():  # a second Ctrl-C / SIGTERM: the user does not want to wait
-            print(f"swanky-relay: {signal.Signals(signum).name} again, exiting at once",
-                  file=sys.stderr, flush=True)
-            os._exit(128 + signum)
-        log.info("%s: stopping (again to force)", signal.Signals(signum).name)
-        faulthandler.dump_traceback_later(STOP_DEADLINE_S, exit=True)
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    signals = StopSignals("swanky-relay", log, deadline_s=STOP_DEADLINE_S)
+    signals.install()
     try:
         config = load_relay_config(args.config) if args.config else RelayConfig()
-        return app.run(relay_options(args, config), stop)
+        return app.run(relay_options(args, config), signals.stop)
     except RelayError as err:
         print(f"swanky-relay: error: {err}", file=sys.stderr)
         return 2
-    finally:  # stopped in time (a test calling main again must not be ended by the last one)
-        faulthandler.cancel_dump_traceback_later()
+    finally:
+        signals.cancel_deadline()
 
 
 def console_main() -> NoReturn:
