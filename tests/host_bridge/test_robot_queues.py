@@ -593,6 +593,37 @@ def test_a_fleet_the_host_cannot_keep_up_with_keeps_its_small_topics_and_shares_
     assert [type(problem.error) for problem in thinned] == [HeavyTopicsThinnedError]
 
 
+def test_a_turn_that_converts_keeps_its_slot_however_long_it_takes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A host behind by seconds converts long turns: robot a's turn uses CPU for four times
+    STALLED_TURN_S, and b waits for it to end (when long turns counted as stalled, a fleet's
+    robots all converted at once, each getting a sliver of the GIL)."""
+    monkeypatch.setattr(queues_module, "STALLED_TURN_S", 0.1)
+    queues = RobotQueues(small_turns=1)
+    converting = threading.Event()
+    ends: dict[str, float] = {}
+    starts: dict[str, float] = {}
+
+    def handle(batch: Sequence[InputItem]) -> None:
+        robot = next(item.robot for item in batch if isinstance(item, RawMessage))
+        starts[robot] = time.monotonic()
+        if robot == "a":
+            converting.set()
+            busy_until = time.thread_time() + 0.4  # converting: CPU, not waiting
+            while time.thread_time() < busy_until:
+                pass
+        ends[robot] = time.monotonic()
+
+    queues.serve(handle)
+    queues.put(typed("a", "/imu", IMU, 0))
+    assert converting.wait(20)
+    queues.put(typed("b", "/imu", IMU, 0))
+    queues.close(timeout=30)
+    assert queues.error is None
+    assert starts["b"] >= ends["a"]
+
+
 def test_robots_take_turns_gathering_what_comes_meanwhile_and_a_hung_turn_ends(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
