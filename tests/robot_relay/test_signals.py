@@ -38,7 +38,7 @@ NESTED = textwrap.dedent("""
 def test_a_second_signal_inside_the_first_handler_exits_at_once(first: str, second: str) -> None:
     done = subprocess.run(
         [sys.executable, "-c", NESTED.format(first=first, second=second)],
-        capture_output=True, text=True, timeout=30,
+        check=False, capture_output=True, text=True, timeout=30,
     )
     assert done.returncode == 128 + signal.Signals[second], done
     assert done.stdout == f"{first}: stopping (again to force)\n"
@@ -57,6 +57,6 @@ def test_one_signal_stops_and_is_received() -> None:
             time.sleep(0.1)
             print(signals.received, signals.stop.is_set(), flush=True)
         """)],
-        capture_output=True, text=True, timeout=30,
+        check=False, capture_output=True, text=True, timeout=30,
     )
     assert (done.returncode, done.stdout) == (0, "True True\n"), done
