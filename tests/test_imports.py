@@ -41,6 +41,9 @@ HOST_MAY_IMPORT: dict[str, tuple[str, str]] = {
         "host_bridge", "both config files load alike: line-numbered errors, topic-glob precedence",
     ),
     "robot_relay.files": ("host_bridge", "--package-path NAME=DIR is parsed alike on both commands"),
+    "robot_relay.signals": (
+        "host_bridge.cli", "SIGINT and SIGTERM stop both commands alike: the first cleanly, a second at once",
+    ),
     "robot_relay.relay": ("host_bridge.demo", "the demo is a simulated robot: it runs a relay"),
     "robot_relay.policy": (
         "host_bridge.table.registry", "a row names the relay's traffic class of its type (TrafficClass), "

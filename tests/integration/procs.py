@@ -12,7 +12,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import zenoh
@@ -38,36 +38,48 @@ def command(module: str, *args: str) -> list[str]:
 
 
 @contextmanager
-def running(cmd: Sequence[str]) -> Iterator[subprocess.Popen[str]]:
-    """Start ``cmd``; on exit, SIGTERM then SIGKILL whatever is still running."""
+def running(cmd: Sequence[str], output: Path | None = None) -> Iterator[subprocess.Popen[str]]:
+    """Start ``cmd``, its stdout and stderr piped, or both written to ``output`` (for a process
+    whose output nobody reads: a full pipe would stop it); on exit, SIGTERM then SIGKILL whatever
+    is still running."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen(
-        list(cmd), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
-    )
-    try:
-        yield proc
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=10)
+    with ExitStack() as files:
+        written = None if output is None else files.enter_context(output.open("w"))
+        proc = subprocess.Popen(
+            list(cmd), stdout=written or subprocess.PIPE,
+            stderr=subprocess.STDOUT if written else subprocess.PIPE, text=True, env=env,
+        )
+        try:
+            yield proc
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+                try:
+                    proc.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait(timeout=10)
 
 
 @contextmanager
 def saving_viewer(received: Path, startup_s: float = 60.0) -> Iterator[tuple[str, subprocess.Popen[str]]]:
     """A Rerun viewer without a window (the binary itself, so signals reach the server) that
     saves what it receives to ``received``: its URL and process. It writes the file when it gets
-    SIGINT, which it gets on leaving if the test has not sent it."""
+    SIGINT, which it gets on leaving if the test has not sent it. Its output goes to
+    ``received`` + ``.log`` (a pipe nobody read once kept it from exiting, CI 2026-11-29)."""
     port = free_port()
-    with running([str(rerun_binary()), "--port", str(port), "--save", str(received)]) as viewer:
+    output = received.with_name(received.name + ".log")
+    with running([str(rerun_binary()), "--port", str(port), "--save", str(received)], output) as viewer:
         wait_listening(port, startup_s, "the viewer")
         yield f"rerun+http://127.0.0.1:{port}/proxy", viewer
         if viewer.poll() is None:
             viewer.send_signal(signal.SIGINT)
-            viewer.wait(timeout=60)
+            try:
+                viewer.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                tail = output.read_text(errors="replace")[-3000:]
+                raise AssertionError(f"the viewer saving {received} did not end within 60 s of "
+                                     f"SIGINT; its output ends:\n{tail}") from None
 
 
 def converter_processes(host: int) -> list[int]:
