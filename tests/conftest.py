@@ -60,6 +60,17 @@ def reliability(request: pytest.FixtureRequest) -> Iterator[reliability_table.Re
         del reliability_table.recorded[start:]
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """Ctrl-C and Ctrl-\\ back for the processes the tests start. A suite started as a background
+    job of a non-interactive shell (``.ci/run &``) inherits SIGINT and SIGQUIT ignored (POSIX), and
+    every process it starts would too: a Rerun viewer, which installs no SIGINT handler of its own,
+    then ignored the SIGINT that tells it to finish its saved file (twice, 2026-11-29). Python
+    handlers are reset to the default in the processes started; an ignored signal is not."""
+    for signum, handler in ((signal.SIGINT, signal.default_int_handler), (signal.SIGQUIT, signal.SIG_DFL)):
+        if signal.getsignal(signum) == signal.SIG_IGN:
+            signal.signal(signum, handler)
+
+
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_makereport(
     item: pytest.Item, call: pytest.CallInfo[None]
