@@ -158,9 +158,10 @@ def _delivered(
 
 class _RobotCatalog:
     """What the input knows of one robot's catalog: its topics, the samples waiting for it, the
-    fetch under way; used under its ``lock``. A lock per robot: one worker of several takes each
-    robot's samples on a thread of its own, and with one lock for all, 25 robots' threads queued
-    on it (py-spy: 86 % of their samples waiting there)."""
+    fetch under way; used under its ``lock``. A lock per robot, so one robot's catalog coming in
+    (its waiting samples, up to :data:`MAX_PENDING_PER_ROBOT`, queued under its lock) holds up
+    no other robot's samples. (It came with a thread per robot's channel, 25 of which queued on
+    one lock for all: py-spy, 86 % of their samples waiting there; one thread takes them now.)"""
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
