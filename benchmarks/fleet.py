@@ -72,11 +72,23 @@ shown is the whole fleet's whichever host sent last), rows of each robot's ``/im
 present, none short), the entities outside every robot's paths (each host's own viewer lag) and
 the hosts' warnings. After its window a host flushes what it logged to the viewer, then ends.
 
+``--workers N`` (default 2): the fleet phase is ``swanky-host --workers N`` itself, as a user runs
+it for a fleet (``host_bridge/workers.py``: this many processes, each converting its share of the
+robots, and the main process routing their samples), saving to a file, with the same relays and
+bags. Its figures are read from outside, as only the host's own files and output show them:
+small-topic latency is the relay's receive clock to the row's Rerun row id (which begins with the
+time the host logged it: converted, to the nanosecond of the dispatcher's figure above), for the
+messages received in the window (each message once, however many entities it fills); messages
+converted per robot and second likewise; drops (the host's queues) and sequence gaps per kind from
+the summary each worker prints at its stop, over the whole run (none in the run is none in the
+window); host CPU of the main process and the workers over the window, and their peak RSS each.
+``--workers 1`` measures the one-process host in this process instead, with the figures above.
+
 The bags took 14-86 s to simulate on this shared 2-core machine (load 3.5 to 20), each phase
 30-45 s; a phase's process ends right after its window, without draining what its queues hold.
 
     .venv/bin/python benchmarks/fleet.py [--robots 25] [--seconds 15] [--warmup 5] [--slam]
-        [--router]
+        [--workers 2] [--router]
 """
 
 from __future__ import annotations
@@ -135,6 +147,9 @@ BUDGET_SECONDS = 180
 
 P99_TARGET_MS = 100.0
 BAG_MARGIN_S = 5.0  # the bags loop; a little more than the phase needs spares the loop's jump
+WORKERS_START_S = 10.0
+"""More bag for ``--workers``: its robots join seconds after their relays start publishing (the
+workers are processes of their own, each opening its session and sink)."""
 JOIN_TIMEOUT_S = 90.0  # every robot delivering: a loaded 2-core machine starts 25 relays slowly
 KINDS = ("small", "heavy")
 ROUTER_CONFIG = ROOT / "deploy" / "zenoh-router.json5"
@@ -749,12 +764,232 @@ def report_router(one: Phase, two: list[Phase], seen: dict[int, ViewerFindings])
               + "".join(f"\n  warning: {text}" for text in found.warnings))
 
 
+@dataclass(frozen=True, slots=True)
+class WorkerRobot:
+    """One robot of the ``--workers`` phase."""
+
+    robot: str
+    converted: dict[str, int]
+    """Messages received in the window and converted, per kind."""
+    small_p50_ms: float
+    small_p99_ms: float
+    dropped: dict[str, int]
+    """Dropped in the host's queues over the whole run, per kind (the workers' summaries)."""
+    gaps: dict[str, int]
+    """Sequence gaps over the whole run, per kind: the host's own drops leave gaps too."""
+
+
+@dataclass(frozen=True, slots=True)
+class WorkersPhase:
+    workers: int
+    seconds: float
+    host_cpu_s: list[float]
+    """CPU over the window of the main process, then of each of its children (the workers and
+    multiprocessing's resource tracker)."""
+    relays_cpu_s: float
+    peak_rss_mb: list[float]
+    """The main process's, then each worker's."""
+    small_pooled_p50_ms: float
+    small_pooled_p99_ms: float
+    robots: list[WorkerRobot]
+    thinned_said: int
+
+
+SUMMARY_COLUMNS = ("robot", "topic", "type", "received", "converted", "dropped", "warnings", "gaps",
+                   "ms/msg")
+"""The header of the table a host prints at its stop (host_bridge/core/counters.py)."""
+
+
+def summary_rows(said: str, robots: set[str]) -> dict[tuple[str, str], tuple[str, int, int]]:
+    """(robot, topic) -> (type, dropped, gaps) from the workers' summaries in their output."""
+    rows = {}
+    for line in said.splitlines():
+        fields = line.split()
+        if len(fields) == len(SUMMARY_COLUMNS) and fields[0] in robots and fields[1].startswith("/"):
+            rows[fields[0], fields[1]] = (fields[2], int(fields[5]), int(fields[7]))
+    return rows
+
+
+def topic_of(entity: str, topics: Sequence[str]) -> str | None:
+    """The topic whose rows ``entity`` (without its robot) holds: the longest that is it or a
+    parent of it (/imu for /imu/orientation)."""
+    found = [topic for topic in topics if entity == topic or entity.startswith(f"{topic}/")]
+    return max(found, key=len, default=None)
+
+
+def logged_ms(
+    files: Sequence[Path], topics: dict[str, list[str]], window: tuple[int, int],
+) -> dict[tuple[str, str], list[float]]:
+    """Per (robot, topic), each message received in ``window`` (ns): receive -> logged in ms.
+    A message is its receive time and header stamp; of its rows (an Imu fills three entities,
+    a TF message one row per transform) the last logged counts, when all of it was."""
+    from rerun.chunk import RrdReader
+
+    logged: dict[tuple[str, str], dict[tuple[int, int], int]] = {}
+    for path in files:
+        for chunk in RrdReader(path).stream():
+            robot, _, rest = chunk.entity_path.strip("/").partition("/")
+            topic = None if chunk.is_static or robot not in topics else topic_of(f"/{rest}", topics[robot])
+            if topic is None:
+                continue
+            batch = chunk.to_record_batch()
+            if "receive_time" not in batch.schema.names:
+                continue
+            received = batch.column("receive_time").cast(pa.int64()).to_numpy(zero_copy_only=False)
+            stamp_name = next((n for n in ("ros_time", "log_time") if n in batch.schema.names), None)
+            stamps = (np.zeros(len(received), np.int64) if stamp_name is None else
+                      batch.column(stamp_name).cast(pa.int64()).fill_null(0).to_numpy(zero_copy_only=False))
+            row_ids = batch.column(ROW_ID)
+            # A row id begins with the time it was logged at, in ns since the epoch, big endian.
+            words = np.frombuffer(row_ids.buffers()[1], dtype=">u8")
+            logged_ns = words[2 * row_ids.offset:2 * (row_ids.offset + len(row_ids)):2].astype(np.int64)
+            rows = logged.setdefault((robot, topic), {})
+            for receive_ns, stamp_ns, at_ns in zip(received, stamps, logged_ns, strict=True):
+                if window[0] <= receive_ns < window[1]:
+                    key = (int(receive_ns), int(stamp_ns))
+                    rows[key] = max(rows.get(key, 0), int(at_ns))
+    return {key: [(at - receive_ns) / 1e6 for (receive_ns, _), at in rows.items()]
+            for key, rows in logged.items()}
+
+
+def process_tree(pid: int) -> list[int]:
+    """``pid`` and its children (the workers), as /proc lists them."""
+    children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    return [pid, *map(int, children)]
+
+
+def process_peak_rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def workers_phase(count: int, bags: Path, args: argparse.Namespace) -> WorkersPhase:
+    """``swanky-host --workers N`` listening for ``count`` robots' relays; the window begins
+    ``warmup`` s after every robot joined (its line in the host's output)."""
+    robots = robot_names(count, router=False)
+    port = free_loopback_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    said = bags / "host.log"
+    host_command = [sys.executable, "-m", "host_bridge.cli", "--listen", endpoint,
+                    "--no-multicast-scouting", "--no-rmw-zenoh", "--robots", f"{DEMO_ROBOT}$*",
+                    "--workers", str(args.workers), "--save", str(bags / "fleet.rrd"),
+                    "--slam" if args.slam else "--no-slam"]
+    with ExitStack() as closing:
+        host = closing.enter_context(running(host_command, output=said))
+        wait_for_port(port, timeout=JOIN_TIMEOUT_S)
+        relays = start_relays(count, bags, endpoint, router=False)
+        closing.callback(stop_process, relays)
+        deadline = time.monotonic() + JOIN_TIMEOUT_S
+        while (joined := said.read_text().count(" joined (swanky relay)")) < count:
+            if host.poll() is not None or relays.poll() is not None or time.monotonic() > deadline:
+                msg = (f"{joined} of {count} robots joined swanky-host --workers {args.workers} "
+                       f"within {JOIN_TIMEOUT_S:.0f} s; it said: {said.read_text()[-2000:]}")
+                raise RuntimeError(msg)
+            time.sleep(0.1)
+        time.sleep(args.warmup)
+        pids = process_tree(host.pid)
+        cpu_before = [process_cpu_s(pid) for pid in pids]
+        relays_before = process_cpu_s(relays.pid)
+        window_ns = time.time_ns()
+        time.sleep(args.seconds)
+        window = (window_ns, time.time_ns())
+        host_cpu = [process_cpu_s(pid) - before for pid, before in zip(pids, cpu_before, strict=True)]
+        relays_cpu = process_cpu_s(relays.pid) - relays_before
+        peak_rss = [process_peak_rss_mb(pid) for pid in pids]
+        stop_process(relays)
+        host.send_signal(signal.SIGINT)  # Ctrl-C: every worker finishes its file and summary
+        if host.wait(timeout=BUDGET_SECONDS) != 0:
+            msg = (f"swanky-host --workers {args.workers} ended with {host.returncode}: "
+                   f"{said.read_text()[-3000:]}")
+            raise RuntimeError(msg)
+    output = said.read_text()
+    summary = summary_rows(output, set(robots))
+    registry = default_registry()
+    kinds = {key: "small" if registry.row(msgtype, key[1]).lane is Lane.SMALL else "heavy"
+             for key, (msgtype, _, _) in summary.items()}
+    topics: dict[str, list[str]] = {}
+    for robot, topic in summary:
+        topics.setdefault(robot, []).append(topic)
+    latencies = logged_ms(sorted(bags.glob("fleet*.rrd")), topics, window)
+    figures = []
+    for robot in robots:
+        converted, dropped, gaps = (dict.fromkeys(KINDS, 0) for _ in range(3))
+        small: list[float] = []
+        for (name, topic), (_, topic_dropped, topic_gaps) in summary.items():
+            if name != robot:
+                continue
+            kind = kinds[name, topic]
+            dropped[kind] += topic_dropped
+            gaps[kind] += topic_gaps
+            logged = latencies.get((robot, topic), [])
+            converted[kind] += len(logged)
+            if kind == "small":
+                small += logged
+        timed = np.array(small or [np.nan])
+        figures.append(WorkerRobot(robot, converted, float(np.percentile(timed, 50)),
+                                   float(np.percentile(timed, 99)), dropped, gaps))
+    pooled = np.array([ms for key, logged in latencies.items() if kinds.get(key) == "small"
+                       for ms in logged] or [np.nan])
+    return WorkersPhase(args.workers, (window[1] - window[0]) / 1e9, host_cpu, relays_cpu, peak_rss,
+                        float(np.percentile(pooled, 50)), float(np.percentile(pooled, 99)), figures,
+                        output.count("thinning now"))
+
+
+def report_workers(base: Phase, fleet: WorkersPhase) -> None:
+    """The ``--workers`` phase's figures, each target's verdict with them."""
+    print(phase_line("baseline", base), flush=True)
+    converted = sum(sum(f.converted.values()) for f in fleet.robots)
+    host_cpu = sum(fleet.host_cpu_s)
+    print(f"fleet through swanky-host --workers {fleet.workers}, {len(fleet.robots)} robots, "
+          f"{fleet.seconds:.1f} s: host CPU {host_cpu / fleet.seconds:.2f} cores ("
+          f"{' + '.join(f'{cpu / fleet.seconds:.2f}' for cpu in fleet.host_cpu_s)}: the main process, "
+          f"then its children; {host_cpu / max(converted, 1) * 1e3:.3f} ms per message converted); "
+          f"beside it: relays {fleet.relays_cpu_s / fleet.seconds:.2f} cores; peak RSS "
+          f"{' + '.join(f'{mb:.0f}' for mb in fleet.peak_rss_mb)} MB (the same processes)")
+    print(f"  {'robot':<8}{'small/s':>8}{'p50 ms':>10}{'p99 ms':>10}{'small drops':>12}"
+          f"{'heavy/s':>8}{'replaced':>9}{'gaps':>6}")
+    for f in fleet.robots:
+        print(f"  {f.robot:<8}{f.converted['small'] / fleet.seconds:>8.1f}{f.small_p50_ms:>10.1f}"
+              f"{f.small_p99_ms:>10.1f}{f.dropped['small']:>12}{f.converted['heavy'] / fleet.seconds:>8.1f}"
+              f"{f.dropped['heavy']:>9}{sum(f.gaps.values()):>6}")
+    small_rate = sum(f.converted["small"] for f in fleet.robots) / fleet.seconds / len(fleet.robots)
+    base_rate = per_second(base, "small", "arrived")
+    print(f"small messages received in the window and converted, per robot per second: "
+          f"{small_rate:.1f}, against {base_rate:.1f} arriving for the baseline robot: "
+          f"{small_rate / base_rate:.2f} (below 1: behind real time, in the relays or the host; "
+          "not counted: messages whose rows are under another path than their topic's, such as "
+          "camera_info's, under its camera's)")
+    worst = max(fleet.robots, key=lambda f: f.small_p99_ms)
+    base_p99 = base.figures[0].small_p99_ms
+    print(f"small topics publish -> logged, p50 / p99 ms: baseline (publish -> converted) "
+          f"{base.small_pooled_p50_ms:.2f} / {base_p99:.2f}; fleet pooled "
+          f"{fleet.small_pooled_p50_ms:.2f} / {fleet.small_pooled_p99_ms:.2f}, worst robot "
+          f"({worst.robot}) p99 {worst.small_p99_ms:.2f}; ratio worst fleet p99 / baseline p99 "
+          f"{worst.small_p99_ms / base_p99:.1f} (target every robot's p99 <= {P99_TARGET_MS:g} ms: "
+          f"{'met' if worst.small_p99_ms <= P99_TARGET_MS else 'MISSED'})")
+    lost = sum(f.dropped["small"] for f in fleet.robots)
+    gaps = sum(f.gaps["small"] for f in fleet.robots)
+    print(f"drops over the whole run: small {lost} in the host's queues, {gaps} sequence gaps "
+          f"(target 0: {'met' if not lost and not gaps else 'MISSED'}); heavy "
+          f"{sum(f.dropped['heavy'] for f in fleet.robots)} replaced by newer ones; the workers said "
+          f"they thin heavy topics {fleet.thinned_said} time(s)")
+    heavy = sorted(f.converted["heavy"] for f in fleet.robots)
+    print(f"heavy messages received in the window and converted per robot: fewest {heavy[0]}, most "
+          f"{heavy[-1]} (baseline robot {base.figures[0].converted['heavy']}); every robot converts "
+          f"some: {'met' if heavy[0] > 0 else 'MISSED'}")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--robots", type=int, default=25, help="the fleet (default %(default)s)")
     parser.add_argument("--seconds", type=float, default=15.0, help="measured per phase")
     parser.add_argument("--warmup", type=float, default=5.0, help="after every robot delivered")
     parser.add_argument("--slam", action="store_true", help="host-side SLAM per robot, as the demo")
+    parser.add_argument("--workers", type=int, default=2,
+                        help="the fleet through swanky-host --workers N (1: one process, measured "
+                             "from inside; default %(default)s)")
     parser.add_argument("--router", action="store_true",
                         help="through a Zenoh router: one host for the fleet, then two (README)")
     parser.add_argument("--phase", type=int, help=argparse.SUPPRESS)
@@ -774,7 +1009,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="swanky-fleet-") as tmp:
         bags = Path(tmp)
         started = time.perf_counter()
-        seconds = args.warmup + args.seconds + BAG_MARGIN_S
+        seconds = args.warmup + args.seconds + BAG_MARGIN_S + (WORKERS_START_S if args.workers > 1 else 0)
         robots = robot_names(args.robots, router=args.router)
         written = write_bags(bags, robots, seconds, threading.Event())
         assert written is not None
@@ -795,8 +1030,14 @@ def main() -> int:
         (base,) = measured_hosts(1, bags, args, [[]])
         print(f"baseline measured: {base.figures[0].small_p50_ms:.2f} / "
               f"{base.figures[0].small_p99_ms:.2f} ms small-topic p50 / p99", flush=True)
-        (fleet,) = measured_hosts(args.robots, bags, args, [[]])
-    report(base, fleet)
+        if args.workers > 1:
+            workers = workers_phase(args.robots, bags, args)
+        else:
+            (fleet,) = measured_hosts(args.robots, bags, args, [[]])
+    if args.workers > 1:
+        report_workers(base, workers)
+    else:
+        report(base, fleet)
     return 0
 
 
