@@ -7,7 +7,8 @@ test's own, made by the script), a real ``swanky-relay --config relay.yaml`` (wh
 the commands' own flags (``--zenoh-config deploy/zenoh-host-tls.json5``, ``--cfg`` for another
 certificate) as ``swanky-host`` does, and ``swanky-host --list`` runs with that file. The listed
 host gets every byte; a client without a certificate, with one from another CA, or with one the
-access list does not name, gets none and reaches nobody.
+access list does not name, gets none and reaches nobody. ``swanky-host --workers 2`` through the
+same router converts each of two robots in its own worker.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from robot_relay.wire import Catalog, catalog_key, data_key, data_selector
 from tests.integration.procs import command, free_port, open_loopback, running
 from tests.integration.robot_bags import STORE, Entry, Lines, string, write_bag
 from tests.reliability import Record
+from tests.rrd import entity_rows
 
 pytestmark = pytest.mark.integration
 
@@ -295,3 +297,39 @@ def test_clients_without_a_valid_certificate_get_zero_bytes(lab: Lab, reliabilit
         "another CA, plain TCP, a raw TLS socket without certificate",
         survived="all 4 refused at the handshake (the raw socket: alert certificate_required); "
         "the router then served a listed host", lost="0 bytes reached them; they published 0")
+
+
+def test_workers_behind_the_tls_router_convert_every_robot_once(lab: Lab, tmp_path: Path) -> None:
+    """``swanky-host --workers 2`` through the lab's TLS router: its main process is the
+    router's client with the host's certificate, and its workers, reaching the robots only
+    through that process, each convert their own robot (tb3 and tb4 fall in different shards)."""
+    robots = (ROBOT, "tb4")
+    relays = []
+    for robot in robots:
+        bag = write_bag(tmp_path / f"bag-{robot}", [
+            Entry("/chatter", "std_msgs/msg/String", 10_000_000 * (i + 1), string(f"{robot} {i}"))
+            for i in range(CHATTER)])
+        relay_yaml = tmp_path / f"relay-{robot}.yaml"
+        relay_yaml.write_text(f"robot: {robot}\nzenoh:\n  config: {lab.config('zenoh-relay-tls.json5')}\n"
+                              f"  connect: [{lab.endpoint}]\n")
+        relays.append(command("robot_relay.cli", "--config", str(relay_yaml), "--bag", str(bag),
+                              "--wait-for-host", "60", "--hold", "inf"))
+    saved = tmp_path / "fleet.rrd"
+    host_command = command(
+        "host_bridge.cli", "--zenoh-config", str(lab.config("zenoh-host-tls.json5")),
+        "-e", lab.endpoint, "--no-rmw-zenoh", "--workers", "2", "--save", str(saved),
+        "--duration", "20")
+    with running(host_command) as host, running(relays[0]) as first, running(relays[1]) as second:
+        for relay in (first, second):
+            Lines(relay).wait_for(f"replay finished, {CHATTER} messages sent", timeout=60)
+        out, _ = host.communicate(timeout=90)
+    assert host.returncode == 0, out
+    texts: dict[tuple[str, str], list[str]] = {}
+    for worker in ("worker0", "worker1"):
+        for entity, rows in entity_rows(tmp_path / f"fleet-{worker}.rrd").items():
+            if entity.endswith("/chatter"):
+                texts[worker, entity] = [text for row in rows for text in row["TextLog:text"]]
+    assert texts == {
+        ("worker1", f"/{ROBOT}/chatter"): [f"{ROBOT} {i}" for i in range(CHATTER)],
+        ("worker0", "/tb4/chatter"): [f"tb4 {i}" for i in range(CHATTER)],
+    }
