@@ -264,8 +264,9 @@ def process_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def peak_rss_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
+def peak_rss_mb(pid: int | str = "self") -> float:
+    """Process ``pid``'s peak resident set (VmHWM), in MB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmHWM:"):
             return int(line.split()[1]) / 1024
     return float("nan")
@@ -858,13 +859,6 @@ def process_tree(pid: int) -> list[int]:
     return [pid, *map(int, children)]
 
 
-def process_peak_rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
-
-
 def workers_phase(count: int, bags: Path, args: argparse.Namespace) -> WorkersPhase:
     """``swanky-host --workers N`` listening for ``count`` robots' relays; the window begins
     ``warmup`` s after every robot joined (its line in the host's output)."""
@@ -897,7 +891,7 @@ def workers_phase(count: int, bags: Path, args: argparse.Namespace) -> WorkersPh
         window = (window_ns, time.time_ns())
         host_cpu = [process_cpu_s(pid) - before for pid, before in zip(pids, cpu_before, strict=True)]
         relays_cpu = process_cpu_s(relays.pid) - relays_before
-        peak_rss = [process_peak_rss_mb(pid) for pid in pids]
+        peak_rss = [peak_rss_mb(pid) for pid in pids]
         stop_process(relays)
         host.send_signal(signal.SIGINT)  # Ctrl-C: every worker finishes its file and summary
         if host.wait(timeout=BUDGET_SECONDS) != 0:
