@@ -100,7 +100,7 @@ def run_workers(options: HostOptions, stop: threading.Event, worker_main: Worker
     from host_bridge.demo.run import DemoRelays, configure_demo, free_loopback_port
     from host_bridge.inputs.live import open_host_session
     from host_bridge.outputs.blueprint import check_blueprint_file
-    from host_bridge.outputs.sink import APPLICATION_ID, SPAWNED_VIEWER_URL, spawn_viewer
+    from host_bridge.outputs.sink import APPLICATION_ID, spawn_viewer
 
     check_workers(options)
     demo = configure_demo(options.robots) if options.demo else None  # before a viewer opens
@@ -113,8 +113,7 @@ def run_workers(options: HostOptions, stop: threading.Event, worker_main: Worker
         zenoh = dataclasses.replace(zenoh, listen=(*zenoh.listen, endpoint))
     viewer = options.sink.connect
     if options.sink.spawn:
-        spawn_viewer()
-        viewer = SPAWNED_VIEWER_URL
+        viewer = spawn_viewer().url
     robots = options.robots if demo is None else demo.robot_filter
     shards = [Shard(index, options.workers) for index in range(options.workers)]
     with ExitStack() as closing:

@@ -48,7 +48,6 @@ APPLICATION_ID = "swanky"
 ALL_INTERFACES = ("0.0.0.0", "::")
 VIEWER_PORT = 9876
 """Where ``--spawn`` starts the viewer (Rerun's default), and a ``--serve-web`` gRPC default."""
-SPAWNED_VIEWER_URL = f"rerun+http://{LOOPBACK}:{VIEWER_PORT}/proxy"
 WEB_PORT = 9090
 """``rr.serve_web_viewer``'s default HTTP port."""
 REDAP_DEFAULT_PORT = 51234
@@ -130,6 +129,11 @@ class ViewerAddress:
     @property
     def where(self) -> str:
         return f"{self.host}:{self.port}"
+
+    @property
+    def url(self) -> str:
+        """The URL Rerun's gRPC sink connects to."""
+        return f"rerun+{'https' if self.tls else 'http'}://{self.where}/proxy"
 
 
 def _probe(viewer: ViewerAddress) -> str | None:
@@ -563,8 +567,8 @@ class RerunSink:
     def _spawn(self, stream: rr.RecordingStream) -> rr.GrpcSink:
         viewer = spawn_viewer(stream)
         self._viewers.append(viewer)
-        self._viewer_urls.append(SPAWNED_VIEWER_URL)
-        return rr.GrpcSink(SPAWNED_VIEWER_URL)
+        self._viewer_urls.append(viewer.url)
+        return rr.GrpcSink(viewer.url)
 
     def _serve_grpc(self, options: SinkOptions) -> rr.GrpcServerSink:
         port = options.grpc_port or VIEWER_PORT
