@@ -138,7 +138,7 @@ from host_bridge.pipeline.dispatch import Dispatcher  # noqa: E402
 from host_bridge.table.registry import Lane, Registry, default_registry  # noqa: E402
 from robot_relay.session import ZenohOptions  # noqa: E402
 from robot_relay.wire import RawMessage  # noqa: E402
-from tests.integration.procs import running, saving_viewer  # noqa: E402
+from tests.integration.procs import running, saving_viewer, stop  # noqa: E402
 from tests.integration.router import router_command, wait_for_port  # noqa: E402
 from tests.rrd import ROW_ID  # noqa: E402
 
@@ -352,13 +352,7 @@ def start_relays(count: int, bags: Path, endpoint: str, *, router: bool) -> subp
 
 def stop_process(process: subprocess.Popen[str]) -> None:
     """SIGTERM, then SIGKILL after 30 s."""
-    if process.poll() is None:
-        process.send_signal(signal.SIGTERM)
-    try:
-        process.wait(timeout=30)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait(timeout=10)
+    stop(process, wait_s=30.0)
 
 
 def run_phase(

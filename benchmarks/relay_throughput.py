@@ -60,7 +60,7 @@ from robot_relay.app import RelayOptions, relay_source  # noqa: E402
 from robot_relay.session import ZenohOptions, open_session  # noqa: E402
 from robot_relay.sources.base import Outlet  # noqa: E402
 from robot_relay.wire import Catalog, RawMessage, TopicInfo, cdr_encoding, data_key  # noqa: E402
-from tests.integration.procs import free_port, listening, open_loopback  # noqa: E402
+from tests.integration.procs import free_port, listening, open_loopback, stop  # noqa: E402
 
 # python -m benchmarks gives each script this many seconds at most.
 BUDGET_SECONDS = 120
@@ -215,12 +215,7 @@ def measure(command: Sequence[str], port: int, warmup: float, seconds: float) ->
         window = Window(received[0] - messages, cpu_seconds(proc.pid) - cpu,
                         time.monotonic() - started)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=10)
+        stop(proc, wait_s=15.0)
         subscriber.undeclare()
         session.close()
     return window

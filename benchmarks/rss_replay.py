@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import re
-import signal
 import subprocess
 import sys
 import tempfile
@@ -34,7 +33,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # tests/ for the loopback helpers
 
 from host_bridge.demo.bag import write_demo_bag
-from tests.integration.procs import command, free_port, listening
+from tests.integration.procs import command, free_port, listening, stop
 
 ROOT = Path(__file__).resolve().parent.parent
 BUDGET_SECONDS = 170
@@ -54,17 +53,6 @@ def status_kib(pid: int, field: str) -> int | None:
         if line.startswith(field + ":"):
             return int(line.split()[1])
     return None
-
-
-def stop(proc: subprocess.Popen[bytes], timeout: float = 15.0) -> int:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=timeout)
-    return proc.returncode
 
 
 def main() -> int:
@@ -116,11 +104,11 @@ def main() -> int:
             try:
                 host_exit = host.wait(timeout=IDLE_S + 30)
             except subprocess.TimeoutExpired:
-                host_exit = stop(host)
+                host_exit = stop(host, wait_s=15.0)
         finally:
             if relay is not None:
-                stop(relay)
-            stop(host)
+                stop(relay, wait_s=15.0)
+            stop(host, wait_s=15.0)
         errors = host_log.read_text(errors="replace")
         files = sorted(Path(tmp).glob("replay*.rrd"))
         sizes_mb = [f.stat().st_size / 1e6 for f in files]

@@ -14,6 +14,7 @@ import time
 from collections.abc import Iterator, Sequence
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
+from typing import Any
 
 import zenoh
 
@@ -52,13 +53,18 @@ def running(cmd: Sequence[str], output: Path | None = None) -> Iterator[subproce
         try:
             yield proc
         finally:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGTERM)
-                try:
-                    proc.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait(timeout=10)
+            stop(proc)
+
+
+def stop(process: subprocess.Popen[Any], wait_s: float = 10.0) -> int:
+    """SIGTERM, then SIGKILL if ``process`` has not ended within ``wait_s``; its exit code."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+    try:
+        return process.wait(timeout=wait_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        return process.wait(timeout=10)
 
 
 VIEWER_SAVE_WAIT_S = 60.0
