@@ -125,7 +125,11 @@ class _TopicPublisher:
         self.key = data_key(robot, info.topic)
         self.sequence = 0
         self._on_sent = on_sent
+        # Held while sending and while undeclaring: the take loop may still hold this publisher
+        # when a catalog refresh undeclares it, and zenoh's Python publisher raises "Already
+        # borrowed" if put and undeclare overlap ("Undeclared publisher" if put comes after).
         self._lock = threading.Lock()
+        self._undeclared = False
         self._compress = _compressor(policy, info.topic)
         self._flag = COMPRESSION_FLAGS.get(policy.compression, 0)
         self._bundle_bytes = MAX_BUNDLE_BYTES if policy.congestion == "drop" else MAX_BLOCKING_BUNDLE_BYTES
@@ -199,6 +203,8 @@ class _TopicPublisher:
             return self.limiter.due_at
 
     def _put(self, raw: RawMessage, receive_ns: int) -> None:
+        if self._undeclared:  # the topic left the catalog while this message was on its way
+            return
         payload, flags = bytes(raw.data), 0
         if self._compress is not None:
             packed = self._compress(payload)
@@ -253,6 +259,8 @@ class _TopicPublisher:
     def _put_bundle(
         self, payloads: Sequence[bytes | memoryview], log_ns: Sequence[int], receive_ns: int
     ) -> None:
+        if self._undeclared:
+            return
         payload, flags = pack_bundle(payloads, log_ns), FLAG_BUNDLE
         if self._compress is not None:
             packed = self._compress(payload)
@@ -269,7 +277,9 @@ class _TopicPublisher:
         self.flush(time.monotonic(), force=True)  # the newest message is never lost
         if self._listener is not None:
             self._listener.undeclare()
-        self.publisher.undeclare()
+        with self._lock:
+            self._undeclared = True
+            self.publisher.undeclare()
 
 
 class _Flusher:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
 from collections.abc import Iterable
 from typing import TYPE_CHECKING
 from urllib.parse import quote
@@ -74,7 +75,15 @@ class SharedLayout:
         self._follower = follower
         self._own = NO_TOPICS
         self._peers: set[str] = set()
-        self._publisher = session.declare_publisher(self._own_key)
+        # Zenoh's callbacks and the follower's thread put while close() may undeclare: zenoh's
+        # Python publisher raises "Already borrowed" when the two overlap (a .ci/run did).
+        self._publishing = threading.Lock()
+        self._closed = False
+        # Remote only: a put made in _on_sample (Zenoh's callback thread) that went to this
+        # session's own subscriber waited for room in that subscriber's queue, which only that
+        # thread empties; with many hosts' layouts queued it waited for ever.
+        self._publisher = session.declare_publisher(
+            self._own_key, allowed_destination=zenoh.Locality.REMOTE)
         self._queryable = session.declare_queryable(self._own_key, self._on_query)
         self._subscriber = session.declare_subscriber(f"{prefix}/*", self._on_sample)
         follower.on_own_topics = self._publish
@@ -82,7 +91,12 @@ class SharedLayout:
 
     def _publish(self, topics: frozenset[TopicEntry]) -> None:
         self._own = encode_topics(topics)
-        self._publisher.put(self._own)
+        self._put_own()
+
+    def _put_own(self) -> None:
+        with self._publishing:
+            if not self._closed:
+                self._publisher.put(self._own)
 
     def _on_query(self, query: zenoh.Query) -> None:
         query.reply(self._own_key, self._own)
@@ -104,10 +118,12 @@ class SharedLayout:
         self._peers.add(key)
         self._follower.peer_topics(key, topics)
         if met and self._own != NO_TOPICS:
-            self._publisher.put(self._own)
+            self._put_own()
 
     def close(self) -> None:
         self._follower.on_own_topics = None
         self._subscriber.undeclare()
         self._queryable.undeclare()
-        self._publisher.undeclare()
+        with self._publishing:
+            self._closed = True
+            self._publisher.undeclare()

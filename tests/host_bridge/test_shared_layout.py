@@ -121,3 +121,51 @@ def test_garbage_at_a_layout_key_is_named_and_changes_nothing(caplog: pytest.Log
             f"layout shared at {bad_key}: ignored, not JSON (Expecting value: line 1 column 1 (char 0))",
         ]
         assert east_layouts.tabs == [["east-1"]]
+
+
+
+def test_closing_while_other_hosts_arrive_is_no_error() -> None:
+    """Each host met puts this host's layout again, from Zenoh's callback thread: close() ran
+    into such a put once in ``.ci/run`` (zenoh: "Already borrowed"), and with many hosts' layouts
+    queued that put went to this host's own full subscriber queue and waited for ever."""
+    with host_sessions() as session, ExitStack() as stack:
+        first, peers = session(), session()
+        time.sleep(0.5)  # connected
+        for attempt in range(20):
+            recording_id = f"fleet-{attempt}"
+            layouts = Layouts()
+            follower = BlueprintFollower(layouts, interval=0.1)
+            stack.callback(follower.close)
+            layout = SharedLayout(first, recording_id, follower)
+            follower.topic_seen("east-1", "/scan", SCAN, "/east-1/scan")
+            layouts.wait_for(["east-1"])
+            assert _close_while_hosts_arrive(layout, peers, layout_prefix(recording_id)) == []
+
+
+def _close_while_hosts_arrive(layout: SharedLayout, peers: zenoh.Session, prefix: str) -> list[Exception]:
+    """Close ``layout`` while ``peers`` puts the layouts of 2,000 hosts it has not met; what
+    close() raised. Asserts close() ended within WAIT_S."""
+    errors: list[Exception] = []
+    arriving = threading.Event()
+
+    def arrive() -> None:
+        for peer in range(2000):
+            peers.put(f"{prefix}/peer-{peer}", b"[]")
+            arriving.set()
+
+    def close() -> None:
+        try:
+            layout.close()
+        except Exception as err:
+            errors.append(err)
+
+    thread = threading.Thread(target=arrive)
+    thread.start()
+    arriving.wait(WAIT_S)
+    time.sleep(0.01)
+    closer = threading.Thread(target=close)
+    closer.start()
+    closer.join(WAIT_S)
+    thread.join(WAIT_S)
+    assert not closer.is_alive(), "close() still waits"
+    return errors

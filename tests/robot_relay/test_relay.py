@@ -3,6 +3,7 @@ and attachment, and the catalog and clock queries are answered."""
 
 from __future__ import annotations
 
+import threading
 import time
 
 import zenoh
@@ -14,6 +15,7 @@ from robot_relay.relay import (
     MAX_BUNDLE_BYTES,
     MAX_BUNDLE_MESSAGES,
     Relay,
+    _TopicPublisher,
     bundle_bounds,
 )
 from robot_relay.wire import (
@@ -191,3 +193,49 @@ def test_a_run_goes_as_bundles_with_every_message_numbered_except_on_latched_and
     assert by_topic["map_text"] == [(0, False, [cdr("m0")], [1]), (1, False, [cdr("m1")], [2])]
     assert by_topic["capped"] == [(0, False, [cdr("k0")], [1]), (1, False, [cdr("k1")], [2])]
     assert relay.published == 15
+
+
+
+
+def test_a_topic_publisher_undeclared_while_sending_neither_raises_nor_sends_after(
+    sessions: tuple[zenoh.Session, zenoh.Session],
+) -> None:
+    """The take loop may hold a topic's publisher when a catalog refresh undeclares it: zenoh
+    raised "Already borrowed" when put and undeclare overlapped, "Undeclared publisher" when
+    put came after. Neither may reach the take loop or the refresh; the message is not sent."""
+    _, robot = sessions
+    policy = PolicyTable().resolve(CHATTER.topic, STRING, CHATTER.qos)
+    for _ in range(50):
+        publisher = _TopicPublisher(robot, "tb3", CHATTER, policy, lambda messages, size: None)
+        assert _undeclare_while_sending(publisher) == []
+
+
+def _undeclare_while_sending(publisher: _TopicPublisher) -> list[Exception]:
+    """Undeclare ``publisher`` while another thread sends on it, and go on sending a while;
+    the errors either raised. Nothing may be sent after the undeclare."""
+    errors: list[Exception] = []
+    sending, undeclared = threading.Event(), threading.Event()
+
+    def send_until_undeclared() -> None:
+        try:
+            while not undeclared.is_set():
+                publisher.offer(RawMessage("tb3", "/chatter", STRING, b"\x00\x01\x00\x00" * 100), 0)
+                publisher.offer_run([b"\x00\x01\x00\x00a"] * 2, [1, 2], 0, 0.0)
+                sending.set()
+        except Exception as err:
+            errors.append(err)
+        sending.set()
+
+    thread = threading.Thread(target=send_until_undeclared)
+    thread.start()
+    sending.wait(10.0)
+    try:
+        publisher.undeclare()
+    except Exception as err:
+        errors.append(err)
+    sent = publisher.sequence
+    time.sleep(0.01)  # the sender goes on offering to the undeclared publisher
+    undeclared.set()
+    thread.join(timeout=30.0)
+    assert publisher.sequence == sent
+    return errors
