@@ -5,6 +5,8 @@ rather than dropped. Numeric arrays up to ``max_array`` (option, default 64) ele
 one multi-series Scalars entity; longer ones (a custom scan, a histogram, raw bytes) a
 ``BarChart`` of the latest message, value against index. The header is the time axis, not data,
 so it is skipped; so are the message's constants (``LIMIT=5`` in the .msg), which are not data.
+A Vector3 or Point field is one plot with an x, y and z series, as the typed converters plot
+them (a /cmd_vel that changes from Twist to TwistStamped stays on the same plots).
 
 Sequences of nested messages show their first :data:`MAX_SEQUENCE_MESSAGES` elements (each
 element's leaves are their own entities); the rest is reported once per topic, never dropped
@@ -21,14 +23,17 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
+from host_bridge.converters.scalars import XYZ, series_names_once
 from host_bridge.core.contract import ColumnsItem, LogEntry, LogItem, Run
 from host_bridge.core.options import GenericOptions
 from host_bridge.errors import PartialConvertError
 
 _TIME_TYPES = ("builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration")
+_VECTOR_TYPES = ("geometry_msgs/msg/Vector3", "geometry_msgs/msg/Point", "geometry_msgs/msg/Point32")
 MAX_SEQUENCE_MESSAGES = 16
 
-Leaf = float | str | np.ndarray[Any, Any]
+Leaf = float | str | np.ndarray[Any, Any] | tuple[float, float, float]
+"""A field's value: a number, text, an array of numbers, or a Vector3's or Point's x, y and z."""
 
 
 def data_fields(msg: Any) -> list[Field[Any]]:
@@ -52,8 +57,12 @@ def flatten(msg: Any, prefix: str, truncated: set[str]) -> Iterator[tuple[str, L
 
 def _leaves(value: Any, path: str, truncated: set[str]) -> Iterator[tuple[str, Leaf]]:
     if is_dataclass(value):
-        if getattr(value, "__msgtype__", "") in _TIME_TYPES:
+        msgtype = getattr(value, "__msgtype__", "")
+        if msgtype in _TIME_TYPES:
             yield path, getattr(value, "sec") + getattr(value, "nanosec") * 1e-9  # noqa: B009
+        elif msgtype in _VECTOR_TYPES:
+            yield path, (float(getattr(value, "x")), float(getattr(value, "y")),  # noqa: B009
+                         float(getattr(value, "z")))  # noqa: B009
         else:
             yield from flatten(value, path + "/", truncated)
     elif isinstance(value, (bool, int, float, np.number, np.bool_)):
@@ -78,6 +87,9 @@ def _column(values: Sequence[Leaf]) -> Any:
     """One path's values, one row each: text, numbers, or arrays of numbers."""
     if isinstance(values[0], str):
         return rr.TextLog.columns(text=[str(v) for v in values])
+    if isinstance(values[0], tuple):
+        return rr.Scalars.columns(scalars=np.asarray(values, np.float64).ravel()).partition(
+            [len(XYZ)] * len(values))
     if isinstance(values[0], np.ndarray):
         lengths = [np.size(v) for v in values]
         flat = np.concatenate([np.atleast_1d(np.asarray(v, dtype=np.float64)) for v in values])
@@ -101,6 +113,8 @@ def convert_generic(run: Run) -> list[LogEntry]:
             indices, values = rows[path]
             indices.append(row)
             values.append(value)
+    vectors = [path for path, (_, values) in rows.items() if isinstance(values[0], tuple)]
+    items += series_names_once(run, {tuple(path.split("/")): XYZ for path in vectors})
     for path, (indices, values) in rows.items():
         index = np.array(indices, np.intp)
         for entries, times in run.times(None if stamps is None else stamps[index], index):

@@ -24,6 +24,7 @@ import pyarrow as pa
 import rerun as rr
 
 from host_bridge.converters._common import frame_components, stamps_ns, vectors
+from host_bridge.converters.scalars import vector_plots
 from host_bridge.core.columns import Columns
 from host_bridge.core.contract import (
     ColumnsItem,
@@ -43,7 +44,6 @@ RowIndex = npt.NDArray[np.intp]
 
 # Standing still must not grow the trail: a pose only counts as moved beyond sensor jitter.
 _TRAIL_MIN_STEP_M = 0.01
-_COMPONENTS = ("x", "y", "z")
 
 
 # --- helpers nav.py shares ------------------------------------------------------------------
@@ -315,7 +315,7 @@ def _pose_array(msg: Any, ctx: ConvertContext) -> list[LogEntry]:
 
 def _vector_converter(fields: Mapping[str, str], colors: list[tuple[int, int, int]]) -> Converter:
     """Named Vector3 fields of a stamped message (``name: path``), each drawn as an arrow from
-    the origin of the header frame and plotted per axis."""
+    the origin of the header frame and plotted (``<topic>/<name>``: x, y and z)."""
     names = list(fields)
     palette = np.array(colors, dtype=np.uint8)
 
@@ -336,17 +336,8 @@ def _vector_converter(fields: Mapping[str, str], colors: list[tuple[int, int, in
                 ).partition(np.full(len(rows), len(names)))
                 frame_columns = rr.CoordinateFrame.columns(frame=[frame] * len(rows)) if frame else []
                 entries.append(ColumnsItem(run.entity_path, [*arrows, *frame_columns], times))
-        for picked, times in run.times(stamps):
-            entries.extend(
-                ColumnsItem(
-                    run.child_path(name, axis),
-                    list(rr.Scalars.columns(scalars=values[picked, j, a])),
-                    times,
-                )
-                for j, name in enumerate(names)
-                for a, axis in enumerate(_COMPONENTS)
-            )
-        return entries
+        plots = [((name,), values[:, j]) for j, name in enumerate(names)]
+        return [*entries, *vector_plots(run, plots, stamps)]
 
     return convert
 

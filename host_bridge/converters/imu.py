@@ -16,7 +16,6 @@ m/s^2), ``angular_velocity_scale`` (m per rad/s), ``axis_length`` (m).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,12 +23,7 @@ import numpy.typing as npt
 import rerun as rr
 
 from host_bridge.converters._common import stamps_ns, vectors
-from host_bridge.converters.scalars import (
-    SubPath,
-    columns_series,
-    scalar_columns,
-    series_names_once,
-)
+from host_bridge.converters.scalars import XYZ, columns_series, vector_plots
 from host_bridge.core.columns import Columns
 from host_bridge.core.contract import (
     ColumnsItem,
@@ -41,9 +35,7 @@ from host_bridge.core.contract import (
 )
 from host_bridge.core.options import ImuOptions
 
-XYZ = ("x", "y", "z")
 _VECTORS = ("linear_acceleration", "angular_velocity")
-_LEGENDS: dict[SubPath, Sequence[str]] = {(name,): XYZ for name in _VECTORS}
 # Arrow colours: acceleration amber, angular velocity violet (RGBA).
 _ARROW_COLORS = np.array([[255, 170, 0, 255], [170, 80, 255, 255]], dtype=np.uint8)
 _ARROW_LABELS = ["linear_acceleration", "angular_velocity"]
@@ -85,7 +77,7 @@ def convert_imu(run: Run) -> list[LogEntry]:
     stamps = stamps_ns(columns)
     run_times = run.times(stamps)
     orientation_path = run.child_path("orientation")
-    items: list[LogEntry] = series_names_once(run, _LEGENDS)
+    items: list[LogEntry] = []
     axes = run.state(_ImuTopic)
     if not axes.logged:
         axes.logged = True
@@ -110,12 +102,8 @@ def convert_imu(run: Run) -> list[LogEntry]:
                 rr.Arrows3D, np.full(n, len(_VECTORS)), vectors=arrows[rows].reshape(-1, 3)
             )
             items.append(ColumnsItem(orientation_path, [*transform, *arrow_vectors], times))
-    for rows, times in run_times:
-        items.extend(
-            scalar_columns(run.child_path(name), measured[rows, which], times)
-            for which, name in enumerate(_VECTORS)
-        )
-    return items
+    plots = [((name,), measured[:, which]) for which, name in enumerate(_VECTORS)]
+    return [*items, *vector_plots(run, plots, stamps)]
 
 
 def _magnetic_field(columns: Columns) -> npt.NDArray[np.float64]:

@@ -55,12 +55,18 @@ def bar_values(item: LogItem) -> list[float]:
 
 def test_large_arrays_are_bar_charts_and_constants_are_not_data() -> None:
     entries = convert(convert_generic, thing(), make_ctx("/thing"))
-    paths = sorted(e.path for e in entries)
+    paths = sorted(e.path for e in entries if not (isinstance(e, LogItem) and e.static))
     assert paths == [
-        "/r/thing/blob", "/r/thing/flags", "/r/thing/points/0/x", "/r/thing/points/0/y",
-        "/r/thing/points/0/z", "/r/thing/points/1/x", "/r/thing/points/1/y",
-        "/r/thing/points/1/z", "/r/thing/ranges", "/r/thing/small",
+        "/r/thing/blob", "/r/thing/flags", "/r/thing/points/0", "/r/thing/points/1",
+        "/r/thing/ranges", "/r/thing/small",
     ]
+    # Each Point is one plot of an x, y and z series, named once.
+    points = {e.path: np.asarray(column_rows(e, "Scalars:scalars")).tolist() for e in entries
+              if e.path.startswith("/r/thing/points/") and isinstance(e, ColumnsItem)}
+    assert points == {"/r/thing/points/0": [[0.0, 0.0, 0.0]], "/r/thing/points/1": [[1.0, 0.0, 0.0]]}
+    legends = [e for e in entries if isinstance(e, LogItem) and e.static]
+    assert sorted(e.path for e in legends) == ["/r/thing/points/0", "/r/thing/points/1"]
+    assert all(isinstance(a, rr.SeriesLines) for e in legends for a in e.archetypes)
     np.testing.assert_allclose(bar_values(log_item(entries, "/r/thing/ranges")),
                                np.linspace(0.0, 9.9, 100, dtype=np.float32))
     assert bar_values(log_item(entries, "/r/thing/blob")) == [i % 256 for i in range(500)]
@@ -83,8 +89,8 @@ def test_long_message_sequences_show_sixteen_elements_and_say_so() -> None:
         "/thing: no converter for my_msgs/msg/Thing; the generic one shows the first 16 "
         "elements of points"
     )
-    xs = sorted(e.path for e in caught.value.items if e.path.endswith("/x"))
-    assert xs == sorted(f"/r/thing/points/{i}/x" for i in range(16))
+    shown = sorted({e.path for e in caught.value.items if e.path.startswith("/r/thing/points/")})
+    assert shown == sorted(f"/r/thing/points/{i}" for i in range(16))
 
 
 # --- nav2 Costmap ---------------------------------------------------------------------------

@@ -247,10 +247,13 @@ def test_a_topic_whose_type_changes_is_drawn_as_each_type_with_one_warning(
             counters.warnings) == (TWIST_STAMPED, 8, 8, 0, 1)
     dispatcher.sink.close()
     rows = entity_rows(tmp_path / "out.rrd")
-    forward = rows["/tb3/cmd_vel/linear/x"]
-    assert [r["Scalars:scalars"] for r in forward] == [[float(i)] for i in range(8)]
-    assert [r.get("ros_time") for r in forward] == [None] * 4 + times[4:]
-    assert [r["Scalars:scalars"] for r in rows["/tb3/cmd_vel/angular/z"]] == [[0.5]] * 8
+    # Both types' vectors on the same plots (an x, y and z series each), the Twist's without a
+    # header time.
+    linear = [r for r in rows["/tb3/cmd_vel/linear"] if "Scalars:scalars" in r]
+    assert [r["Scalars:scalars"] for r in linear] == [[float(i), 0.0, 0.0] for i in range(8)]
+    assert [r.get("ros_time") for r in linear] == [None] * 4 + times[4:]
+    angular = [r["Scalars:scalars"] for r in rows["/tb3/cmd_vel/angular"] if "Scalars:scalars" in r]
+    assert angular == [[0.0, 0.0, 0.5]] * 8
     arrows = [r for r in rows["/tb3/cmd_vel"] if r.get("Arrows3D:vectors")]
     assert [(r["ros_time"], r["Arrows3D:vectors"]) for r in arrows] == [
         (times[i], [[float(i), 0.0, 0.0], [0.0, 0.0, 0.5]]) for i in (4, 5, 6, 7)

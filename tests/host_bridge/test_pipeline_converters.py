@@ -143,8 +143,8 @@ def test_odometry_pose_twist_and_trail() -> None:
     pose = by_path["/tb3/odom"]
     assert column(pose, "Transform3D:translation")[2] == [[1.0, 2.0, 0.0]]
     assert column(pose, "Transform3D:parent_frame")[0] == ["tb3/odom"]
-    assert column(by_path["/tb3/odom/twist/linear/x"], "Scalars:scalars") == [[0.3]] * 3
-    assert column(by_path["/tb3/odom/twist/angular/z"], "Scalars:scalars") == [[0.5]] * 3
+    assert column(by_path["/tb3/odom/twist/linear"], "Scalars:scalars") == [[0.3, 0.0, 0.0]] * 3
+    assert column(by_path["/tb3/odom/twist/angular"], "Scalars:scalars") == [[0.0, 0.0, 0.5]] * 3
     [trail] = [i for i in items if i.path == "/tb3/odom/trail"]
     assert isinstance(trail, ColumnsItem)
     # The 1 mm step is below the trail's minimum step: the trail grows at x=0 and x=1 only.

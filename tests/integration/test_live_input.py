@@ -202,9 +202,9 @@ def test_a_relay_topic_retyped_mid_session_is_drawn_before_and_after(
     counters = dispatcher.counters[("tb3", "/cmd_vel")]
     assert (counters.received, counters.converted, counters.warnings) == (8, 8, 1)
     rows = entity_rows(out)
-    forward = rows["/tb3/cmd_vel/linear/x"]
+    forward = [r for r in rows["/tb3/cmd_vel/linear"] if "Scalars:scalars" in r]
     assert [(r["log_time"], r["Scalars:scalars"]) for r in forward] == [
-        (times[i], [float(i)]) for i in range(8)]
+        (times[i], [float(i), 0.0, 0.0]) for i in range(8)]
     arrows = [r for r in rows["/tb3/cmd_vel"] if r.get("Arrows3D:vectors")]
     assert [(r["ros_time"], r["Arrows3D:vectors"]) for r in arrows] == [
         (times[i], [[float(i), 0.0, 0.0], [0.0, 0.0, 0.5]]) for i in range(4, 8)]

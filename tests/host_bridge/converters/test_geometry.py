@@ -26,7 +26,7 @@ from host_bridge.converters.geometry import (
     VECTOR3,
     WRENCH,
 )
-from host_bridge.core.contract import ColumnsItem, ConvertContext, LogEntry
+from host_bridge.core.contract import ColumnsItem, ConvertContext, LogEntry, LogItem
 from host_bridge.core.state import TopicState
 from tests.host_bridge.sensor_test_support import TYPES as T
 from tests.host_bridge.sensor_test_support import archetype, convert, convert_run, header, log_item, make_ctx
@@ -62,6 +62,12 @@ def _ctx(
 
 def _at(entries: Sequence[LogEntry], path: str) -> list[LogEntry]:
     return [e for e in entries if e.path == path]
+
+
+def _scalars(entries: Sequence[LogEntry], path: str) -> ColumnsItem:
+    """The one columns item of a plot at ``path`` (its legends, a static LogItem, left out)."""
+    (item,) = [e for e in entries if e.path == path and isinstance(e, ColumnsItem)]
+    return item
 
 
 def _column(item: LogEntry, component: str) -> list[Any] | None:
@@ -301,15 +307,13 @@ def test_twist_stamped_arrows_and_per_component_scalars() -> None:
     assert _column(arrows, "Arrows3D:origins") == [[[0.0, 0.0, 0.0]] * 2]
     assert _column(arrows, "Arrows3D:labels") == [["linear", "angular"]]
     assert _column(frame, "CoordinateFrame:frame") == [["tb3/base_link"]]
-    scalars = {e.path: _column(e, "Scalars:scalars") for e in entries if e.path != "/tb3/cmd"}
-    assert scalars == {
-        "/tb3/cmd/linear/x": [[0.5]],
-        "/tb3/cmd/linear/y": [[0.0]],
-        "/tb3/cmd/linear/z": [[0.0]],
-        "/tb3/cmd/angular/x": [[0.0]],
-        "/tb3/cmd/angular/y": [[0.0]],
-        "/tb3/cmd/angular/z": [[-0.25]],
-    }
+    plots = [e for e in entries if e.path != "/tb3/cmd"]
+    scalars = {e.path: _column(e, "Scalars:scalars") for e in plots if isinstance(e, ColumnsItem)}
+    # One plot per vector, an x, y and z series each, named once.
+    assert scalars == {"/tb3/cmd/linear": [[0.5, 0.0, 0.0]], "/tb3/cmd/angular": [[0.0, 0.0, -0.25]]}
+    legends = {e.path: archetype(e, rr.SeriesLines).names.as_arrow_array().to_pylist()
+               for e in plots if isinstance(e, LogItem) and e.static}
+    assert legends == {path: ["x", "y", "z"] for path in scalars}
 
 
 def test_wrench_and_vector3_use_their_field_names() -> None:
@@ -320,11 +324,12 @@ def test_wrench_and_vector3_use_their_field_names() -> None:
     entries = convert(WRENCH, wrench, _ctx("/ft"))
     (arrows,) = _at(entries, "/tb3/ft")  # empty frame_id: no CoordinateFrame item
     assert _column(arrows, "Arrows3D:vectors") == [[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]]
-    assert _column(_at(entries, "/tb3/ft/torque/y")[0], "Scalars:scalars") == [[5.0]]
+    assert _column(_scalars(entries, "/tb3/ft/torque"), "Scalars:scalars") == [[4.0, 5.0, 6.0]]
     vector = T["geometry_msgs/msg/Vector3Stamped"](header=header("imu"), vector=_vec((0, -9.8, 0)))
     entries = convert(VECTOR3, vector, _ctx("/g"))
     assert _column(_at(entries, "/tb3/g")[0], "Arrows3D:labels") == [["vector"]]
-    assert _column(_at(entries, "/tb3/g/vector/y")[0], "Scalars:scalars") == [[pytest.approx(-9.8)]]
+    assert _column(_scalars(entries, "/tb3/g/vector"), "Scalars:scalars") == [
+        [0.0, pytest.approx(-9.8), 0.0]]
 
 
 def test_point_stamped_and_closed_polygon() -> None:
@@ -391,6 +396,9 @@ def _send(entries: Sequence[LogEntry]) -> None:
     recording = rr.RecordingStream("swanky_test_geometry")
     recording.memory_recording()
     for entry in entries:
+        if isinstance(entry, LogItem):  # a plot's legends
+            rr.log(entry.path, *entry.archetypes, static=entry.static, recording=recording)
+            continue
         assert isinstance(entry, ColumnsItem)
         indexes = [
             rr.TimeColumn(name, timestamp=values.astype("datetime64[ns]"))
@@ -435,12 +443,11 @@ def test_real_location_and_velocity_convert_as_runs(
     assert _column(trail, "CoordinateFrame:frame") == [["tf#/tb3"]] * len(strips)
 
     # /velocity: every component plotted, one row per message; no CoordinateFrame (empty id).
-    linear_x = _at(twists, "/tb3/velocity/linear/x")[0]
-    values = _column(linear_x, "Scalars:scalars")
+    values = _column(_scalars(twists, "/tb3/velocity/linear"), "Scalars:scalars")
     assert values is not None
     np.testing.assert_array_equal(
-        np.array(values)[:, 0],
-        [m.twist.linear.x for _, m in velocity],
+        np.array(values),
+        [[m.twist.linear.x, m.twist.linear.y, m.twist.linear.z] for _, m in velocity],
     )
     arrows = _at(twists, "/tb3/velocity")
     assert len(arrows) == 1
@@ -448,4 +455,4 @@ def test_real_location_and_velocity_convert_as_runs(
     assert vectors is not None
     assert len(vectors) == 5270
     assert all(len(row) == 2 for row in vectors)
-    assert len(twists) == 1 + 6
+    assert len(twists) == 1 + 2 + 2  # the arrows, two plots, their legends

@@ -122,8 +122,8 @@ def draw(xml: str, resolver: ResourceResolver | None = None) -> Drawn:
     speeds: list[float] = []
     for index, (entry, _) in enumerate(sink.logged):
         if isinstance(entry, ColumnsItem):
-            if entry.path == f"/{ROBOT}/odom/twist/linear/x":
-                speeds += [float(v) for col in entry.columns for v in np.ravel(values(col))]
+            if entry.path == f"/{ROBOT}/odom/twist/linear":  # x, y and z per row
+                speeds += [float(v) for col in entry.columns for v in np.reshape(values(col), (-1, 3))[:, 0]]
             continue
         if entry.path == WARNINGS_PATH:
             warnings += [text for a in entry.archetypes for text in values(cast(Any, a).text)]
@@ -444,7 +444,8 @@ def test_swanky_host_bag_with_a_bad_description_draws_the_rest(
     [shoulder] = rows["/robot/tf_static/arm"]
     assert shoulder["Transform3D:parent_frame"] == ["robot/base"]
     assert shoulder["Transform3D:translation"] == [pytest.approx([0, 0, 0.5])]
-    speeds = [row["Scalars:scalars"][0] for row in rows["/robot/odom/twist/linear/x"]]
+    twist = [row for row in rows["/robot/odom/twist/linear"] if "Scalars:scalars" in row]
+    speeds = [row["Scalars:scalars"][0] for row in twist]
     assert speeds == [0.5 + i for i in range(10)]
     reliability(AREA, "swanky-host --bag of a bag whose /robot_description has a joint loop and "
                 "a missing mesh", tried="1 bag (1 description, 10 /odom)",
