@@ -18,7 +18,7 @@ from host_bridge.outputs.stats import HELD_S
 from host_bridge.outputs.viewer_lag import LONGEST_PERIOD_S, SHORTEST_PERIOD_S
 from host_bridge.pipeline import thinning
 from host_bridge.pipeline.dispatch import Dispatcher
-from host_bridge.pipeline.thinning import Pace, ViewerThinning
+from host_bridge.pipeline.thinning import FIRST_INTERVAL_S, Pace, ViewerThinning
 from robot_relay.wire import RawMessage
 from tests.integration.procs import saving_viewer
 from tests.rrd import entity_rows
@@ -185,11 +185,17 @@ def test_the_lag_and_the_thinned_count_are_logged_into_the_file_up_to_the_stop(
     assert sum(row["Scalars:scalars"][0] for row in counts) == 3
 
 
-def test_stats_are_held_only_while_the_viewer_takes_data_in_slowly(tmp_path: Path) -> None:
+def test_stats_are_held_only_while_the_viewer_is_behind(tmp_path: Path) -> None:
     sink = RerunSink(SinkOptions(save=tmp_path / "saved.rrd"))
     thinner = ViewerThinning(Dispatcher(sink), sink, Lag(), clock=Clock())  # type: ignore[arg-type]
     assert thinner.stats_hold_s() == 0.0
+    thinner.pace.update(0.0, round_trip=0.6, answers=0.1)  # behind, the viewer quick to answer
+    assert (thinner.pace.interval, thinner.pace.period) == (FIRST_INTERVAL_S, SHORTEST_PERIOD_S)
+    assert thinner.stats_hold_s() == HELD_S
+    thinner.pace.interval = 0.0
     thinner.pace.period = LONGEST_PERIOD_S  # batched longer: the viewer is slow to answer
     assert thinner.stats_hold_s() == HELD_S
+    thinner.pace.period = SHORTEST_PERIOD_S  # caught up
+    assert thinner.stats_hold_s() == 0.0
     thinner.close()
     sink.close()
