@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
 from dataclasses import Field, fields, is_dataclass
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -30,9 +31,10 @@ from host_bridge.errors import PartialConvertError
 
 _TIME_TYPES = ("builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration")
 _VECTOR_TYPES = ("geometry_msgs/msg/Vector3", "geometry_msgs/msg/Point", "geometry_msgs/msg/Point32")
+_XYZ = attrgetter(*XYZ)
 MAX_SEQUENCE_MESSAGES = 16
 
-Leaf = float | str | np.ndarray[Any, Any] | tuple[float, float, float]
+Leaf = float | str | np.ndarray[Any, Any] | tuple[float, ...]
 """A field's value: a number, text, an array of numbers, or a Vector3's or Point's x, y and z."""
 
 
@@ -61,8 +63,7 @@ def _leaves(value: Any, path: str, truncated: set[str]) -> Iterator[tuple[str, L
         if msgtype in _TIME_TYPES:
             yield path, getattr(value, "sec") + getattr(value, "nanosec") * 1e-9  # noqa: B009
         elif msgtype in _VECTOR_TYPES:
-            yield path, (float(getattr(value, "x")), float(getattr(value, "y")),  # noqa: B009
-                         float(getattr(value, "z")))  # noqa: B009
+            yield path, tuple(map(float, _XYZ(value)))
         else:
             yield from flatten(value, path + "/", truncated)
     elif isinstance(value, (bool, int, float, np.number, np.bool_)):
