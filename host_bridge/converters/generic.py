@@ -85,13 +85,10 @@ def _bar_chart(values: np.ndarray[Any, Any]) -> rr.BarChart:
 
 
 def _column(values: Sequence[Leaf]) -> Any:
-    """One path's values, one row each: text, numbers, or arrays of numbers."""
+    """One path's values, one row each: text, numbers, or arrays (or vectors) of numbers."""
     if isinstance(values[0], str):
         return rr.TextLog.columns(text=[str(v) for v in values])
-    if isinstance(values[0], tuple):
-        return rr.Scalars.columns(scalars=np.asarray(values, np.float64).ravel()).partition(
-            [len(XYZ)] * len(values))
-    if isinstance(values[0], np.ndarray):
+    if isinstance(values[0], (np.ndarray, tuple)):
         lengths = [np.size(v) for v in values]
         flat = np.concatenate([np.atleast_1d(np.asarray(v, dtype=np.float64)) for v in values])
         return rr.Scalars.columns(scalars=flat).partition(lengths)
