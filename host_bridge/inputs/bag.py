@@ -20,7 +20,7 @@ from pathlib import Path
 
 from host_bridge.core.columns import PackedPayloads
 from host_bridge.errors import InputError
-from host_bridge.inputs.bag_opener import BagOpener, open_bag
+from host_bridge.inputs.bag_opener import RUN_BYTES, BagOpener, open_bag
 from host_bridge.inputs.base import Deliver, MessageRun
 from robot_relay.errors import SourceError
 from robot_relay.sources.bag import BagSource
@@ -30,8 +30,6 @@ from robot_relay.wire import RawMessage
 RUN_MESSAGES = 32768
 """Messages read before they go on as runs: big runs amortise what each run costs (a
 send_columns call per plotted series, the frames' bookkeeping) ..."""
-RUN_BYTES = 64 * 1024 * 1024
-"""... but no more payload bytes than this: a run of images or clouds must not hold a whole bag."""
 DELIVERY_SECONDS = 0.25
 """About how long converting one delivery may take: the host stops (Ctrl-C, SIGTERM) after the
 delivery under way, and a whole run of a slow type is seconds (24,000 LaserScans: 2.5-5 s)."""
@@ -99,7 +97,9 @@ def source_runs(
                     return
             return
         source.log_undefined()
-        for opened in files:
+        for index in range(len(files)):
+            source.read_ahead(index + 1, run_bytes)  # the next file's rows, while this converts
+            opened = files[index]
             try:
                 for runs in opened.windows(run_size, run_bytes):
                     yield from (message_run(source.robot, run) for run in runs)

@@ -18,13 +18,21 @@ from host_bridge.errors import InputError
 from robot_relay.errors import SourceError
 from robot_relay.sources.bag import BagSource
 
+RUN_BYTES = 64 * 1024 * 1024
+"""... but no more payload bytes than this a run (inputs/bag.py): a run of images or clouds must
+not hold a whole bag."""
+
 
 def open_bag(path: Path, robot: str) -> BagSource:
-    """The bag opened (its index or metadata read, no message), or an InputError saying why not."""
+    """The bag opened (its index or metadata read, no message), or an InputError saying why not.
+    A sqlite3 bag's first file starts fetching its rows at once, in a process of its own
+    (:meth:`~robot_relay.sources.bag.BagSource.read_ahead`), for runs of :data:`RUN_BYTES`."""
     try:
-        return BagSource(path, robot).open()
+        source = BagSource(path, robot).open()
     except SourceError as err:
         raise InputError(str(err)) from err
+    source.read_ahead(0, RUN_BYTES)
+    return source
 
 
 class BagOpener:

@@ -4,11 +4,16 @@ taken apart in C, no Python call per message past sqlite's own row tuples.
 rosbags' reader (``Sqlite3Reader.messages``) yields each row through a generator, BagSource makes
 a RawMessage of each, and the host groups them by topic again: on the small-message file of
 ``benchmarks/bag_conversion.py`` that cost ``swanky-host --bag`` 3 times the CPU of the same
-messages in an MCAP. Here rosbags' own query runs on the connection rosbags opened (so the rows come
-in the same order), its rows are split into columns with ``zip``, ``numpy.fromiter`` and
-``bytes.join``, and a window is handed on as the :class:`~robot_relay.sources.mcap.TopicRun`\\ s
-the MCAP bulk reader gives: small payloads joined into one buffer, large ones (from
-LARGE_PAYLOAD on) each its own bytes object, not copied.
+messages in an MCAP. Here rosbags' own query runs (so the rows come in the same order), each batch
+of rows is packed into columns (:mod:`robot_relay.sources.sqlite_rows`: arrays and one joined
+buffer of payloads), and a window is handed on as the
+:class:`~robot_relay.sources.mcap.TopicRun`\\ s the MCAP bulk reader gives.
+
+The rows are fetched on the connection rosbags opened, or, once :meth:`Sqlite3File.read_ahead`
+asked for it (the host converting a bag), by a process of their own
+(``python -m robot_relay.sources.sqlite_rows``) that fetches on another core from the moment the
+bag is open, while the host imports its app and then converts: fetching is what a sqlite3 bag costs
+beyond an MCAP one, and it cannot share the host's process (the GIL, see sqlite_rows).
 
 A damaged row (a timestamp that is not an integer, data that is not a blob: what rosbag2 never
 writes) is skipped and counted, and one warning after the file names the bag and the count, as
@@ -22,8 +27,12 @@ but for the rows it counts at open (:class:`~robot_relay.sources.rosbag2.Rosbag2
 from __future__ import annotations
 
 import contextlib
-import itertools
+import fcntl
+import io
 import logging
+import os
+import subprocess
+import sys
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,20 +51,18 @@ from rosbags.rosbag2.metadata import parse_qos
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
 from robot_relay.errors import SourceError
-from robot_relay.sources.mcap import LARGE_PAYLOAD, TopicRun, topic_indexes, topic_runs
+from robot_relay.sources import sqlite_rows
+from robot_relay.sources.mcap import TopicRun, topic_indexes, topic_runs
+from robot_relay.sources.sqlite_rows import BATCH, END, FRAME, Packed, Rows, RowsError
 from robot_relay.wire import TopicInfo
 
 log = logging.getLogger("swanky.relay")
 
-# rosbags' query (rosbags.rosbag2.storage_sqlite3.Sqlite3Reader.messages), so the same order.
-QUERY = ("SELECT topics.id,messages.timestamp,messages.data FROM messages JOIN topics ON "
-         "messages.topic_id=topics.id WHERE topics.id IN ({}) ORDER BY timestamp")
-FIRST_BATCH = 16
-MOST_BATCH = 8192
-# A batch holds so many rows that, were each as large as the largest payload read so far, they
-# would be this share of a window's payload bytes: a window of images ends near its byte bound,
-# and no more rows than that are in memory beyond it.
-BATCH_SHARE = 4
+RECORD_BYTES = 16 * 1024 * 1024
+"""About how many payload bytes a list of :meth:`Sqlite3File.records` holds."""
+PIPE_BYTES = 1024 * 1024
+"""The pipe from the reading process, as large as Linux lets a process make it unasked
+(/proc/sys/fs/pipe-max-size): a read call per MB, not per 64 KB."""
 
 
 DEFINITION_FORMATS = {"ros2msg": MessageDefinitionFormat.MSG, "ros2idl": MessageDefinitionFormat.IDL}
@@ -111,13 +118,47 @@ class UncountedSqlite3Reader(Sqlite3Reader):
 
 @dataclass(frozen=True, slots=True)
 class _Batch:
-    """Consecutive rows of the query: their storage connection ids, log times and payloads."""
+    """Consecutive rows: their storage connection ids, log times, and payloads (``payloads``, one
+    buffer: message ``i`` is ``payloads[starts[i]:ends[i]]``)."""
 
     channels: npt.NDArray[np.int64]
     log_ns: npt.NDArray[np.int64]
-    payloads: tuple[bytes, ...]
-    payload_bytes: int
-    largest: int
+    starts: npt.NDArray[np.int64]
+    ends: npt.NDArray[np.int64]
+    payloads: bytes | memoryview
+
+    @classmethod
+    def of(cls, channels: Any, log_ns: Any, sizes: Any, payloads: bytes | memoryview) -> _Batch:
+        """A batch of its columns (int64 buffers) and joined payloads."""
+        lengths = np.frombuffer(sizes, np.int64)
+        ends = np.cumsum(lengths)
+        return cls(np.frombuffer(channels, np.int64), np.frombuffer(log_ns, np.int64),
+                   ends - lengths, ends, payloads)
+
+    def __len__(self) -> int:
+        return len(self.log_ns)
+
+    @property
+    def payload_bytes(self) -> int:
+        return int(self.ends[-1] - self.starts[0])
+
+    def split(self, count: int) -> tuple[_Batch, _Batch]:
+        """The first ``count`` rows and the rest, sharing the payloads."""
+        first, rest = (slice(None, count), slice(count, None))
+        return (_Batch(self.channels[first], self.log_ns[first], self.starts[first],
+                       self.ends[first], self.payloads),
+                _Batch(self.channels[rest], self.log_ns[rest], self.starts[rest], self.ends[rest],
+                       self.payloads))
+
+    def records(self, infos: Mapping[int, TopicInfo]) -> list[tuple[TopicInfo, int, memoryview]]:
+        view = memoryview(self.payloads)
+        return [(infos[channel], log_ns, view[start:end]) for channel, log_ns, start, end in
+                zip(self.channels.tolist(), self.log_ns.tolist(), self.starts.tolist(),
+                    self.ends.tolist(), strict=True)]
+
+
+def _packed_batch(packed: Packed) -> _Batch:
+    return _Batch.of(packed.channels, packed.log_ns, packed.sizes, packed.payloads)
 
 
 class Sqlite3File:
@@ -130,64 +171,77 @@ class Sqlite3File:
         self.channels = channels
         self._storage = storage
         self._topic_of = topic_indexes(channels)
+        self._ahead: _RowsAhead | None = None
         self._malformed = 0
-        self._read = 0
-        self._last_ns: int | None = None
+
+    def read_ahead(self, payload_bytes: int) -> None:
+        """Start fetching the rows for :meth:`windows` in a process of its own (module
+        docstring), batched for windows of about ``payload_bytes``; the next pass reads them."""
+        if self._ahead is not None:
+            return
+        try:
+            self._ahead = _RowsAhead(self.bag, Path(self._storage.path), tuple(self.channels),
+                                     payload_bytes)
+        except OSError as err:  # no process to be had: the rows are fetched here instead
+            log.debug("bag %s: reading %s here (%s)", self.bag, self._storage.path, err)
 
     def close(self) -> None:
-        """Nothing to close: the connection is rosbags', closed with its reader."""
+        """Stop the reading process, if one is reading ahead; the connection is rosbags',
+        closed with its reader."""
+        if self._ahead is not None:
+            self._ahead.close()
+            self._ahead = None
 
     def windows(self, messages: int, payload_bytes: int) -> Iterator[list[TopicRun]]:
         """The messages in windows of at most ``messages`` messages and about ``payload_bytes``
-        bytes of payload (at least one message), each window as :func:`topic_runs`."""
-        cursor = self._start()
-        size = FIRST_BATCH
-        largest = 1
-        ended = False
-        while not ended:
-            window: list[_Batch] = []
-            count = window_bytes = 0
-            while count < messages and window_bytes < payload_bytes:
-                batch = self._take(cursor, min(size, messages - count))
-                if batch is None:
-                    ended = True
-                    break
+        bytes of payload (at least one message; at most one batch over), each window as
+        :func:`topic_runs`."""
+        window: list[_Batch] = []
+        count = window_bytes = 0
+        for whole in self._batches(payload_bytes):
+            rest: _Batch | None = whole
+            while rest is not None:
+                batch, rest = rest.split(messages - count) if len(rest) > messages - count else (rest, None)
                 window.append(batch)
-                count += len(batch.payloads)
+                count += len(batch)
                 window_bytes += batch.payload_bytes
-                largest = max(largest, batch.largest)
-                size = max(1, min(MOST_BATCH, payload_bytes // BATCH_SHARE // largest))
-            if count:
-                yield self._runs(window)
+                if count >= messages or window_bytes >= payload_bytes:
+                    yield self._runs(window)
+                    window, count, window_bytes = [], 0, 0
+        if window:
+            yield self._runs(window)
         self._end()
 
-    def records(self, size: int) -> Iterator[list[tuple[TopicInfo, int, bytes]]]:
+    def records(self, size: int) -> Iterator[list[tuple[TopicInfo, int, memoryview]]]:
         """The messages as (topic, log time, payload), at most ``size`` a list."""
-        cursor = self._start()
-        infos = self.channels
-        while (batch := self._take(cursor, size)) is not None:
-            yield list(zip(map(infos.__getitem__, batch.channels.tolist()), batch.log_ns.tolist(),
-                           batch.payloads, strict=True))
+        for batch in self._batches(RECORD_BYTES, most=size):
+            yield batch.records(self.channels)
         self._end()
 
-    def _start(self) -> Any:
-        """A pass over the file: rosbags' query, run."""
-        self._malformed = self._read = 0
-        self._last_ns = None
-        ids = tuple(self.channels)
-        with self._reading():
-            return self._storage.dbconn.execute(QUERY.format(",".join("?" * len(ids))), ids)
+    def _batches(self, payload_bytes: int, most: int = sqlite_rows.MOST_BATCH) -> Iterator[_Batch]:
+        """One pass over the rows: from the reading process if one was started (once), else
+        fetched here."""
+        reader: _RowsAhead | Rows
+        if self._ahead is not None:
+            reader, self._ahead = self._ahead, None
+            batches = reader.batches()
+        else:
+            reader = Rows(self._storage.dbconn, tuple(self.channels), payload_bytes, most)
+            batches = map(_packed_batch, reader)
+        try:
+            yield from batches
+        except RowsError as err:
+            raise self._stopped(err) from err
+        finally:
+            self._malformed = reader.malformed
+            if isinstance(reader, _RowsAhead):
+                reader.close()
 
-    def _take(self, cursor: Any, size: int) -> _Batch | None:
-        """The next batch of at most ``size`` rows (at least one), None at the end."""
-        while True:
-            with self._reading():
-                rows = list(itertools.islice(cursor, size))
-            if not rows:
-                return None
-            batch = self._batch(rows)
-            if batch is not None:
-                return batch
+    def _stopped(self, err: RowsError) -> SourceError:
+        """A read error in the middle of the file as the SourceError that names where."""
+        where = "at its start" if err.last_ns is None else f"after log time {err.last_ns} ns"
+        return SourceError(f"bag {self.bag} is damaged: reading stopped {where}, after {err.read} "
+                           f"messages ({err}); the rest of the bag is lost")
 
     def _end(self) -> None:
         """After a pass: the damaged rows it skipped, named."""
@@ -195,54 +249,70 @@ class Sqlite3File:
             log.warning("bag %s is damaged (the readable part was read); lost: %d messages whose "
                         "log time or payload is malformed", self.bag, self._malformed)
 
-    @contextlib.contextmanager
-    def _reading(self) -> Iterator[None]:
-        """A read error in the middle of the file as the SourceError that names where."""
-        try:
-            yield
-        except Exception as err:  # apsw raises whatever sqlite hits in a damaged file
-            where = "at its start" if self._last_ns is None else f"after log time {self._last_ns} ns"
-            msg = (f"bag {self.bag} is damaged: reading stopped {where}, after {self._read} "
-                   f"messages ({type(err).__name__}: {err}); the rest of the bag is lost")
-            raise SourceError(msg) from err
-
-    def _batch(self, rows: list[tuple[Any, Any, Any]]) -> _Batch | None:
-        """The rows as a batch, those whose timestamp is not an integer or whose data is not
-        bytes left out (counted); None when none is left."""
-        channels, stamps, payloads = zip(*rows, strict=True)
-        if set(map(type, stamps)) != {int} or set(map(type, payloads)) != {bytes}:
-            kept = [row for row in rows if type(row[1]) is int and type(row[2]) is bytes]
-            self._malformed += len(rows) - len(kept)
-            if not kept:
-                return None
-            channels, stamps, payloads = zip(*kept, strict=True)
-        count = len(stamps)
-        self._read += count
-        self._last_ns = stamps[-1]
-        sizes = np.fromiter(map(len, payloads), np.int64, count)
-        return _Batch(np.fromiter(channels, np.int64, count), np.fromiter(stamps, np.int64, count),
-                      payloads, int(sizes.sum()), int(sizes.max()))
-
     def _runs(self, window: Sequence[_Batch]) -> list[TopicRun]:
-        channels = np.concatenate([batch.channels for batch in window])
-        log_ns = np.concatenate([batch.log_ns for batch in window])
-        payloads = tuple(itertools.chain.from_iterable(batch.payloads for batch in window))
-        sizes = np.fromiter(map(len, payloads), np.int64, len(payloads))
-        large = sizes >= LARGE_PAYLOAD
-        small_sizes = np.where(large, 0, sizes)
-        ends = np.cumsum(small_sizes)
-        starts = ends - small_sizes
-        sources = np.zeros(len(payloads), np.int64)
-        buffers: tuple[bytes, ...]
-        if large.any():
-            where = np.flatnonzero(large)
-            big = tuple(payloads[i] for i in where.tolist())
-            small = itertools.compress(payloads, (~large).tolist())
-            buffers = (b"".join(small), *big)
-            sources[where] = np.arange(1, len(big) + 1)
-            starts[where] = 0
-            ends[where] = sizes[where]
-        else:
-            buffers = (b"".join(payloads),)
-        return topic_runs(self.channels, self._topic_of, buffers,
-                          (sources, starts, ends, channels, log_ns))
+        sources = np.repeat(np.arange(len(window)), [len(batch) for batch in window])
+        columns = [np.concatenate([getattr(batch, name) for batch in window])
+                   for name in ("starts", "ends", "channels", "log_ns")]
+        return topic_runs(self.channels, self._topic_of,
+                          tuple(batch.payloads for batch in window), (sources, *columns))
+
+
+class _RowsAhead:
+    """The rows of the sqlite3 file at ``path`` (of ``bag``), of storage connections
+    ``channels``, fetched by ``python -m robot_relay.sources.sqlite_rows`` and read back from its
+    frames."""
+
+    def __init__(self, bag: Path, path: Path, channels: Sequence[int], payload_bytes: int) -> None:
+        self._bag = bag
+        self._path = path
+        self.malformed = 0
+        self._read = 0
+        package_root = Path(sqlite_rows.__file__).resolve().parents[2]
+        python_path = os.pathsep.join(filter(None, (str(package_root), os.environ.get("PYTHONPATH"))))
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", sqlite_rows.__name__, str(path), str(payload_bytes),
+             *map(str, channels)],
+            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, bufsize=0,
+            env={**os.environ, "PYTHONPATH": python_path},
+        )
+        self._out: io.RawIOBase = self._process.stdout  # type: ignore[assignment]
+        if hasattr(fcntl, "F_SETPIPE_SZ"):
+            with contextlib.suppress(OSError):  # a smaller pipe only costs more reads
+                fcntl.fcntl(self._out.fileno(), fcntl.F_SETPIPE_SZ, PIPE_BYTES)
+
+    def batches(self) -> Iterator[_Batch]:
+        """The batches the process fetched; a read error it reports as a RowsError, its end
+        before the last frame as a SourceError naming the bag."""
+        while True:
+            kind, count, self.malformed, last_ns, length = FRAME.unpack(self._take(FRAME.size))
+            if kind == END:
+                return
+            if kind != BATCH:
+                cause = self._take(length).decode(errors="replace")
+                raise RowsError(cause, count, None if last_ns < 0 else last_ns)
+            columns = memoryview(self._take(24 * count))
+            third = 8 * count
+            yield _Batch.of(columns[:third], columns[third:2 * third], columns[2 * third:],
+                            memoryview(self._take(length)))
+            self._read += count
+
+    def _take(self, size: int) -> bytearray:
+        buffer = bytearray(size)
+        view = memoryview(buffer)
+        got = 0
+        while got < size:
+            read = self._out.readinto(view[got:])
+            if not read:
+                msg = (f"bag {self._bag}: the process reading {self._path} ended (exit code "
+                       f"{self._process.wait()}) after {self._read} messages; the rest of the bag "
+                       "is lost")
+                raise SourceError(msg)
+            got += read
+        return buffer
+
+    def close(self) -> None:
+        """End the process (at once, if it is still reading) and wait for it."""
+        if self._process.poll() is None:
+            self._process.kill()
+        self._process.wait()
+        self._out.close()

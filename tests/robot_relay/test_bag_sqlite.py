@@ -1,7 +1,9 @@
 """A rosbag2 in sqlite3 storage read in bulk (robot_relay/sources/sqlite.py) gives exactly what
 the record-by-record rosbags path gives: every topic's payloads and log times in rosbags' order,
 unpaced in windows within their bounds, paced record by record, and through ``swanky-host
---bag``'s runs; a damaged row is skipped and counted as the rosbags path counts it.
+--bag``'s runs; a damaged row is skipped and counted as the rosbags path counts it. Each holds
+whether the rows are fetched in the reader's process or read ahead by a process of their own
+(``Sqlite3File.read_ahead``, what the host does), and that process ends with the bag.
 
 The bag is test_bag_bulk's (Imu, String, a latched TFMessage, 100 KB images, ties between topics),
 written by rosbags' Writer with sqlite3 storage, as one .db3 of a rosbag2 directory, or split in
@@ -11,6 +13,8 @@ two files.
 from __future__ import annotations
 
 import logging
+import os
+import signal
 import sqlite3
 from pathlib import Path
 
@@ -22,7 +26,8 @@ from host_bridge.inputs.base import MessageRun
 from robot_relay.errors import SourceError
 from robot_relay.sources.bag import BagSource
 from robot_relay.sources.mcap import LARGE_PAYLOAD
-from robot_relay.sources.sqlite import BATCH_SHARE, Sqlite3File
+from robot_relay.sources.sqlite import Sqlite3File
+from robot_relay.sources.sqlite_rows import BATCH_SHARE
 from tests.robot_relay.test_bag_bulk import (
     COUNTS,
     STORE,
@@ -46,14 +51,38 @@ def sqlite_bag(path: Path) -> Path:
     return path
 
 
-def test_a_sqlite3_bag_is_read_in_bulk_as_rosbags_reads_it(tmp_path: Path) -> None:
+AHEAD = pytest.mark.parametrize("ahead", [False, True], ids=["here", "read-ahead"])
+
+
+def readers() -> list[int]:
+    """The processes reading a sqlite3 file ahead for this one (running: no zombie)."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        try:
+            stat = (proc / "stat").read_text()
+            cmdline = (proc / "cmdline").read_bytes().split(b"\0")
+        except OSError:  # not a process, or gone meanwhile
+            continue
+        state, parent = stat.rpartition(")")[2].split()[:2]
+        if (int(parent) == os.getpid() and state != "Z"
+                and b"robot_relay.sources.sqlite_rows" in cmdline):
+            found.append(int(proc.name))
+    return found
+
+
+@AHEAD
+def test_a_sqlite3_bag_is_read_in_bulk_as_rosbags_reads_it(tmp_path: Path, ahead: bool) -> None:
     bag = sqlite_bag(tmp_path / "bag")
     with BagSource(bag, "tb3") as source:
         files = source.bulk_files()
         assert files is not None
         assert [type(opened) for opened in files] == [Sqlite3File]
         record = record_runs(source)
+        if ahead:
+            source.read_ahead(0, 10**9)
+            assert len(readers()) == 1
         bulk = bulk_runs(source)
+        assert readers() == []  # its pass read, it ended
         messages = [(m.topic, m.log_ns, bytes(m.data)) for m in source.messages()]
     assert messages == bag_messages()  # rosbags' order is the order written
     assert per_topic(bulk) == per_topic(record) == written()
@@ -73,15 +102,18 @@ def test_a_paced_replay_reads_the_sqlite3_bag_record_by_record_in_bulk(tmp_path:
         assert per_topic(bulk_runs(source)) == written()
 
 
+@AHEAD
 @pytest.mark.parametrize(("messages", "payload_bytes"), [(100, 10**9), (10**6, 1_000_000), (1, 1)])
 def test_windows_keep_their_bounds_and_rosbags_order(
-    tmp_path: Path, messages: int, payload_bytes: int
+    tmp_path: Path, messages: int, payload_bytes: int, ahead: bool
 ) -> None:
     """At most ``messages`` a window, about ``payload_bytes`` of payload (at most one batch over:
     a quarter of the bound, or one message), and each topic's messages in order."""
     with BagSource(sqlite_bag(tmp_path / "bag"), "tb3") as source:
         files = source.bulk_files()
         assert files is not None
+        if ahead:
+            source.read_ahead(0, payload_bytes)
         windows = [window for opened in files for window in opened.windows(messages, payload_bytes)]
     got: dict[str, list[tuple[bytes, int]]] = {}
     for window in windows:
@@ -114,14 +146,17 @@ def test_a_split_sqlite3_bag_is_read_file_by_file(tmp_path: Path) -> None:
     assert got == {topic: messages * 2 for topic, messages in written().items()}
 
 
+@AHEAD
 def test_a_damaged_row_is_skipped_counted_and_named(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, ahead: bool
 ) -> None:
     bag = sqlite_bag(tmp_path / "bag")
     with sqlite3.connect(bag / "bag.db3") as db:
         db.execute("UPDATE messages SET timestamp = 'x' WHERE id = 3")
         db.execute("UPDATE messages SET data = 'text' WHERE id = 5")
     with caplog.at_level(logging.WARNING), BagSource(bag, "tb3") as source:
+        if ahead:
+            source.read_ahead(0, 10**9)
         bulk = per_topic(bulk_runs(source))
     assert sum(len(messages) for messages in bulk.values()) == sum(COUNTS.values()) - 2
     [warning] = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
@@ -135,7 +170,7 @@ def test_a_read_error_mid_file_names_the_bag_and_where_it_stopped(tmp_path: Path
         files = source.bulk_files()
         assert files is not None
         [opened] = files
-        windows = opened.windows(50, 10**9)
+        windows = opened.windows(50, 1_000_000)  # batches of a few rows: the rest unread
         next(windows)
         with (bag / "bag.db3").open("r+b") as file:  # every page past the first 400 KB
             size = file.seek(0, 2)
@@ -145,6 +180,51 @@ def test_a_read_error_mid_file_names_the_bag_and_where_it_stopped(tmp_path: Path
                                               r"time \d+ ns, after \d+ messages"):
             list(windows)
     assert LARGE_PAYLOAD < IMAGE_BYTES  # the images above are the large, uncopied kind
+
+
+def test_a_read_error_mid_file_read_ahead_names_the_bag_and_where_it_stopped(tmp_path: Path) -> None:
+    """Pages in the middle of the file overwritten before the reading process starts: what it
+    read before them is handed on, then the error, as when the rows are fetched here."""
+    bag = sqlite_bag(tmp_path / "bag")
+    with BagSource(bag, "tb3") as source:
+        with (bag / "bag.db3").open("r+b") as file:
+            file.seek(400_000)
+            file.write(b"\xa5" * 400_000)
+        source.read_ahead(0, 10**9)
+        files = source.bulk_files()
+        assert files is not None
+        windows = files[0].windows(10, 10**9)
+        first = next(windows)
+        with pytest.raises(SourceError, match=rf"bag {bag} is damaged: reading stopped after log "
+                                              r"time \d+ ns, after \d+ messages \(CorruptError: "):
+            next(windows)
+    assert sum(len(run.log_ns) for run in first) == 10
+
+
+def test_a_reading_process_that_dies_names_the_bag_and_loses_nothing_before(tmp_path: Path) -> None:
+    bag = sqlite_bag(tmp_path / "bag")
+    with BagSource(bag, "tb3") as source:
+        files = source.bulk_files()
+        assert files is not None
+        source.read_ahead(0, 1)  # one-row batches: the process is still writing when it dies
+        windows = files[0].windows(10, 10**9)
+        first = next(windows)
+        [reader] = readers()
+        os.kill(reader, signal.SIGKILL)
+        with pytest.raises(SourceError, match=rf"bag {bag}: the process reading {bag / 'bag.db3'} "
+                                              rf"ended \(exit code -{signal.SIGKILL}\) after \d+ "
+                                              "messages; the rest of the bag is lost"):
+            list(windows)
+    assert sum(len(run.log_ns) for run in first) == 10
+
+
+def test_a_bag_closed_unread_ends_its_reading_process(tmp_path: Path) -> None:
+    with BagSource(sqlite_bag(tmp_path / "bag"), "tb3") as source:
+        source.read_ahead(0, 1)
+        [reader] = readers()
+    assert readers() == []
+    with pytest.raises(ChildProcessError):  # waited for: no zombie left
+        os.waitpid(reader, os.WNOHANG)
 
 
 # What each rosbag2 sqlite3 schema drops from the newest one rosbags' Writer writes (4: schema and
