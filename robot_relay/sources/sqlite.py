@@ -27,8 +27,10 @@ but for the rows it counts at open (:class:`~robot_relay.sources.rosbag2.Rosbag2
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
 import io
+import itertools
 import logging
 import os
 import subprocess
@@ -53,7 +55,7 @@ from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 from robot_relay.errors import SourceError
 from robot_relay.sources import sqlite_rows
 from robot_relay.sources.mcap import TopicRun, topic_indexes, topic_runs
-from robot_relay.sources.sqlite_rows import BATCH, END, FRAME, Packed, Rows, RowsError
+from robot_relay.sources.sqlite_rows import BATCH, END, FRAME, LEFT_IN_FILE, Packed, Rows, RowsError
 from robot_relay.wire import TopicInfo
 
 log = logging.getLogger("swanky.relay")
@@ -118,47 +120,37 @@ class UncountedSqlite3Reader(Sqlite3Reader):
 
 @dataclass(frozen=True, slots=True)
 class _Batch:
-    """Consecutive rows: their storage connection ids, log times, and payloads (``payloads``, one
-    buffer: message ``i`` is ``payloads[starts[i]:ends[i]]``)."""
+    """Consecutive rows: their storage connection ids, log times and payloads (message ``i`` is
+    ``buffers[sources[i]][starts[i]:ends[i]]``)."""
 
     channels: npt.NDArray[np.int64]
     log_ns: npt.NDArray[np.int64]
+    sources: npt.NDArray[np.int64]
     starts: npt.NDArray[np.int64]
     ends: npt.NDArray[np.int64]
-    payloads: bytes | memoryview
-
-    @classmethod
-    def of(cls, channels: Any, log_ns: Any, sizes: Any, payloads: bytes | memoryview) -> _Batch:
-        """A batch of its columns (int64 buffers) and joined payloads."""
-        lengths = np.frombuffer(sizes, np.int64)
-        ends = np.cumsum(lengths)
-        return cls(np.frombuffer(channels, np.int64), np.frombuffer(log_ns, np.int64),
-                   ends - lengths, ends, payloads)
+    buffers: tuple[bytes | memoryview, ...]
 
     def __len__(self) -> int:
         return len(self.log_ns)
 
     @property
     def payload_bytes(self) -> int:
-        return int(self.ends[-1] - self.starts[0])
+        return int((self.ends - self.starts).sum())
 
     def split(self, count: int) -> tuple[_Batch, _Batch]:
-        """The first ``count`` rows and the rest, sharing the payloads."""
-        first, rest = (slice(None, count), slice(count, None))
-        return (_Batch(self.channels[first], self.log_ns[first], self.starts[first],
-                       self.ends[first], self.payloads),
-                _Batch(self.channels[rest], self.log_ns[rest], self.starts[rest], self.ends[rest],
-                       self.payloads))
+        """The first ``count`` rows and the rest, sharing the buffers."""
+        return (self._rows(slice(None, count)), self._rows(slice(count, None)))
+
+    def _rows(self, which: slice) -> _Batch:
+        return _Batch(self.channels[which], self.log_ns[which], self.sources[which],
+                      self.starts[which], self.ends[which], self.buffers)
 
     def records(self, infos: Mapping[int, TopicInfo]) -> list[tuple[TopicInfo, int, memoryview]]:
-        view = memoryview(self.payloads)
-        return [(infos[channel], log_ns, view[start:end]) for channel, log_ns, start, end in
-                zip(self.channels.tolist(), self.log_ns.tolist(), self.starts.tolist(),
-                    self.ends.tolist(), strict=True)]
-
-
-def _packed_batch(packed: Packed) -> _Batch:
-    return _Batch.of(packed.channels, packed.log_ns, packed.sizes, packed.payloads)
+        views = [memoryview(buffer) for buffer in self.buffers]
+        return [(infos[channel], log_ns, views[source][start:end])
+                for channel, log_ns, source, start, end in
+                zip(self.channels.tolist(), self.log_ns.tolist(), self.sources.tolist(),
+                    self.starts.tolist(), self.ends.tolist(), strict=True)]
 
 
 class Sqlite3File:
@@ -173,6 +165,8 @@ class Sqlite3File:
         self._topic_of = topic_indexes(channels)
         self._ahead: _RowsAhead | None = None
         self._malformed = 0
+        self._handed = 0
+        self._last_ns: int | None = None
 
     def read_ahead(self, payload_bytes: int) -> None:
         """Start fetching the rows for :meth:`windows` in a process of its own (module
@@ -224,18 +218,48 @@ class Sqlite3File:
         reader: _RowsAhead | Rows
         if self._ahead is not None:
             reader, self._ahead = self._ahead, None
-            batches = reader.batches()
+            packed = reader.batches()
         else:
             reader = Rows(self._storage.dbconn, tuple(self.channels), payload_bytes, most)
-            batches = map(_packed_batch, reader)
+            packed = iter(reader)
+        self._handed, self._last_ns = 0, None
         try:
-            yield from batches
+            for batch in map(self._batch, packed):
+                yield batch
+                self._handed += len(batch)
+                self._last_ns = int(batch.log_ns[-1])
         except RowsError as err:
             raise self._stopped(err) from err
         finally:
             self._malformed = reader.malformed
             if isinstance(reader, _RowsAhead):
                 reader.close()
+
+    def _batch(self, packed: Packed) -> _Batch:
+        """A batch of ``packed``, its payloads left in the file fetched here (each its own
+        buffer)."""
+        lengths = np.frombuffer(packed.sizes, np.int64)
+        left = lengths >= LEFT_IN_FILE
+        joined = np.where(left, 0, lengths)
+        ends = np.cumsum(joined)
+        starts = ends - joined
+        sources = np.zeros(len(left), np.int64)
+        batch = _Batch(np.frombuffer(packed.channels, np.int64),
+                       np.frombuffer(packed.log_ns, np.int64), sources, starts, ends,
+                       (packed.payloads,))
+        rows = np.flatnonzero(left)
+        if not len(rows):
+            return batch
+        ids = np.frombuffer(packed.row_ids, np.int64)[rows].tolist()
+        try:
+            fetched = dict(self._storage.dbconn.execute(
+                f"SELECT id,data FROM messages WHERE id IN ({','.join('?' * len(ids))})", ids))
+        except Exception as err:  # apsw raises whatever sqlite hits in a damaged file
+            raise RowsError(f"{type(err).__name__}: {err}", self._handed, self._last_ns) from err
+        sources[rows] = np.arange(1, len(rows) + 1)
+        starts[rows] = 0
+        ends[rows] = lengths[rows]
+        return dataclasses.replace(batch, buffers=(packed.payloads, *map(fetched.__getitem__, ids)))
 
     def _stopped(self, err: RowsError) -> SourceError:
         """A read error in the middle of the file as the SourceError that names where."""
@@ -250,11 +274,14 @@ class Sqlite3File:
                         "log time or payload is malformed", self.bag, self._malformed)
 
     def _runs(self, window: Sequence[_Batch]) -> list[TopicRun]:
-        sources = np.repeat(np.arange(len(window)), [len(batch) for batch in window])
+        first_buffer = np.cumsum([0, *(len(batch.buffers) for batch in window[:-1])])
+        sources = np.concatenate([batch.sources + first
+                                  for batch, first in zip(window, first_buffer.tolist(), strict=True)])
         columns = [np.concatenate([getattr(batch, name) for batch in window])
                    for name in ("starts", "ends", "channels", "log_ns")]
         return topic_runs(self.channels, self._topic_of,
-                          tuple(batch.payloads for batch in window), (sources, *columns))
+                          tuple(itertools.chain.from_iterable(batch.buffers for batch in window)),
+                          (sources, *columns))
 
 
 class _RowsAhead:
@@ -280,7 +307,7 @@ class _RowsAhead:
             with contextlib.suppress(OSError):  # a smaller pipe only costs more reads
                 fcntl.fcntl(self._out.fileno(), fcntl.F_SETPIPE_SZ, PIPE_BYTES)
 
-    def batches(self) -> Iterator[_Batch]:
+    def batches(self) -> Iterator[Packed]:
         """The batches the process fetched; a read error it reports as a RowsError, its end
         before the last frame as a SourceError naming the bag."""
         while True:
@@ -290,10 +317,11 @@ class _RowsAhead:
             if kind != BATCH:
                 cause = self._take(length).decode(errors="replace")
                 raise RowsError(cause, count, None if last_ns < 0 else last_ns)
-            columns = memoryview(self._take(24 * count))
-            third = 8 * count
-            yield _Batch.of(columns[:third], columns[third:2 * third], columns[2 * third:],
-                            memoryview(self._take(length)))
+            columns = memoryview(self._take(32 * count))
+            step = 8 * count
+            channels, log_ns, sizes, row_ids = (columns[start:start + step]
+                                                for start in range(0, 4 * step, step))
+            yield Packed(channels, log_ns, sizes, row_ids, memoryview(self._take(length)))
             self._read += count
 
     def _take(self, size: int) -> bytearray:

@@ -31,8 +31,22 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import IO, Any, TypeVar
 
-QUERY = ("SELECT topics.id,messages.timestamp,messages.data FROM messages JOIN topics ON "
-         "messages.topic_id=topics.id WHERE topics.id IN ({}) ORDER BY timestamp")
+LEFT_IN_FILE = 64 * 1024
+"""Payloads from this size on (images, clouds) are not in a batch: the batch gives their row ids,
+and the reader fetches each where it is used, once (a process reading ahead would copy them into
+its pipe and the reader out of it again: 600 MB of images and clouds took 0.65 s more of CPU)."""
+# rosbags' query (Sqlite3Reader.messages), so the same order, with each payload's size and row
+# id, and no payload left in the file (sqlite reads a blob's size from its row's header, not its
+# pages). The size is NULL for a malformed row, so one look at the sizes finds them.
+QUERY = ("SELECT topics.id,messages.timestamp,"
+         f"CASE WHEN length(messages.data)<{LEFT_IN_FILE} THEN messages.data END,"
+         "CASE WHEN typeof(messages.timestamp)='integer' AND typeof(messages.data)='blob' "
+         "THEN length(messages.data) END,"
+         "messages.id FROM messages JOIN topics ON messages.topic_id=topics.id "
+         "WHERE topics.id IN ({}) ORDER BY timestamp")
+Row = tuple[Any, Any, Any, Any, Any]
+"""(channel, log time, payload or None if left in the file, payload size or None if the row is
+malformed, row id), as :data:`QUERY` gives them."""
 FIRST_BATCH = 16
 MOST_BATCH = 8192
 # A batch holds so many rows that, were each as large as the largest payload read so far, they
@@ -46,20 +60,24 @@ AHEAD_BYTES = 256 * 1024 * 1024
 FRAME = struct.Struct("<Bqqqq")
 """A frame's header: kind (:data:`BATCH`, :data:`END`, :data:`FAILED`), rows in the batch (or
 read in all, for the other two kinds), rows skipped as malformed so far, the last log time read
-(-1 before any), bytes after the arrays. A batch's header is followed by its channels, log times
-and payload sizes (int64 each) and its joined payloads; a failure's by its message (UTF-8)."""
+(-1 before any), bytes after the arrays. A batch's header is followed by its :class:`Packed`
+arrays (channels, log times, payload sizes, row ids: int64 each) and its joined
+payloads; a failure's by its message (UTF-8)."""
 BATCH, END, FAILED = 0, 1, 2
 _T = TypeVar("_T")
 
 
 @dataclass(frozen=True, slots=True)
 class Packed:
-    """One batch of rows as flat columns: native-endian int64 arrays and the joined payloads."""
+    """One batch of rows as flat columns, native-endian int64 arrays (the payloads' sizes and
+    row ids: those of :data:`LEFT_IN_FILE` bytes and more are left in the file), and the other
+    payloads joined."""
 
-    channels: array[int]
-    log_ns: array[int]
-    sizes: array[int]
-    payloads: bytes
+    channels: array[int] | memoryview
+    log_ns: array[int] | memoryview
+    sizes: array[int] | memoryview
+    row_ids: array[int] | memoryview
+    payloads: bytes | memoryview
 
     def __len__(self) -> int:
         return len(self.log_ns)
@@ -111,23 +129,23 @@ class Rows:
         except Exception as err:  # apsw raises whatever sqlite hits in a damaged file
             raise RowsError(f"{type(err).__name__}: {err}", self.read, self.last_ns) from err
 
-    def _pack(self, rows: list[tuple[Any, Any, Any]]) -> Packed | None:
-        """The rows packed, those whose timestamp is not an integer or whose data is not bytes
+    def _pack(self, rows: list[Row]) -> Packed | None:
+        """The rows packed, those whose timestamp is not an integer or whose data is not a blob
         left out (counted); None when none is left."""
-        channels, stamps, payloads = zip(*rows, strict=True)
-        if set(map(type, stamps)) != {int} or set(map(type, payloads)) != {bytes}:
-            kept = [row for row in rows if type(row[1]) is int and type(row[2]) is bytes]
+        channels, stamps, payloads, sizes, row_ids = zip(*rows, strict=True)
+        if None in sizes:
+            kept = [row for row in rows if row[3] is not None]
             self.malformed += len(rows) - len(kept)
             if not kept:
                 return None
-            channels, stamps, payloads = zip(*kept, strict=True)
+            channels, stamps, payloads, sizes, row_ids = zip(*kept, strict=True)
         self.read += len(stamps)
         self.last_ns = stamps[-1]
-        return Packed(array("q", channels), array("q", stamps), array("q", map(len, payloads)),
-                      b"".join(payloads))
+        return Packed(array("q", channels), array("q", stamps), array("q", sizes),
+                      array("q", row_ids), b"".join(filter(None, payloads)))
 
 
-def _take(cursor: Iterator[tuple[Any, Any, Any]], size: int) -> list[tuple[Any, Any, Any]]:
+def _take(cursor: Iterator[Row], size: int) -> list[Row]:
     return list(itertools.islice(cursor, size))
 
 
@@ -173,8 +191,8 @@ def frames(rows: Rows) -> Iterator[tuple[bytes, ...]]:
         for packed in rows:
             yield (FRAME.pack(BATCH, len(packed), rows.malformed, _ns(rows.last_ns),
                               len(packed.payloads)),
-                   packed.channels.tobytes(), packed.log_ns.tobytes(), packed.sizes.tobytes(),
-                   packed.payloads)
+                   *map(bytes, (packed.channels, packed.log_ns, packed.sizes, packed.row_ids)),
+                   bytes(packed.payloads))
     except RowsError as err:
         yield failure(str(err), err.read, rows.malformed, err.last_ns)
         return

@@ -154,14 +154,19 @@ def test_a_damaged_row_is_skipped_counted_and_named(
     with sqlite3.connect(bag / "bag.db3") as db:
         db.execute("UPDATE messages SET timestamp = 'x' WHERE id = 3")
         db.execute("UPDATE messages SET data = 'text' WHERE id = 5")
+        # a payload large enough to be fetched apart (sqlite_rows.LEFT_IN_FILE), but text
+        image = "SELECT messages.id FROM messages JOIN topics ON topic_id = topics.id WHERE name = ?"
+        ids = [row_id for (row_id,) in db.execute(image, ("/camera/image_raw",))]
+        db.execute("UPDATE messages SET data = hex(data) WHERE id = ?", (ids[1],))
     with caplog.at_level(logging.WARNING), BagSource(bag, "tb3") as source:
         if ahead:
             source.read_ahead(0, 10**9)
         bulk = per_topic(bulk_runs(source))
-    assert sum(len(messages) for messages in bulk.values()) == sum(COUNTS.values()) - 2
+    assert sum(len(messages) for messages in bulk.values()) == sum(COUNTS.values()) - 3
+    assert len(bulk["/camera/image_raw"]) == COUNTS["/camera/image_raw"] - 1
     [warning] = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert f"bag {bag} is damaged" in warning
-    assert "lost: 2 messages whose log time or payload is malformed" in warning
+    assert "lost: 3 messages whose log time or payload is malformed" in warning
 
 
 def test_a_read_error_mid_file_names_the_bag_and_where_it_stopped(tmp_path: Path) -> None:
