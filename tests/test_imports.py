@@ -52,6 +52,13 @@ HOST_MAY_IMPORT: dict[str, tuple[str, str]] = {
     "robot_relay.sources.mcap": (
         "host_bridge", "--bag reads an indexed MCAP with the bulk reader the relay replays it with",
     ),
+    "robot_relay.sources.sqlite": (
+        "host_bridge.inputs.rows_ahead", "--bag hands the sqlite3 bulk reader the rows its own "
+        "process fetched ahead",
+    ),
+    "robot_relay.sources.sqlite_rows": (
+        "host_bridge.inputs.rows_ahead", "the rows' frames, as the process fetching them writes them",
+    ),
 }
 # The host's layers, lowest first: a module imports from its own layer and the ones below only
 # (at module level, inside functions and for type checking alike). A module is in the layer of

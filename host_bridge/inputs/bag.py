@@ -22,6 +22,7 @@ from host_bridge.core.columns import PackedPayloads
 from host_bridge.errors import InputError
 from host_bridge.inputs.bag_opener import RUN_BYTES, BagOpener, open_bag
 from host_bridge.inputs.base import Deliver, MessageRun
+from host_bridge.inputs.rows_ahead import read_ahead
 from robot_relay.errors import SourceError
 from robot_relay.sources.bag import BagSource
 from robot_relay.sources.mcap import TopicRun
@@ -98,7 +99,7 @@ def source_runs(
             return
         source.log_undefined()
         for index in range(len(files)):
-            source.read_ahead(index + 1, run_bytes)  # the next file's rows, while this converts
+            read_ahead(source, index + 1, run_bytes)  # the next file's rows, while this converts
             opened = files[index]
             try:
                 for runs in opened.windows(run_size, run_bytes):

@@ -4,9 +4,10 @@ Opening a bag can take a good part of importing the app (0.3-0.4 s on a quiet ma
 it Rerun's SDK): rosbags reads every channel's QoS and a sqlite3 bag's tables, and a bag recorded
 with ``--compression-mode file`` starts decompressing there (robot_relay/sources/mcap_stream.py:
 its thread decompresses ahead of the reader while the app imports; zstd runs in C with the GIL
-released), so with a second core the import and the opening overlap. This module imports only the
-relay's bag source (rosbags and numpy load on the thread, inside ``BagSource.open``), so the thread
-starts before the import.
+released), so with a second core the import and the opening overlap; a sqlite3 bag's rows start
+to be fetched there too, by a process of their own (inputs/rows_ahead.py). This module imports
+only the relay's bag source (rosbags and numpy load on the thread, inside ``BagSource.open``), so
+the thread starts before the import.
 """
 
 from __future__ import annotations
@@ -26,12 +27,14 @@ not hold a whole bag."""
 def open_bag(path: Path, robot: str) -> BagSource:
     """The bag opened (its index or metadata read, no message), or an InputError saying why not.
     A sqlite3 bag's first file starts fetching its rows at once, in a process of its own
-    (:meth:`~robot_relay.sources.bag.BagSource.read_ahead`), for runs of :data:`RUN_BYTES`."""
+    (inputs/rows_ahead.py), for runs of :data:`RUN_BYTES`."""
     try:
         source = BagSource(path, robot).open()
     except SourceError as err:
         raise InputError(str(err)) from err
-    source.read_ahead(0, RUN_BYTES)
+    from host_bridge.inputs.rows_ahead import read_ahead  # numpy and rosbags: opening loaded them
+
+    read_ahead(source, 0, RUN_BYTES)
     return source
 
 

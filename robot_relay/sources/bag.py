@@ -558,17 +558,6 @@ class BagSource:
         (the caller then reads with rosbags). Opened with the bag, closed with it."""
         return self._bulk
 
-    def read_ahead(self, index: int, payload_bytes: int) -> None:
-        """Bulk file ``index`` (of :meth:`bulk_files`; none past the last) starts fetching its
-        rows for windows of about ``payload_bytes`` in a process of its own, if it is a sqlite3
-        file (:meth:`~robot_relay.sources.sqlite.Sqlite3File.read_ahead`): a host converting the
-        bag reads them on another core. An MCAP's reading is decompression in C already."""
-        from robot_relay.sources.sqlite import Sqlite3File
-
-        files = self._bulk or []
-        if index < len(files) and isinstance(opened := files[index], Sqlite3File):
-            opened.read_ahead(payload_bytes)
-
     def _open_bulk(self) -> list[McapFile] | list[Sqlite3File] | None:
         # At open: a relay imports numpy and reads the summaries (0.1 s here) before a host is
         # there, not between the host's arrival and the first message.

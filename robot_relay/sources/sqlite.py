@@ -9,11 +9,9 @@ of rows is packed into columns (:mod:`robot_relay.sources.sqlite_rows`: arrays a
 buffer of payloads), and a window is handed on as the
 :class:`~robot_relay.sources.mcap.TopicRun`\\ s the MCAP bulk reader gives.
 
-The rows are fetched on the connection rosbags opened, or, once :meth:`Sqlite3File.read_ahead`
-asked for it (the host converting a bag), by a process of their own
-(``python -m robot_relay.sources.sqlite_rows``) that fetches on another core from the moment the
-bag is open, while the host imports its app and then converts: fetching is what a sqlite3 bag costs
-beyond an MCAP one, and it cannot share the host's process (the GIL, see sqlite_rows).
+The rows are fetched on the connection rosbags opened, or read from elsewhere
+(:meth:`Sqlite3File.read_from`): the host converting a bag has them fetched by a process of their
+own (host_bridge/inputs/rows_ahead.py), the same batches.
 
 A damaged row (a timestamp that is not an integer, data that is not a blob: what rosbag2 never
 writes) is skipped and counted, and one warning after the file names the bag and the count, as
@@ -26,19 +24,13 @@ but for the rows it counts at open (:class:`~robot_relay.sources.rosbag2.Rosbag2
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import fcntl
-import io
 import itertools
 import logging
-import os
-import subprocess
-import sys
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -55,17 +47,13 @@ from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 from robot_relay.errors import SourceError
 from robot_relay.sources import sqlite_rows
 from robot_relay.sources.mcap import TopicRun, topic_indexes, topic_runs
-from robot_relay.sources.sqlite_rows import BATCH, END, FRAME, LEFT_IN_FILE, Packed, Rows, RowsError
+from robot_relay.sources.sqlite_rows import LEFT_IN_FILE, Packed, Rows, RowsError
 from robot_relay.wire import TopicInfo
 
 log = logging.getLogger("swanky.relay")
 
 RECORD_BYTES = 16 * 1024 * 1024
 """About how many payload bytes a list of :meth:`Sqlite3File.records` holds."""
-PIPE_BYTES = 1024 * 1024
-"""The pipe from the reading process, as large as Linux lets a process make it unasked
-(/proc/sys/fs/pipe-max-size): a read call per MB, not per 64 KB."""
-
 
 DEFINITION_FORMATS = {"ros2msg": MessageDefinitionFormat.MSG, "ros2idl": MessageDefinitionFormat.IDL}
 
@@ -118,6 +106,20 @@ class UncountedSqlite3Reader(Sqlite3Reader):
         ]
 
 
+class PackedRows(Protocol):
+    """Batches of a file's rows read elsewhere, in :class:`~robot_relay.sources.sqlite_rows.Rows`'
+    order: what :meth:`Sqlite3File.read_from` takes."""
+
+    malformed: int
+    """Rows skipped so far as malformed."""
+
+    def batches(self) -> Iterator[Packed]:
+        """The batches; a read error as a RowsError."""
+        ...
+
+    def close(self) -> None: ...
+
+
 @dataclass(frozen=True, slots=True)
 class _Batch:
     """Consecutive rows: their storage connection ids, log times and payloads (message ``i`` is
@@ -163,25 +165,26 @@ class Sqlite3File:
         self.channels = channels
         self._storage = storage
         self._topic_of = topic_indexes(channels)
-        self._ahead: _RowsAhead | None = None
+        self._ahead: PackedRows | None = None
         self._malformed = 0
         self._handed = 0
         self._last_ns: int | None = None
 
-    def read_ahead(self, payload_bytes: int) -> None:
-        """Start fetching the rows for :meth:`windows` in a process of its own (module
-        docstring), batched for windows of about ``payload_bytes``; the next pass reads them."""
-        if self._ahead is not None:
-            return
-        try:
-            self._ahead = _RowsAhead(self.bag, Path(self._storage.path), tuple(self.channels),
-                                     payload_bytes)
-        except OSError as err:  # no process to be had: the rows are fetched here instead
-            log.debug("bag %s: reading %s here (%s)", self.bag, self._storage.path, err)
+    @property
+    def path(self) -> Path:
+        """The sqlite3 file."""
+        return Path(self._storage.path)
+
+    def read_from(self, ahead: PackedRows) -> None:
+        """The next pass takes its batches from ``ahead`` (the host's process reading this file
+        ahead: host_bridge/inputs/rows_ahead.py) instead of fetching them; closed with this
+        file."""
+        self.close()
+        self._ahead = ahead
 
     def close(self) -> None:
-        """Stop the reading process, if one is reading ahead; the connection is rosbags',
-        closed with its reader."""
+        """Close what reads ahead, if anything does; the connection is rosbags', closed with its
+        reader."""
         if self._ahead is not None:
             self._ahead.close()
             self._ahead = None
@@ -213,15 +216,11 @@ class Sqlite3File:
         self._end()
 
     def _batches(self, payload_bytes: int, most: int = sqlite_rows.MOST_BATCH) -> Iterator[_Batch]:
-        """One pass over the rows: from the reading process if one was started (once), else
-        fetched here."""
-        reader: _RowsAhead | Rows
-        if self._ahead is not None:
-            reader, self._ahead = self._ahead, None
-            packed = reader.batches()
-        else:
-            reader = Rows(self._storage.dbconn, tuple(self.channels), payload_bytes, most)
-            packed = iter(reader)
+        """One pass over the rows: from what reads ahead, if anything does (once), else fetched
+        here."""
+        ahead, self._ahead = self._ahead, None
+        reader = ahead or Rows(self._storage.dbconn, tuple(self.channels), payload_bytes, most)
+        packed = reader.batches()
         self._handed, self._last_ns = 0, None
         try:
             for batch in map(self._batch, packed):
@@ -232,8 +231,8 @@ class Sqlite3File:
             raise self._stopped(err) from err
         finally:
             self._malformed = reader.malformed
-            if isinstance(reader, _RowsAhead):
-                reader.close()
+            if ahead is not None:
+                ahead.close()
 
     def _batch(self, packed: Packed) -> _Batch:
         """A batch of ``packed``, its payloads left in the file fetched here (each its own
@@ -282,65 +281,3 @@ class Sqlite3File:
         return topic_runs(self.channels, self._topic_of,
                           tuple(itertools.chain.from_iterable(batch.buffers for batch in window)),
                           (sources, *columns))
-
-
-class _RowsAhead:
-    """The rows of the sqlite3 file at ``path`` (of ``bag``), of storage connections
-    ``channels``, fetched by ``python -m robot_relay.sources.sqlite_rows`` and read back from its
-    frames."""
-
-    def __init__(self, bag: Path, path: Path, channels: Sequence[int], payload_bytes: int) -> None:
-        self._bag = bag
-        self._path = path
-        self.malformed = 0
-        self._read = 0
-        package_root = Path(sqlite_rows.__file__).resolve().parents[2]
-        python_path = os.pathsep.join(filter(None, (str(package_root), os.environ.get("PYTHONPATH"))))
-        self._process = subprocess.Popen(
-            [sys.executable, "-m", sqlite_rows.__name__, str(path), str(payload_bytes),
-             *map(str, channels)],
-            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, bufsize=0,
-            env={**os.environ, "PYTHONPATH": python_path},
-        )
-        self._out: io.RawIOBase = self._process.stdout  # type: ignore[assignment]
-        if hasattr(fcntl, "F_SETPIPE_SZ"):
-            with contextlib.suppress(OSError):  # a smaller pipe only costs more reads
-                fcntl.fcntl(self._out.fileno(), fcntl.F_SETPIPE_SZ, PIPE_BYTES)
-
-    def batches(self) -> Iterator[Packed]:
-        """The batches the process fetched; a read error it reports as a RowsError, its end
-        before the last frame as a SourceError naming the bag."""
-        while True:
-            kind, count, self.malformed, last_ns, length = FRAME.unpack(self._take(FRAME.size))
-            if kind == END:
-                return
-            if kind != BATCH:
-                cause = self._take(length).decode(errors="replace")
-                raise RowsError(cause, count, None if last_ns < 0 else last_ns)
-            columns = memoryview(self._take(32 * count))
-            step = 8 * count
-            channels, log_ns, sizes, row_ids = (columns[start:start + step]
-                                                for start in range(0, 4 * step, step))
-            yield Packed(channels, log_ns, sizes, row_ids, memoryview(self._take(length)))
-            self._read += count
-
-    def _take(self, size: int) -> bytearray:
-        buffer = bytearray(size)
-        view = memoryview(buffer)
-        got = 0
-        while got < size:
-            read = self._out.readinto(view[got:])
-            if not read:
-                msg = (f"bag {self._bag}: the process reading {self._path} ended (exit code "
-                       f"{self._process.wait()}) after {self._read} messages; the rest of the bag "
-                       "is lost")
-                raise SourceError(msg)
-            got += read
-        return buffer
-
-    def close(self) -> None:
-        """End the process (at once, if it is still reading) and wait for it."""
-        if self._process.poll() is None:
-            self._process.kill()
-        self._process.wait()
-        self._out.close()

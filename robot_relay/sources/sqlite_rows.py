@@ -109,7 +109,7 @@ class Rows:
         self.read = 0
         self.last_ns: int | None = None
 
-    def __iter__(self) -> Iterator[Packed]:
+    def batches(self) -> Iterator[Packed]:
         """The batches; a read error (a corrupt page) as a :class:`RowsError`."""
         cursor = self._fetch(lambda: self._connection.execute(
             QUERY.format(",".join("?" * len(self._channels))), self._channels))
@@ -188,7 +188,7 @@ class _Ahead:
 def frames(rows: Rows) -> Iterator[tuple[bytes, ...]]:
     """``rows`` as frames (:data:`FRAME`), the last an end or a failure."""
     try:
-        for packed in rows:
+        for packed in rows.batches():
             yield (FRAME.pack(BATCH, len(packed), rows.malformed, _ns(rows.last_ns),
                               len(packed.payloads)),
                    *map(bytes, (packed.channels, packed.log_ns, packed.sizes, packed.row_ids)),

@@ -3,7 +3,7 @@ the record-by-record rosbags path gives: every topic's payloads and log times in
 unpaced in windows within their bounds, paced record by record, and through ``swanky-host
 --bag``'s runs; a damaged row is skipped and counted as the rosbags path counts it. Each holds
 whether the rows are fetched in the reader's process or read ahead by a process of their own
-(``Sqlite3File.read_ahead``, what the host does), and that process ends with the bag.
+(host_bridge/inputs/rows_ahead.py, what the host does), and that process ends with the bag.
 
 The bag is test_bag_bulk's (Imu, String, a latched TFMessage, 100 KB images, ties between topics),
 written by rosbags' Writer with sqlite3 storage, as one .db3 of a rosbag2 directory, or split in
@@ -16,6 +16,7 @@ import logging
 import os
 import signal
 import sqlite3
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -23,6 +24,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 
 from host_bridge.inputs.bag import bag_runs
 from host_bridge.inputs.base import MessageRun
+from host_bridge.inputs.rows_ahead import read_ahead
 from robot_relay.errors import SourceError
 from robot_relay.sources.bag import BagSource
 from robot_relay.sources.mcap import LARGE_PAYLOAD
@@ -79,7 +81,7 @@ def test_a_sqlite3_bag_is_read_in_bulk_as_rosbags_reads_it(tmp_path: Path, ahead
         assert [type(opened) for opened in files] == [Sqlite3File]
         record = record_runs(source)
         if ahead:
-            source.read_ahead(0, 10**9)
+            read_ahead(source, 0, 10**9)
             assert len(readers()) == 1
         bulk = bulk_runs(source)
         assert readers() == []  # its pass read, it ended
@@ -113,7 +115,7 @@ def test_windows_keep_their_bounds_and_rosbags_order(
         files = source.bulk_files()
         assert files is not None
         if ahead:
-            source.read_ahead(0, payload_bytes)
+            read_ahead(source, 0, payload_bytes)
         windows = [window for opened in files for window in opened.windows(messages, payload_bytes)]
     got: dict[str, list[tuple[bytes, int]]] = {}
     for window in windows:
@@ -160,7 +162,7 @@ def test_a_damaged_row_is_skipped_counted_and_named(
         db.execute("UPDATE messages SET data = hex(data) WHERE id = ?", (ids[1],))
     with caplog.at_level(logging.WARNING), BagSource(bag, "tb3") as source:
         if ahead:
-            source.read_ahead(0, 10**9)
+            read_ahead(source, 0, 10**9)
         bulk = per_topic(bulk_runs(source))
     assert sum(len(messages) for messages in bulk.values()) == sum(COUNTS.values()) - 3
     assert len(bulk["/camera/image_raw"]) == COUNTS["/camera/image_raw"] - 1
@@ -195,7 +197,7 @@ def test_a_read_error_mid_file_read_ahead_names_the_bag_and_where_it_stopped(tmp
         with (bag / "bag.db3").open("r+b") as file:
             file.seek(400_000)
             file.write(b"\xa5" * 400_000)
-        source.read_ahead(0, 10**9)
+        read_ahead(source, 0, 10**9)
         files = source.bulk_files()
         assert files is not None
         windows = files[0].windows(10, 10**9)
@@ -211,7 +213,7 @@ def test_a_reading_process_that_dies_names_the_bag_and_loses_nothing_before(tmp_
     with BagSource(bag, "tb3") as source:
         files = source.bulk_files()
         assert files is not None
-        source.read_ahead(0, 1)  # one-row batches: the process is still writing when it dies
+        read_ahead(source, 0, 1)  # one-row batches: the process is still writing when it dies
         windows = files[0].windows(10, 10**9)
         first = next(windows)
         [reader] = readers()
@@ -223,9 +225,21 @@ def test_a_reading_process_that_dies_names_the_bag_and_loses_nothing_before(tmp_
     assert sum(len(run.log_ns) for run in first) == 10
 
 
+def test_where_no_process_starts_the_rows_are_fetched_here(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def refused(*args: object, **kwargs: object) -> None:
+        raise OSError(11, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(subprocess, "Popen", refused)
+    with BagSource(sqlite_bag(tmp_path / "bag"), "tb3") as source:
+        read_ahead(source, 0, 10**9)
+        assert per_topic(bulk_runs(source)) == written()
+
+
 def test_a_bag_closed_unread_ends_its_reading_process(tmp_path: Path) -> None:
     with BagSource(sqlite_bag(tmp_path / "bag"), "tb3") as source:
-        source.read_ahead(0, 1)
+        read_ahead(source, 0, 1)
         [reader] = readers()
     assert readers() == []
     with pytest.raises(ChildProcessError):  # waited for: no zombie left
