@@ -16,8 +16,6 @@ before): 1.72-1.98 s -> 1.36-1.49 s, the same messages in an MCAP 1.35 s.
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
 import io
 import logging
 import os
@@ -52,6 +50,17 @@ def read_ahead(source: BagSource, index: int, payload_bytes: int) -> None:
         log.debug("bag %s: fetching the rows of %s in this process (%s)", opened.bag, opened.path, err)
 
 
+def _widen(pipe: io.RawIOBase) -> None:
+    """The pipe made :data:`PIPE_BYTES` long where the platform can (Linux); elsewhere it only
+    takes more reads."""
+    try:
+        import fcntl  # not on Windows
+
+        fcntl.fcntl(pipe.fileno(), fcntl.F_SETPIPE_SZ, PIPE_BYTES)
+    except (ImportError, AttributeError, OSError):
+        pass
+
+
 class RowsAhead:
     """The rows of the sqlite3 file at ``path`` (of ``bag``), of storage connections
     ``channels``, fetched by ``python -m robot_relay.sources.sqlite_rows`` and read back from its
@@ -64,16 +73,20 @@ class RowsAhead:
         self._read = 0
         package_root = Path(sqlite_rows.__file__).resolve().parents[2]
         python_path = os.pathsep.join(filter(None, (str(package_root), os.environ.get("PYTHONPATH"))))
+        if not sys.executable:  # an embedded interpreter: nothing to run the reader with
+            msg = "no Python executable to run the reader with"
+            raise OSError(msg)
         self._process = subprocess.Popen(
             [sys.executable, "-m", sqlite_rows.__name__, str(path), str(payload_bytes),
              *map(str, channels)],
             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, bufsize=0,
             env={**os.environ, "PYTHONPATH": python_path},
+            # Out of the terminal's process group: Ctrl-C is the host's to handle (it ends this
+            # process when it closes the bag); the reader printed a KeyboardInterrupt otherwise.
+            start_new_session=True,
         )
         self._out: io.RawIOBase = self._process.stdout  # type: ignore[assignment]
-        if hasattr(fcntl, "F_SETPIPE_SZ"):
-            with contextlib.suppress(OSError):  # a smaller pipe only costs more reads
-                fcntl.fcntl(self._out.fileno(), fcntl.F_SETPIPE_SZ, PIPE_BYTES)
+        _widen(self._out)
 
     def batches(self) -> Iterator[Packed]:
         """The batches the process fetched; a read error it reports as a RowsError, its end

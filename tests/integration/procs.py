@@ -104,13 +104,23 @@ def _stuck_viewer(pid: int, port: int, output: Path) -> str:
             f"output ends:\n{output.read_text(errors='replace')[-2000:]}")
 
 
+def children(parent: int, marker: str) -> list[int]:
+    """The running children of process ``parent`` (no zombie) whose command line holds ``marker``."""
+    found = subprocess.run(["ps", "-ww", "-o", "pid=,stat=,args=", "--ppid", str(parent)],
+                           capture_output=True, text=True, check=False).stdout
+    return [int(pid) for pid, state, args in (line.split(None, 2) for line in found.splitlines())
+            if marker in args and not state.startswith("Z")]
+
+
 def converter_processes(host: int) -> list[int]:
     """The children of process ``host`` that convert its heavy topics (host_bridge/pipeline/offload.py)."""
     from host_bridge.pipeline.offload import CHILD_MAIN
 
-    found = subprocess.run(["ps", "-ww", "-o", "pid=,args=", "--ppid", str(host)],
-                           capture_output=True, text=True, check=False).stdout
-    return [int(line.split()[0]) for line in found.splitlines() if CHILD_MAIN in line]
+    return children(host, CHILD_MAIN)
+
+
+READER_MAIN = "robot_relay.sources.sqlite_rows"
+"""What the command line of a process reading a sqlite3 bag ahead holds (host_bridge/inputs/rows_ahead.py)."""
 
 
 def alive(pid: int) -> bool:

@@ -23,7 +23,7 @@ import pytest
 
 from host_bridge.outputs.sink import DISCONNECT_TIMEOUT_S
 from robot_relay.session import close_session
-from tests.integration.procs import command, free_port, headless_viewer, open_loopback
+from tests.integration.procs import READER_MAIN, children, command, free_port, headless_viewer, open_loopback
 from tests.integration.robot_bags import (
     Entry,
     Lines,
@@ -33,6 +33,7 @@ from tests.integration.robot_bags import (
     write_copies,
 )
 from tests.reliability import Record
+from tests.robot_relay.test_bag_sqlite import sqlite_bag
 from tests.rrd import entity_rows, row_count, verify
 
 pytestmark = pytest.mark.integration
@@ -183,6 +184,32 @@ def test_ctrl_c_during_demo_start_up_stops_every_process(tmp_path: Path) -> None
     assert (host.returncode, took < STOP_WITHIN_S) == (0, True), lines.text
     assert "KeyboardInterrupt" not in lines.text
     assert "Traceback" not in lines.text
+
+
+def test_ctrl_c_while_a_sqlite3_bag_is_read_ahead_is_the_hosts_alone(tmp_path: Path) -> None:
+    """The process fetching a sqlite3 bag's rows (host_bridge/inputs/rows_ahead.py) is in a
+    session of its own: Ctrl-C stops the host, which ends that process, and nothing else speaks."""
+    bag = sqlite_bag(tmp_path / "bag")
+    with started(command(
+        "host_bridge.cli", "--bag", str(bag), "--save", str(tmp_path / "bag.rrd")
+    ), new_session=True) as (host, lines):
+        reader = wait_for_reader(host.pid)
+        os.killpg(host.pid, signal.SIGINT)
+        host.wait(timeout=60)
+    assert (host.returncode, "Traceback" in lines.text) == (0, False), lines.text
+    assert "KeyboardInterrupt" not in lines.text
+    assert "the process reading" not in lines.text
+    with pytest.raises(ProcessLookupError):  # ended and waited for by the host
+        os.kill(reader, 0)
+
+
+def wait_for_reader(host: int) -> int:
+    """The pid of ``host``'s process reading a sqlite3 file ahead, once it runs."""
+    deadline = time.monotonic() + STARTUP_S
+    while not (found := children(host, READER_MAIN)) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert found, f"no process of {host} reads the bag ahead"
+    return found[0]
 
 
 ONE_SIGNAL_S = 2.0

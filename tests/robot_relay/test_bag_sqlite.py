@@ -30,6 +30,7 @@ from robot_relay.sources.bag import BagSource
 from robot_relay.sources.mcap import LARGE_PAYLOAD
 from robot_relay.sources.sqlite import Sqlite3File
 from robot_relay.sources.sqlite_rows import BATCH_SHARE
+from tests.integration.procs import READER_MAIN, children
 from tests.robot_relay.test_bag_bulk import (
     COUNTS,
     STORE,
@@ -57,19 +58,8 @@ AHEAD = pytest.mark.parametrize("ahead", [False, True], ids=["here", "read-ahead
 
 
 def readers() -> list[int]:
-    """The processes reading a sqlite3 file ahead for this one (running: no zombie)."""
-    found = []
-    for proc in Path("/proc").iterdir():
-        try:
-            stat = (proc / "stat").read_text()
-            cmdline = (proc / "cmdline").read_bytes().split(b"\0")
-        except OSError:  # not a process, or gone meanwhile
-            continue
-        state, parent = stat.rpartition(")")[2].split()[:2]
-        if (int(parent) == os.getpid() and state != "Z"
-                and b"robot_relay.sources.sqlite_rows" in cmdline):
-            found.append(int(proc.name))
-    return found
+    """The processes reading a sqlite3 file ahead for this one."""
+    return children(os.getpid(), READER_MAIN)
 
 
 @AHEAD
