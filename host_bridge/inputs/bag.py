@@ -30,7 +30,7 @@ from robot_relay.wire import RawMessage
 
 RUN_MESSAGES = 32768
 """Messages read before they go on as runs: big runs amortise what each run costs (a
-send_columns call per plotted series, the frames' bookkeeping) ..."""
+send_columns call per plotted series, the frames' bookkeeping), up to RUN_BYTES of payload."""
 DELIVERY_SECONDS = 0.25
 """About how long converting one delivery may take: the host stops (Ctrl-C, SIGTERM) after the
 delivery under way, and a whole run of a slow type is seconds (24,000 LaserScans: 2.5-5 s)."""

@@ -20,8 +20,8 @@ from robot_relay.errors import SourceError
 from robot_relay.sources.bag import BagSource
 
 RUN_BYTES = 64 * 1024 * 1024
-"""... but no more payload bytes than this a run (inputs/bag.py): a run of images or clouds must
-not hold a whole bag."""
+"""The most payload bytes a run holds (inputs/bag.py's runs, beside RUN_MESSAGES): a run of images
+or clouds must not hold a whole bag."""
 
 
 def open_bag(path: Path, robot: str) -> BagSource:
