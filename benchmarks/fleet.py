@@ -60,17 +60,20 @@ converter process), so the host's CPU is its process's:
 - two hosts, ``--robots 'east-$*'`` and ``--robots 'west-$*'``, each a process of its own,
   measuring the same window (the parent tells both to go once both have every robot).
 
-Printed per host the figures above (the router's and the viewer's CPU beside the relays'), then
-two hosts against one: the worst robot's small-topic p99, the pooled p50s, host CPU in cores and
-per message converted, small and heavy messages converted per robot and second, peak RSS, small
+Printed per host the figures above (the router's and the viewer's CPU beside the relays'), then two
+hosts against one: the worst robot's small-topic p99, the pooled p50s, host CPU in cores and per
+message converted, small and heavy messages converted per robot and second, peak RSS, small
 messages dropped, each as a ratio where one reads as one. Both hosts run on this machine's two
-cores, so two hosts against one says what splitting the fleet over two processes buys (a GIL
-each) and costs, not what a second PC's cores would add. Then what each viewer saved: its
-recordings (one: both hosts' data in ``fleet``), the blueprints the hosts sent (each made the
-active one; each names every robot of both hosts once their topics were shared, so the layout
-shown is the whole fleet's whichever host sent last), rows of each robot's ``/imu`` (every robot
-present, none short), the entities outside every robot's paths (each host's own viewer lag) and
-the hosts' warnings. After its window a host flushes what it logged to the viewer, then ends.
+cores, so two hosts against one says what splitting the fleet over two processes buys (a GIL each)
+and costs, not what a second PC's cores would add; with ``--pcs`` each host is pinned to a core of
+its own (``os.sched_setaffinity``: the one host to core 0, the two to cores 0 and 1), as two PCs of
+one core each would run them, and two hosts against one is what the second PC adds (the relays, the
+router and the viewer, a lab's other machines, still run on either core). Then what each viewer
+saved: its recordings (one: both hosts' data in ``fleet``), the blueprints the hosts sent (each
+made the active one; each names every robot of both hosts once their topics were shared, so the
+layout shown is the whole fleet's whichever host sent last), rows of each robot's ``/imu`` (every
+robot present, none short), the entities outside every robot's paths (each host's own viewer lag)
+and the hosts' warnings. After its window a host flushes what it logged to the viewer, then ends.
 
 ``--workers N`` (default 2): the fleet phase is ``swanky-host --workers N`` itself, as a user runs
 it for a fleet (``host_bridge/workers.py``: this many processes, each converting its share of the
@@ -88,7 +91,7 @@ The bags took 14-86 s to simulate on this shared 2-core machine (load 3.5 to 20)
 30-45 s; a phase's process ends right after its window, without draining what its queues hold.
 
     .venv/bin/python benchmarks/fleet.py [--robots 25] [--seconds 15] [--warmup 5] [--slam]
-        [--workers 2] [--router]
+        [--workers 2] [--router [--pcs]]
 """
 
 from __future__ import annotations
@@ -630,7 +633,8 @@ def router_phase(
             relays.callback(stop_process, process)
             return {"relays": process.pid, "router": router_pid, "viewer": viewer_process.pid}
 
-        hosts = [["--router-at", endpoint, "--group", group, "--viewer", viewer] for group in groups]
+        hosts = [["--router-at", endpoint, "--group", group, "--viewer", viewer,
+              *(["--core", str(core)] if args.pcs else [])] for core, group in enumerate(groups)]
         phases = measured_hosts(args.robots, bags, args, hosts, opened=start)
     return phases, viewer_findings(rrd, robot_names(args.robots, router=True))
 
@@ -980,16 +984,23 @@ def main() -> int:
                              "from inside; default %(default)s)")
     parser.add_argument("--router", action="store_true",
                         help="through a Zenoh router: one host for the fleet, then two (README)")
+    parser.add_argument("--pcs", action="store_true",
+                        help="with --router: each host on a core of its own, as if each were a PC")
     parser.add_argument("--phase", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--core", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--router-at", metavar="ENDPOINT", help=argparse.SUPPRESS)
     parser.add_argument("--group", choices=sorted(GROUPS), help=argparse.SUPPRESS)
     parser.add_argument("--viewer", help=argparse.SUPPRESS)
     parser.add_argument("--relay-fleet", metavar="ENDPOINT", help=argparse.SUPPRESS)
     parser.add_argument("--bags", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.pcs and not args.router:
+        parser.error("--pcs needs --router: it places the router recipe's hosts")
     if args.relay_fleet is not None:
         return relay_fleet(args.relay_fleet, args.bags, args.robots, router=args.router)
     if args.phase is not None:
+        if args.core is not None:  # before any thread starts: every thread of the host inherits it
+            os.sched_setaffinity(0, {args.core})
         via = None if args.router_at is None else ViaRouter(args.router_at, args.group, args.viewer)
         run_phase(args.phase, args.bags, warmup=args.warmup, seconds=args.seconds, slam=args.slam,
                   publish=publish_and_exit, via=via)
@@ -1006,6 +1017,7 @@ def main() -> int:
               + (f"through a Zenoh router ({ROUTER_CONFIG.name}), hosts logging to one Rerun "
                  f"viewer (rerun --port N --save FILE) under recording id {RECORDING_ID!r}"
                  if args.router else "host saving to /dev/null")
+              + (", each host on a core of its own (--pcs)" if args.pcs else "")
               + (", SLAM per robot" if args.slam else ""), flush=True)
         if args.router:
             with running_router() as router:
