@@ -7,7 +7,10 @@ carries along (trail, covariance) is drawn in the *header* frame, so it stays pu
 pose moves.
 
 Options (:class:`~host_bridge.core.options.PoseOptions` and its kin): ``trail_length`` (points,
-0 = off; a point is added once the pose moved more than 1 cm), ``axis_length`` (m),
+0 = off; a point is added once the pose moved more than 1 cm), ``trail_period`` (s between two
+trail rows by the messages' stamps; every point is kept, but each row carries the whole trail, up
+to 500 points, so a row per message of a 30 Hz odometry was a fifth of a live fleet's conversion
+and most of the bytes its small topics sent the viewer), ``axis_length`` (m),
 ``arrow_length`` (PoseArray, m), ``sigma`` (covariance ellipsoid scale in standard deviations).
 """
 
@@ -108,24 +111,28 @@ class _Trail:
 
     points: Float64Array = field(default_factory=lambda: np.empty((0, 3)))
     frame: str | None = None
+    shown_ns: int | None = None
+    """The stamp of the last trail row logged."""
+    shown_frame: str | None = None
 
 
 @dataclass(frozen=True, slots=True)
 class _Grown:
     """The rows of a run that moved its topic's trail, and the trail after each:
-    ``points[offsets[i]:offsets[i + 1]]`` after row ``rows[i]``."""
+    ``points[begins[i]:ends[i]]`` after row ``rows[i]``."""
 
     rows: RowIndex
     points: Float64Array
-    offsets: npt.NDArray[np.int64]
+    begins: npt.NDArray[np.int64]
+    ends: npt.NDArray[np.int64]
 
     def strips(self, picked: RowIndex) -> pa.Array:
         """The trails after the rows ``picked`` (indices into ``rows``) as LineStrip3D cells,
         the Arrow array Rerun's batch takes as it is: a list of 2600 trails of 500 points
         converted by ``rr.LineStrips3D.columns`` was 5% of ``swanky-host --bag`` of
-        nav2_turtlebot.mcap (py-spy)."""
-        starts = self.offsets[:-1][picked]
-        lengths = self.offsets[1:][picked] - starts
+        nav2_turtlebot.mcap (py-spy). Only the trails of the rows shown are gathered."""
+        starts = self.begins[picked]
+        lengths = self.ends[picked] - starts
         offsets = np.zeros(len(picked) + 1, np.int32)
         np.cumsum(lengths, out=offsets[1:])
         points = self.points[np.repeat(starts - offsets[:-1], lengths) + np.arange(offsets[-1])]
@@ -142,37 +149,56 @@ def _advance_trail(
     keeps the trail in the topic's state.
 
     Sequential by nature (each step compares with the last kept point), but per message, not
-    per point, in Python floats (numpy's per-call cost is most of a message's); the trails are
-    then gathered at once. A frame change restarts the trail: old points are in another frame.
+    per point, in Python floats (numpy's per-call cost is most of a message's); the kept trail
+    stays an array, only the run's new points are Python's (turning the 500 kept points into
+    lists and back at every live message was most of a trail's cost). A frame change restarts
+    the trail: old points are in another frame.
     """
     if limit <= 0:
-        return _Grown(np.empty(0, np.intp), np.empty((0, 3)), np.zeros(1, np.int64))
+        nothing = np.empty(0, np.int64)
+        return _Grown(np.empty(0, np.intp), np.empty((0, 3)), nothing, nothing)
     kept = ctx.state(_Trail)
-    points: list[list[float]] = kept.points.tolist()  # the old trail, then the points kept here
+    old = kept.points
     trail_frame = kept.frame
-    start = 0  # where the trail in trail_frame begins in points
-    last = points[-1] if points else None
+    start = 0  # where the trail in trail_frame begins in old + new
+    last: list[float] | None = old[-1].tolist() if len(old) else None
+    new: list[list[float]] = []
     rows: list[int] = []
     begins: list[int] = []
     for row, (position, frame) in enumerate(zip(positions.tolist(), frames, strict=True)):
         if frame != trail_frame:
-            start, last, trail_frame = len(points), None, frame
+            start, last, trail_frame = len(old) + len(new), None, frame
         if not all(map(math.isfinite, position)) or (
             last is not None and math.dist(position, last) <= _TRAIL_MIN_STEP_M
         ):
             continue
-        points.append(position)
+        new.append(position)
         last = position
         rows.append(row)
-        begins.append(max(start, len(points) - limit))
-    every = np.array(points, np.float64).reshape(-1, 3)
-    kept.points, kept.frame = every[max(start, len(points) - limit) :], trail_frame
-    ends = np.arange(len(points) - len(rows), len(points), dtype=np.int64) + 1
-    lengths = ends - np.array(begins, np.int64)
-    offsets = np.zeros(len(rows) + 1, np.int64)
-    np.cumsum(lengths, out=offsets[1:])
-    gathered = every[np.repeat(ends - lengths - offsets[:-1], lengths) + np.arange(offsets[-1])]
-    return _Grown(np.array(rows, np.intp), gathered, offsets)
+        begins.append(max(start, len(old) + len(new) - limit))
+    every = np.concatenate([old, np.array(new, np.float64)]) if new else old
+    kept.points, kept.frame = every[max(start, len(every) - limit) :], trail_frame
+    ends = np.arange(len(old), len(every), dtype=np.int64) + 1
+    return _Grown(np.array(rows, np.intp), every, np.array(begins, np.int64), ends)
+
+
+def _shown(
+    kept: _Trail, stamps: npt.NDArray[np.int64], frames: Sequence[str | None], period_s: float,
+) -> RowIndex:
+    """Which of the rows that grew the trail log it (indices into them): one ``period_s`` or more
+    after the last logged by its stamp, and always one without a stamp, one earlier than the last
+    (a bag looped, a simulation reset) or one in another frame (the trail restarted)."""
+    if period_s <= 0:
+        return np.arange(len(stamps))
+    period_ns = round(period_s * 1e9)
+    shown: list[int] = []
+    for index, (stamp, frame) in enumerate(zip(stamps.tolist(), frames, strict=True)):
+        last = kept.shown_ns
+        if stamp and last is not None and last <= stamp < last + period_ns and frame == kept.shown_frame:
+            continue
+        shown.append(index)
+        kept.shown_ns, kept.shown_frame = stamp or last, frame
+    return np.array(shown, np.intp)
 
 
 def _frame_rows(ctx: TopicContext, columns: Columns) -> list[tuple[str | None, RowIndex]]:
@@ -216,12 +242,15 @@ def pose_columns(run: Run, path: str, options: PoseOptions | None = None) -> lis
         for row in rows.tolist():
             frames[row] = frame
     grown = _advance_trail(run, options.trail_length, positions, frames)
-    if len(grown.rows):
-        for picked, times in run.times(stamps[grown.rows], grown.rows):
+    shown = _shown(run.state(_Trail), stamps[grown.rows], [frames[row] for row in grown.rows.tolist()],
+                   options.trail_period)
+    if len(shown):
+        rows = grown.rows[shown]
+        for picked, times in run.times(stamps[rows], rows):
             trail = [
-                *component_columns(rr.LineStrips3D, strips=grown.strips(picked)),
+                *component_columns(rr.LineStrips3D, strips=grown.strips(shown[picked])),
                 *rr.CoordinateFrame.columns(
-                    frame=[fixed_frame(run, frames[row]) for row in grown.rows[picked].tolist()]
+                    frame=[fixed_frame(run, frames[row]) for row in rows[picked].tolist()]
                 ),
             ]
             entries.append(ColumnsItem(run.child_path("trail"), trail, times))

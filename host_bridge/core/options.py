@@ -100,6 +100,7 @@ class CostmapUpdateOptions(GridDrawingOptions):
 @dataclass(frozen=True, slots=True)
 class PoseOptions:
     trail_length: int = 500
+    trail_period: float = 0.1  # s between two trail rows; 0: a row for every message that moved
     axis_length: float = 0.3
 
 

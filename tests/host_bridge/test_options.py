@@ -155,7 +155,8 @@ def test_the_built_in_layer_is_the_records_defaults() -> None:
     assert walls["wall_height"] == 0.5
     assert walls["wall_color"] == [170, 180, 200]
     assert "wall_thickness" not in walls  # derived from the grid's resolution
-    assert fixed_defaults(PoseCovarianceOptions) == {"trail_length": 500, "axis_length": 0.3, "sigma": 1.0}
+    assert fixed_defaults(PoseCovarianceOptions) == {
+        "trail_length": 500, "trail_period": 0.1, "axis_length": 0.3, "sigma": 1.0}
     # A costmap is drawn as a grid and has no walls: nothing fixed, all derived from its topic.
     assert config.resolve("tb3", "/global_costmap/costmap_raw", "nav2_msgs/msg/Costmap").options == {}
 

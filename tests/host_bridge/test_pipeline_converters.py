@@ -122,7 +122,7 @@ def test_laser_rays_mode_draws_segments_from_the_sensor() -> None:
 
 
 def test_odometry_pose_twist_and_trail() -> None:
-    def odom(x: float) -> Any:
+    def odom(x: float, stamp_s: int) -> Any:
         pose = T["geometry_msgs/msg/Pose"](
             position=T["geometry_msgs/msg/Point"](x=x, y=2.0, z=0.0),
             orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
@@ -132,13 +132,13 @@ def test_odometry_pose_twist_and_trail() -> None:
             angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.5),
         )
         return T["nav_msgs/msg/Odometry"](
-            header=header("odom", 1), child_frame_id="base_link",
+            header=header("odom", stamp_s * 1_000_000_000), child_frame_id="base_link",
             pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
             twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
         )
 
     c = ctx("/odom")
-    items = convert_run(ODOMETRY, [odom(0.0), odom(0.001), odom(1.0)], [c, c, c])
+    items = convert_run(ODOMETRY, [odom(0.0, 1), odom(0.001, 2), odom(1.0, 3)], [c, c, c])
     by_path = {i.path: i for i in items if isinstance(i, ColumnsItem)}
     pose = by_path["/tb3/odom"]
     assert column(pose, "Transform3D:translation")[2] == [[1.0, 2.0, 0.0]]

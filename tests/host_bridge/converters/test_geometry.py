@@ -157,6 +157,44 @@ def test_trail_keeps_the_last_trail_length_points_and_restarts_on_frame_change()
     assert _column(trail, "CoordinateFrame:frame") == [["tb3/odom"]]
 
 
+def test_trail_rows_are_a_trail_period_apart_by_stamp_and_keep_every_point() -> None:
+    # 30 Hz poses moving 5 cm each: a trail row every 0.1 s (default), every point in the trail.
+    state = TopicState()
+    ms = 1_000_000
+    stamps = [10 * NS + i * 33 * ms for i in range(10)]
+    msgs = [_pose_stamped((0.05 * i, 0.0, 0.0), "map", stamp) for i, stamp in enumerate(stamps)]
+    entries = convert_run(POSE_STAMPED, msgs, [_ctx(ns=stamp, state=state) for stamp in stamps])
+    (trail,) = _at(entries, "/tb3/goal/trail")
+    assert isinstance(trail, ColumnsItem)
+    assert trail.times["ros_time"].tolist() == [stamps[0], stamps[4], stamps[8]]
+    strips = _column(trail, "LineStrips3D:strips")
+    assert strips is not None
+    assert [len(strip[0]) for strip in strips] == [1, 5, 9]
+    # The next run goes on from the last row shown, message by message as a live topic arrives.
+    shown = [
+        _trail_rows(convert(POSE_STAMPED, _pose_stamped((0.05 * i, 0.0, 0.0), "map", stamp),
+                            _ctx(ns=stamp, state=state)))
+        for i, stamp in ((10, stamps[0] + 370 * ms), (11, stamps[0] + 400 * ms))
+    ]
+    assert [len(rows) for rows in shown] == [1, 0]
+    assert len(shown[0][0][0]) == 11
+    # A stamp earlier than the last row's (a bag looped), another frame, or no stamp: shown.
+    for position, frame, stamp in (((5.0, 0, 0), "map", NS), ((6.0, 0, 0), "odom", NS + ms),
+                                   ((7.0, 0, 0), "odom", 0), ((8.0, 0, 0), "odom", 0)):
+        assert len(_trail_rows(convert(POSE_STAMPED, _pose_stamped(position, frame, stamp),
+                                       _ctx(ns=stamp, state=state)))) == 1
+
+
+def test_trail_period_zero_logs_a_trail_row_for_every_move() -> None:
+    state = TopicState({"trail_period": 0.0})
+    stamps = [NS + i * 1_000_000 for i in range(4)]
+    msgs = [_pose_stamped((0.05 * i, 0.0, 0.0), "map", stamp) for i, stamp in enumerate(stamps)]
+    entries = convert_run(POSE_STAMPED, msgs, [_ctx(ns=stamp, state=state) for stamp in stamps])
+    (trail,) = _at(entries, "/tb3/goal/trail")
+    assert isinstance(trail, ColumnsItem)
+    assert trail.times["ros_time"].tolist() == stamps
+
+
 def test_trail_length_zero_disables_the_trail() -> None:
     entries = convert(POSE_STAMPED,
         _pose_stamped((1.0, 0.0, 0.0)),
