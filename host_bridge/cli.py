@@ -6,12 +6,14 @@ process's signals into a stop event; ``host_bridge/app.py`` does the rest."""
 from __future__ import annotations
 
 import argparse
+import atexit
 import gc
 import importlib
 import logging
 import os
 import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
@@ -332,15 +334,25 @@ def run_app(
     return code
 
 
-def console_main() -> int:
-    """The ``swanky-host`` command: :func:`main`, then every object it left frozen out of the
-    garbage collector, whose last full collection at interpreter exit would otherwise walk them
-    all (0.25-0.3 s after converting a large bag). Not in :func:`main`, which tests call in
-    their own process."""
+def console_main() -> NoReturn:
+    """The ``swanky-host`` command: :func:`main`, then out of the process without finalizing
+    Python, once the threads that must end have (as Python would wait for them) and the exit
+    handlers have run (Rerun's flushes what it still holds). Zenoh's own threads (the demo's
+    relays, the robots' sessions) may still call into Python while it finalizes; CPython then
+    ends such a thread by unwinding it, which its Rust frames turn into an abort ("FATAL:
+    exception not rethrown", exit 134 after ``swanky-host --demo --save`` had printed its
+    summary), as swanky-relay's own exit explains. Skipping finalization also skips its last
+    full garbage collection (0.25-0.3 s after converting a large bag). Not in :func:`main`,
+    which tests call in their own process."""
     code = main()
-    gc.freeze()
-    return code
+    for thread in threading.enumerate():
+        if thread is not threading.current_thread() and not thread.daemon:
+            thread.join()
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":
-    sys.exit(console_main())
+    console_main()
