@@ -221,6 +221,11 @@ def main() -> int:
                         help="write the results here (default: benchmarks/RESULTS.md for a full run, "
                              "nowhere for a selection)")
     args = parser.parse_args()
+    # Started in the background (``python -m benchmarks &``), the run would pass SIGINT on
+    # ignored, and live_capacity's viewer never finished its file (2026-11-29, 23:43).
+    from tests.integration.procs import stop_signals_back
+
+    stop_signals_back()
     benchmarks = discover()
     if args.list:
         for benchmark in benchmarks:

@@ -14,7 +14,7 @@ import zenoh
 
 from robot_relay.session import close_session
 from tests import reliability as reliability_table
-from tests.integration.procs import free_port, open_loopback
+from tests.integration.procs import free_port, open_loopback, stop_signals_back
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 INTEGRATION = "tests/integration/"
@@ -66,9 +66,7 @@ def pytest_configure(config: pytest.Config) -> None:
     every process it starts would too: a Rerun viewer, which installs no SIGINT handler of its own,
     then ignored the SIGINT that tells it to finish its saved file (twice, 2026-11-29). Python
     handlers are reset to the default in the processes started; an ignored signal is not."""
-    for signum, handler in ((signal.SIGINT, signal.default_int_handler), (signal.SIGQUIT, signal.SIG_DFL)):
-        if signal.getsignal(signum) == signal.SIG_IGN:
-            signal.signal(signum, handler)
+    stop_signals_back()
 
 
 @pytest.hookimpl(wrapper=True)

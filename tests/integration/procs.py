@@ -28,6 +28,16 @@ def open_loopback(*flags: str) -> zenoh.Session:
     return open_session(zenoh_options(parser.parse_args(["--no-multicast-scouting", *flags])))
 
 
+def stop_signals_back() -> None:
+    """SIGINT and SIGQUIT back to their defaults where this process inherited them ignored, as a
+    background job of a non-interactive shell does (POSIX): the processes it starts inherit an
+    ignored signal, and a Rerun viewer, which installs no SIGINT handler of its own, then ignores
+    the SIGINT that tells it to finish its saved file."""
+    for signum, handler in ((signal.SIGINT, signal.default_int_handler), (signal.SIGQUIT, signal.SIG_DFL)):
+        if signal.getsignal(signum) == signal.SIG_IGN:
+            signal.signal(signum, handler)
+
+
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind(("127.0.0.1", 0))
