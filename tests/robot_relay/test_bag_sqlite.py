@@ -54,6 +54,17 @@ def sqlite_bag(path: Path) -> Path:
     return path
 
 
+def long_sqlite_bag(path: Path, rows: int) -> Path:
+    """``rows`` copies of one message: at one row a batch, more frames than the reading process's
+    pipe holds, so it is still writing while the host reads the first."""
+    topic, _, data = next(iter(bag_messages()))
+    with Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3) as writer:
+        connection = writer.add_connection(topic, TYPES[topic], typestore=STORE)
+        for row in range(rows):
+            writer.write(connection, 1_000_000_000 + row, data)
+    return path
+
+
 AHEAD = pytest.mark.parametrize("ahead", [False, True], ids=["here", "read-ahead"])
 
 
@@ -199,7 +210,9 @@ def test_a_read_error_mid_file_read_ahead_names_the_bag_and_where_it_stopped(tmp
 
 
 def test_a_reading_process_that_dies_names_the_bag_and_loses_nothing_before(tmp_path: Path) -> None:
-    bag = sqlite_bag(tmp_path / "bag")
+    # The bag of the other tests fitted in the pipe: its reader could finish before the kill
+    # (the suite at 00:44, 2026-11-30).
+    bag = long_sqlite_bag(tmp_path / "bag", 40_000)
     with BagSource(bag, "tb3") as source:
         files = source.bulk_files()
         assert files is not None
