@@ -23,6 +23,7 @@ from robot_relay.policy import PolicyTable
 from robot_relay.relay import Relay
 from robot_relay.session import ZenohOptions, close_session, open_session
 from robot_relay.sources.base import Source, topic_filter
+from robot_relay.sources.take_loop import LATENCY_BUDGET_S
 from robot_relay.wire import Catalog, RawMessage, TopicInfo, check_robot_name
 
 log = logging.getLogger("swanky.relay")
@@ -55,6 +56,9 @@ class RelayOptions:
     hold: float = 0.0
     """Replay: afterwards keep serving latched topics, the catalog and files this long."""
     package_path: tuple[str, ...] = ()
+    latency_budget: float = LATENCY_BUDGET_S
+    """Live: the longest a message waits for the take loop's next turn, so that messages close
+    together cost one wake-up (robot_relay/sources/take_loop.py); 0 forwards each at once."""
 
 
 @dataclass
@@ -94,7 +98,7 @@ def open_source(options: RelayOptions) -> Source:
         return bag
     from robot_relay.sources.ros2 import RclpySource
 
-    live: Source = RclpySource(options.robot, accept)
+    live: Source = RclpySource(options.robot, accept, options.latency_budget)
     return live
 
 

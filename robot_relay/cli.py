@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import math
 import os
 import socket
 import sys
@@ -21,6 +22,7 @@ from robot_relay.config import RelayConfig, load_relay_config
 from robot_relay.errors import RelayError
 from robot_relay.session import add_zenoh_arguments, zenoh_options
 from robot_relay.signals import StopSignals
+from robot_relay.sources.take_loop import LATENCY_BUDGET_S, MAX_LATENCY_BUDGET_S
 from robot_relay.wire import ROBOT_NAME_PATTERN
 
 STOP_DEADLINE_S = 15.0
@@ -34,6 +36,18 @@ log = logging.getLogger("swanky.relay")
 def default_robot_name() -> str:
     name = "".join(c if ROBOT_NAME_PATTERN.match(c) else "_" for c in socket.gethostname())
     return name or "robot"
+
+
+def latency_budget(text: str) -> float:
+    """``--latency-budget``: seconds, 0 to 1 (more is surely milliseconds meant as seconds)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0.0 <= value <= MAX_LATENCY_BUDGET_S:
+        msg = f"{text!r} is not a number of seconds from 0 to {MAX_LATENCY_BUDGET_S:g}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -75,6 +89,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         help="serve package://NAME/... files (meshes) from DIR to hosts (repeatable); packages "
         "a forwarded /robot_description names are also served from AMENT_PREFIX_PATH",
     )
+    parser.add_argument(
+        "--latency-budget", type=latency_budget, default=None, metavar="SECONDS",
+        help="live: the longest a message may wait so that messages close together are taken "
+        f"and sent with one wake-up, less CPU on the robot (default {LATENCY_BUDGET_S}; 0: "
+        "forward each message at once)",
+    )
     add_zenoh_arguments(parser)
     return parser.parse_args(argv)
 
@@ -104,6 +124,9 @@ def relay_options(args: argparse.Namespace, config: RelayConfig) -> app.RelayOpt
         wait_for_host=args.wait_for_host,
         hold=args.hold,
         package_path=tuple(args.package_path),
+        latency_budget=next(budget for budget in (
+            args.latency_budget, config.latency_budget, LATENCY_BUDGET_S
+        ) if budget is not None),
     )
 
 

@@ -31,6 +31,7 @@ class RelayConfig:
     allow: tuple[str, ...] = DEFAULT_ALLOW
     deny: tuple[str, ...] = DEFAULT_DENY
     policies: PolicyTable = field(default_factory=PolicyTable)
+    latency_budget: float | None = None
 
 
 def _compressions(data: dict[str, Any]) -> Iterator[tuple[KeyPath, str]]:
@@ -72,4 +73,5 @@ def load_relay_config(path: Path) -> RelayConfig:
         allow=tuple(topics.get("allow", DEFAULT_ALLOW)),
         deny=tuple(topics.get("deny", DEFAULT_DENY)),
         policies=PolicyTable(data.get("defaults", {}), data.get("policy", {})),
+        latency_budget=data.get("latency_budget"),
     )

@@ -469,7 +469,11 @@ class Relay:
         publisher = self._publishers.get(raw.topic)
         if publisher is None:  # the topic vanished from the live graph meanwhile
             return
-        due = publisher.offer(raw, self.clock())
+        now = self.clock()
+        # A live source's receive time (DDS's, on the system clock; its take loop may have held
+        # the message for its latency budget) moved onto this relay's clock.
+        receive_ns = now if raw.receive_ns is None else now - max(0, time.time_ns() - raw.receive_ns)
+        due = publisher.offer(raw, receive_ns)
         if due is not None:
             self._flusher.schedule(publisher, due)
 

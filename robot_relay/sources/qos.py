@@ -16,11 +16,12 @@ Offer = tuple[str, str, int]
 # queue would hold one message, and any stall of the relay longer than one message period would
 # overwrite reliable messages before they are forwarded.
 LIVE_DEPTH_FLOOR = 10
-# Reliable streams promise every message, and the relay's queue is what rides out its own stalls
-# (garbage collection, a loaded CPU, a congested link blocking a reliable topic's Zenoh put): 10
-# holds a third of a second of 30 Hz odometry, which a loaded machine exceeds; 50 hold 1.6 s.
-# The memory is used only while the relay lags behind.
-LIVE_RELIABLE_STREAM_FLOOR = 50
+# A volatile stream's queue is what rides out the relay's own stalls (garbage collection, a
+# loaded CPU, a congested link blocking a reliable topic's Zenoh put) and its latency budget
+# (robot_relay.sources.take_loop: the take loop turns at most every 50 ms by default): 10 holds
+# a third of a second of 30 Hz odometry, which a loaded machine exceeds; 50 hold 1.6 s of it and
+# 50 ms of a 1 kHz IMU. The memory is used only while the relay lags behind.
+LIVE_STREAM_FLOOR = 50
 
 
 def adapted_qos(offers: Sequence[Offer], floor: int = 1) -> QosProfile:
@@ -49,9 +50,9 @@ def adapted_qos(offers: Sequence[Offer], floor: int = 1) -> QosProfile:
 
 def live_qos(offers: Sequence[Offer]) -> QosProfile:
     """What the live relay subscribes with: :func:`adapted_qos` with :data:`LIVE_DEPTH_FLOOR`,
-    reliable volatile streams at least :data:`LIVE_RELIABLE_STREAM_FLOOR` deep. Latched topics
-    keep the smaller floor: their depth also sizes the cache late hosts get."""
+    volatile streams (reliable or best effort) at least :data:`LIVE_STREAM_FLOOR` deep. Latched
+    topics keep the smaller floor: their depth also sizes the cache late hosts get."""
     qos = adapted_qos(offers, LIVE_DEPTH_FLOOR)
-    if qos.reliability == "reliable" and qos.durability == "volatile":
-        return replace(qos, depth=max(qos.depth, LIVE_RELIABLE_STREAM_FLOOR))
+    if qos.durability == "volatile":
+        return replace(qos, depth=max(qos.depth, LIVE_STREAM_FLOOR))
     return qos

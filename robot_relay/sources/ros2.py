@@ -46,7 +46,7 @@ from robot_relay.errors import SourceError
 from robot_relay.heap import keep_freed_buffers
 from robot_relay.sources.base import Outlet, SourceThread
 from robot_relay.sources.qos import Offer, live_qos
-from robot_relay.sources.take_loop import RawSubscription, TakeLoop
+from robot_relay.sources.take_loop import LATENCY_BUDGET_S, RawSubscription, TakeLoop
 from robot_relay.wire import Catalog, MessageDefinition, RawMessage, TopicInfo
 
 log = logging.getLogger("swanky.relay")
@@ -223,7 +223,10 @@ class _Forwarder:
                 self.source.count_drops(self.info.topic, sequence - self.last_sequence - 1)
             self.last_sequence = sequence
         info = self.info
-        self.publish(RawMessage(self.source.robot, info.topic, info.msgtype, data, info.definition))
+        # When DDS received it (the system clock): the take loop may have held it for its budget.
+        received = None if message_info is None else message_info.get("received_timestamp")
+        self.publish(RawMessage(self.source.robot, info.topic, info.msgtype, data, info.definition,
+                                receive_ns=received or None))
 
 
 class Ros2Source:
@@ -405,7 +408,8 @@ class RclpySource:
     shut ROS down under the running threads and end in tracebacks): the command's own handlers
     stop the app, which then closes this source."""
 
-    def __init__(self, robot: str, accept: Callable[[str], bool]) -> None:
+    def __init__(self, robot: str, accept: Callable[[str], bool],
+                 latency_budget: float = LATENCY_BUDGET_S) -> None:
         try:
             import rclpy
             from rclpy.exceptions import NoTypeSupportImportedException
@@ -431,7 +435,8 @@ class RclpySource:
         except BaseException:
             rclpy.shutdown()
             raise
-        loop = self._loop = TakeLoop(rclpy_implementation, get_default_context().handle)
+        loop = self._loop = TakeLoop(rclpy_implementation, get_default_context().handle,
+                                     latency_budget)
 
         def subscribe(info: TopicInfo, forward: Forward) -> RawSubscription | None:
             profile = QoSProfile(

@@ -25,6 +25,18 @@ info: the timestamps, and from Iron on the sequence numbers), ``GuardCondition(c
 ``destroy_when_not_in_use``. rclpy is handed in, never imported here: the relay imports it only
 when it reads a live graph.
 
+Wake-ups, not messages, are what a small message costs: the take thread's CPU was ~120 us per
+turn of the loop and ~2 us per message taken in it, and Zenoh's transmit thread pays one write
+per turn too (``benchmarks/relay_cpu.py``: small messages at 64 a second, most of them at their
+own instant). So the loop turns at most once per ``latency_budget`` (default
+:data:`LATENCY_BUDGET_S`): a message that follows a quiet spell goes at once, one that follows
+another within the budget waits for the next turn, and what arrived meanwhile goes together
+(one wake-up, one Zenoh batch). The next turn comes sooner when, at the rate a queue filled since
+the last, it would be more than half full by then (messages a full queue overwrites are lost,
+reliable or not): only a topic's first budget can overflow, and
+:func:`~robot_relay.sources.qos.live_qos` makes volatile queues deep enough
+(:data:`~robot_relay.sources.qos.LIVE_STREAM_FLOOR`) for 1 kHz within the default budget.
+
 Threads: subscriptions are created on the caller's thread (the graph thread) and handed over
 with :meth:`TakeLoop.add`; :meth:`TakeLoop.remove` asks for one's end. Both take effect at the
 loop's next turn (the guard condition wakes it), and only the loop's thread destroys a
@@ -33,7 +45,9 @@ subscription, so none is destroyed while rcl waits on it.
 
 from __future__ import annotations
 
+import math
 import threading
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -43,6 +57,12 @@ from robot_relay.wire import TopicInfo
 # Waits end by themselves this often even when nothing arrives: a backstop, since a stop or a
 # change triggers the guard condition at once.
 WAIT_NS = 1_000_000_000
+LATENCY_BUDGET_S = 0.05
+"""How long a message may wait for the take loop's next turn, by default (``swanky-relay
+--latency-budget``): at most 20 turns a second, 50 ms added at worst to what a viewer shows."""
+MAX_LATENCY_BUDGET_S = 1.0
+"""The most ``--latency-budget`` (and ``latency_budget:``) accepts: more is surely milliseconds
+written as seconds."""
 Take = Callable[[bytes, Mapping[str, Any]], None]
 
 
@@ -55,20 +75,23 @@ class RawSubscription:
     forward: Take
     depth: int
 
-    def drain(self) -> None:
-        """Take and forward what the subscription holds, at most ``depth`` messages: a topic
-        that outruns the relay cannot starve the others."""
-        for _ in range(self.depth):
+    def drain(self) -> float:
+        """Take and forward what the subscription holds, at most ``depth`` messages (a topic
+        that outruns the relay cannot starve the others); how full its queue was, 0 to 1."""
+        for count in range(self.depth):
             taken = self.handle.take_message(self.message_type, True)
             if taken is None:
-                return
+                return count / self.depth
             self.forward(*taken)
+        return 1.0
 
 
 class TakeLoop:
     """The relay's raw subscriptions, waited on together and drained on one thread (:meth:`run`)."""
 
-    def __init__(self, rclpy_implementation: Any, context_handle: Any) -> None:
+    def __init__(self, rclpy_implementation: Any, context_handle: Any,
+                 latency_budget: float = LATENCY_BUDGET_S) -> None:
+        self._latency_budget = latency_budget
         self._rclpy = rclpy_implementation
         self._context = context_handle
         self._wake = rclpy_implementation.GuardCondition(context_handle)
@@ -135,21 +158,35 @@ class TakeLoop:
 
     def _take_until_changed(self, wait_set: Any) -> None:
         """The loop's turns while its subscriptions stay the same, with everything a turn needs
-        bound once: a turn costs a message its rcl wait and take, little Python besides."""
+        bound once: a turn costs its rcl wait and takes, little Python besides."""
         handles = [subscription.handle for subscription in self._subscriptions.values()]
         subscriptions = self._subscriptions
         clear, add, add_guard = (wait_set.clear_entities, wait_set.add_subscription,
                                  wait_set.add_guard_condition)
         wait, ready = wait_set.wait, wait_set.get_ready_entities
         wake = self._wake
+        budget = interval = self._latency_budget
+        monotonic, sleep = time.monotonic, time.sleep
+        drained_at = -math.inf  # no message yet: the first goes at once
         while not self._changed:
+            if interval > 0.0:
+                pause = drained_at + interval - monotonic()
+                if pause > 0.0:
+                    sleep(pause)
             clear()
             for handle in handles:
                 add(handle)
             add_guard(wake)
             wait(WAIT_NS)
+            fullest = 0.0
             for pointer in ready("subscription"):
-                subscriptions[pointer].drain()
+                fullest = max(fullest, subscriptions[pointer].drain())
+            if fullest > 0.0:  # else a wait that timed out: the next message goes at once
+                now = monotonic()
+                # The next turn when the fastest-filling queue, at the rate it filled since the
+                # last drain, would be half full: a whole budget may overflow a fast topic's.
+                interval = min(budget, (now - drained_at) * 0.5 / fullest)
+                drained_at = now
 
     def close(self) -> None:
         """Once :meth:`run` has returned (or never ran): destroy every subscription and the guard

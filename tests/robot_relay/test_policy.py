@@ -19,6 +19,7 @@ from robot_relay.policy import (
     PolicyTable,
     RateLimiter,
 )
+from robot_relay.sources.take_loop import LATENCY_BUDGET_S
 from robot_relay.wire import FLAG_LZ4, FLAG_ZSTD, QosProfile, compressor, decompress
 
 REPO = Path(__file__).resolve().parents[2]
@@ -222,7 +223,28 @@ def test_deploy_example_is_valid_and_the_command_line_overrides_it() -> None:
     assert options.topics == config.allow
     assert options.policies is table
 
+    assert options.latency_budget == config.latency_budget == 0.05
+    assert relay_options(parse_args(["--config", str(example), "--latency-budget", "0"]),
+                         config).latency_budget == 0.0
+
     bare = relay_options(parse_args([]), RelayConfig())
+    assert bare.latency_budget == LATENCY_BUDGET_S
     assert bare.topics == ("*",)
     assert bare.exclude == DEFAULT_DENY
     assert bare.robot  # the hostname
+
+
+@pytest.mark.parametrize("text", ["-0.01", "50", "soon", "nan"])
+def test_a_latency_budget_outside_0_to_1_s_is_refused_by_flag_and_by_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str,
+) -> None:
+    with pytest.raises(SystemExit) as exited:
+        parse_args(["--latency-budget", text])
+    assert exited.value.code == 2
+    assert (f"argument --latency-budget: {text!r} is not a number of seconds from 0 to 1"
+            in capsys.readouterr().err)
+    if text in ("-0.01", "50"):
+        relation = "less than the minimum of 0" if text.startswith("-") else "greater than the maximum of 1"
+        assert config_errors(write(tmp_path, f"latency_budget: {text}\n")) == [
+            f"1: latency_budget: {text} is {relation}"
+        ]

@@ -90,6 +90,9 @@ def test_every_time_the_relay_sends_comes_from_its_clock(
         assert relay.wait_for_host(20.0)
         before = time.time_ns()
         relay.publish(RawMessage("tb3", "/chatter", STRING, cdr("one"), log_ns=123))
+        # A live source's message DDS received 40 ms ago (on the system clock), held since.
+        relay.publish(RawMessage("tb3", "/chatter", STRING, cdr("two"),
+                                 receive_ns=time.time_ns() - 40_000_000))
         deadline = time.monotonic() + 20
         # The relay knowing of the host's subscriber does not make the host know of the relay's
         # clock queryable yet: a query sent before that has no one to answer it (3 of 35 runs
@@ -97,18 +100,19 @@ def test_every_time_the_relay_sends_comes_from_its_clock(
         replies: list[zenoh.Sample | None] = []
         while not replies and time.monotonic() < deadline:
             replies = [reply.ok for reply in host.get(clock_key("tb3"), timeout=10.0)]
-        while (not received or not reports) and time.monotonic() < deadline:
+        while (len(received) < 2 or not reports) and time.monotonic() < deadline:
             time.sleep(0.01)
         after = time.time_ns()
     finally:
         relay.close()
         stats.undeclare()
         subscriber.undeclare()
-    (sample,) = received
-    assert sample.attachment is not None
-    attachment = Attachment.unpack(sample.attachment.to_bytes(), "test")
-    assert before + shift <= attachment.receive_ns <= after + shift
-    assert attachment.source_ns == 123  # the source's time is the source's, not the relay's
+    first, second = (Attachment.unpack(sample.attachment.to_bytes(), "test")
+                     for sample in received if sample.attachment is not None)
+    assert before + shift <= first.receive_ns <= after + shift
+    assert first.source_ns == 123  # the source's time is the source's, not the relay's
+    # The source's receive time, moved onto the relay's clock.
+    assert before + shift - 40_000_000 <= second.receive_ns <= after + shift - 40_000_000
     (reply,) = replies
     assert reply is not None
     assert str(reply.key_expr) == "swanky/tb3/clock"

@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+import math
 import os
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
+from itertools import pairwise
 from typing import Any
 
 import pytest
@@ -98,3 +100,94 @@ def test_messages_arrive_whole_in_order_until_removed_and_a_stop_ends_the_loop_a
         runner.join(timeout=30.0)
         loop.close()
     assert not runner.is_alive()  # woken by its guard condition: its own wait lasts a minute
+
+
+@pytest.fixture
+def running_loop(ros: tuple[Any, Any]) -> Iterator[Callable[[float], TakeLoop]]:
+    """Starts a TakeLoop with the given latency budget on a thread; stops and closes it after."""
+    from rclpy.impl.implementation_singleton import rclpy_implementation
+
+    started: list[tuple[TakeLoop, threading.Thread]] = []
+
+    def start(latency_budget: float) -> TakeLoop:
+        loop = TakeLoop(rclpy_implementation, ros[0].handle, latency_budget)
+        runner = threading.Thread(target=loop.run)
+        runner.start()
+        started.append((loop, runner))
+        return loop
+
+    yield start
+    for loop, runner in started:
+        loop.stop()
+        runner.join(timeout=30.0)
+        loop.close()
+        assert not runner.is_alive()
+
+
+def subscribe_strings(
+    ros: tuple[Any, Any], loop: TakeLoop, depth: int,
+) -> tuple[Any, list[tuple[float, int]]]:
+    """A reliable publisher of numbered Strings and the loop's subscription of them, matched;
+    what the loop forwards lands in the list as (time.monotonic(), number)."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.serialization import deserialize_message
+    from std_msgs.msg import String
+
+    qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+    publisher = ros[1].create_publisher(String, TOPIC, qos)
+    received: list[tuple[float, int]] = []
+
+    def forward(data: bytes, info: Mapping[str, Any]) -> None:
+        received.append((time.monotonic(), int(deserialize_message(data, String).data)))
+
+    info = TopicInfo(TOPIC, "std_msgs/msg/String", None, QosProfile("reliable", "volatile", depth))
+    loop.subscribe(ros[1].handle, String, info, qos, forward)
+    wait_until(lambda: publisher.get_subscription_count() == 1, "matched subscription")
+    return publisher, received
+
+
+def turns(times: list[float], gap: float = 0.01) -> int:
+    """How many bursts ``times`` (ascending) fall into: calls closer than ``gap`` share one."""
+    return sum(1 for before, after in pairwise([-math.inf, *times]) if after - before >= gap)
+
+
+def test_messages_close_together_wait_for_one_turn_and_one_after_a_quiet_spell_goes_at_once(
+    ros: tuple[Any, Any], running_loop: Callable[..., TakeLoop],
+) -> None:
+    from std_msgs.msg import String
+
+    budget = 1.0
+    publisher, received = subscribe_strings(ros, running_loop(budget), depth=50)
+    time.sleep(budget + 0.2)  # a quiet spell longer than the budget
+    sent_at = time.monotonic()
+    publisher.publish(String(data="0"))
+    wait_until(functools.partial(taken, received, 1), "the first message")
+    # Not held for the budget: nothing came before it within one.
+    assert received[0][0] - sent_at < budget / 2
+
+    for number in range(1, 21):  # 100 Hz for 0.2 s, right after the first: within its budget
+        publisher.publish(String(data=str(number)))
+        time.sleep(0.01)
+    wait_until(functools.partial(taken, received, 21), "the 20 messages after it")
+    assert [number for _, number in received] == list(range(21))
+    # Taken together once the budget after the first message ended, not 20 wake-ups.
+    assert turns([at for at, _ in received[1:]]) <= 2
+    assert received[1][0] - received[0][0] >= budget * 0.9
+
+
+def test_a_topic_faster_than_its_queue_holds_within_the_budget_loses_only_at_its_start(
+    ros: tuple[Any, Any], running_loop: Callable[..., TakeLoop],
+) -> None:
+    from std_msgs.msg import String
+
+    # 10 deep, 0.3 s budget, ~1 kHz: a whole budget's wait would overwrite 290 of every 300.
+    publisher, received = subscribe_strings(ros, running_loop(0.3), depth=10)
+    count = 1500
+    for number in range(count):
+        publisher.publish(String(data=str(number)))
+        time.sleep(0.001)
+    wait_until(lambda: bool(received) and received[-1][1] == count - 1, "the last message")
+    numbers = [number for _, number in received]
+    assert numbers == sorted(numbers)
+    # The loop turned sooner as soon as it saw the queue fill: the last second is whole.
+    assert numbers[-700:] == list(range(count - 700, count))
