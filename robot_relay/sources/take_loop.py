@@ -25,15 +25,17 @@ info: the timestamps, and from Iron on the sequence numbers), ``GuardCondition(c
 ``destroy_when_not_in_use``. rclpy is handed in, never imported here: the relay imports it only
 when it reads a live graph.
 
-Wake-ups, not messages, are what a small message costs: the take thread's CPU was ~120 us per
-turn of the loop and ~2 us per message taken in it, and Zenoh's transmit thread pays one write
-per turn too (``benchmarks/relay_cpu.py``: small messages at 64 a second, most of them at their
-own instant). So the loop turns at most once per ``latency_budget`` (default
-:data:`LATENCY_BUDGET_S`): a message that follows a quiet spell goes at once, one that follows
-another within the budget waits for the next turn, and what arrived meanwhile goes together
-(one wake-up, one Zenoh batch). The next turn comes sooner when, at the rate a queue filled since
-the last, it would be more than half full by then (messages a full queue overwrites are lost,
-reliable or not): only a topic's first budget can overflow, and
+Wake-ups, not messages, are what a small message costs: each turn of the loop wakes the take
+thread, waits on rcl again and wakes Zenoh's transmit thread for a write. With small messages at
+64 a second, most at their own instant (``benchmarks/relay_cpu.py``), the relay's Python threads
+used 11.0 ms of CPU a second and Zenoh's transmit thread 4.2 when every message had its own
+turn; 7.9 and 1.8 in the same windows with the default budget below (scratch per-thread
+schedstat of both relays at once, beside the bare subscriber). So the loop turns at most once
+per ``latency_budget`` (default :data:`LATENCY_BUDGET_S`): a message that follows a quiet spell
+goes at once, one that follows another within the budget waits for the next turn, and what
+arrived meanwhile goes together (one wake-up, one Zenoh batch). The next turn comes sooner when,
+at the rate a queue filled since the last, it would be more than half full by then (messages a
+full queue overwrites are lost, reliable or not): only a topic's first budget can overflow, and
 :func:`~robot_relay.sources.qos.live_qos` makes volatile queues deep enough
 (:data:`~robot_relay.sources.qos.LIVE_STREAM_FLOOR`) for 1 kHz within the default budget.
 
