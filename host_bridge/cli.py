@@ -344,6 +344,11 @@ def console_main() -> NoReturn:
     summary), as swanky-relay's own exit explains. Skipping finalization also skips its last
     full garbage collection (0.25-0.3 s after converting a large bag). Not in :func:`main`,
     which tests call in their own process."""
+    # Before numpy loads OpenBLAS: its second thread spins, 0.1 s of CPU while a bag converts
+    # (4 % of a large bag's perf samples in blas_thread_server), and the host's matrix products
+    # have an inner size of 2 to 4 (SLAM's scan points by a pose), which threads only slow
+    # (converters/segments.py's _rotated). A user's own setting is kept.
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     code = main()
     for thread in threading.enumerate():
         if thread is not threading.current_thread() and not thread.daemon:
