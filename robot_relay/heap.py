@@ -1,4 +1,4 @@
-"""The relay process's heap: freed message buffers kept for the next message.
+"""A process's heap (the live relay's, swanky-host --bag's): freed message buffers kept for the next one.
 
 A large message (an image, a cloud: about 1 MB) passes through fresh buffers of its size: the
 serialized message rclpy takes it into, the Python bytes made of it. glibc serves such a buffer

@@ -45,6 +45,9 @@ HOST_MAY_IMPORT: dict[str, tuple[str, str]] = {
         "host_bridge.cli", "SIGINT and SIGTERM stop both commands alike: the first cleanly, a second at once",
     ),
     "robot_relay.relay": ("host_bridge.demo", "the demo is a simulated robot: it runs a relay"),
+    "robot_relay.heap": (
+        "host_bridge.cli", "--bag: large chunks and messages reuse freed heap, as in the live relay",
+    ),
     "robot_relay.policy": (
         "host_bridge.table.registry", "a row names the relay's traffic class of its type (TrafficClass), "
         "checked against the relay's own table",
