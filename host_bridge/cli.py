@@ -287,7 +287,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # A bag's large chunks and messages reuse freed heap, as the live relay's messages do: a
         # --compression-mode file bag of images decompresses each chunk into a new 1 MB buffer
         # (1.09-1.14 s wall instead of 1.19-1.51, 4 runs each, alternated; the other layouts as
-        # before, peak RSS within 1 %).
+        # before, peak RSS within 2 %).
         keep_freed_buffers()
         bag_opener = BagOpener(args.bag, args.robot)  # opens while the app is imported
     return run_app(lambda: host_options(args), signals, bag_opener)
