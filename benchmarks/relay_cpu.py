@@ -12,6 +12,10 @@ MB), three processes receive the same messages at the same time:
 - ``swanky-relay --topics ...`` as installed (its default ``--latency-budget``, 0.05 s), with a
   Zenoh subscriber in this process standing in for the host (so every topic is demanded),
   forwarding over loopback;
+  the stand-in host is a remote one by default (``--host remote``: its session without Zenoh's
+  shared memory, as a PC's across the network is, so none is negotiated: on a robot the host is
+  always on another machine); ``--host local`` lets Zenoh use shared memory, as a host on the
+  robot's own machine (a simulation) would;
 - the same with ``--latency-budget 0`` (every message forwarded the moment it is taken).
 
 Each window (``--seconds``; ``--rounds`` of them per group, beginning ``--warmup`` seconds after
@@ -81,6 +85,13 @@ RELAYS = {  # name -> the relay's extra flags
     "swanky-relay --latency-budget 0": ("--latency-budget", "0"),
 }
 ROBOT = "bench"
+HOSTS = {  # --host -> the stand-in host's Zenoh flags
+    # Shared memory needs both ends on one machine: a host on the robot's network never has it.
+    "remote": ("--cfg", "transport/shared_memory/enabled:false"),
+    "local": (),
+}
+HOST_KINDS = {"remote": "no shared memory, as across a network",
+              "local": "shared memory, as on the robot's own machine"}
 STARTUP_TIMEOUT_S = 60.0
 Starter = Callable[..., "subprocess.Popen[str]"]
 
@@ -189,9 +200,11 @@ def start_bare(start: Starter, topics: Sequence[str]) -> Receiver:
 
 
 def measure_group(
-    start: Starter, topics: Sequence[str], warmup: float, seconds: float, windows: int,
+    start: Starter, topics: Sequence[str], warmup: float, seconds: float, windows: int, *,
+    host_flags: Sequence[str],
 ) -> tuple[list[Window], dict[str, tuple[float, float]]]:
-    """The baseline and both relays over the same ``windows``; each relay's (VmRSS, VmHWM)."""
+    """The baseline and both relays over the same ``windows``, each relay forwarding to a
+    stand-in host opened with ``host_flags``; each relay's (VmRSS, VmHWM)."""
     import zenoh
 
     from robot_relay.wire import data_key
@@ -210,7 +223,7 @@ def measure_group(
                           "--no-multicast-scouting", "--topics", *topics, *flags)
             stack.callback(relay.wait, 30)
             stack.callback(relay.send_signal, signal.SIGTERM)
-            session = open_loopback("-e", endpoint)
+            session = open_loopback("-e", endpoint, *host_flags)
             stack.callback(session.close)
             received = counts[name] = {data_key(ROBOT, topic): 0 for topic in topics}
 
@@ -255,6 +268,9 @@ def main() -> int:
     parser.add_argument("--warmup", type=float, default=2.0,
                         help="time before measuring, once every process had every topic")
     parser.add_argument("--rounds", type=int, default=4, help="windows per group")
+    parser.add_argument("--host", choices=HOSTS, default="remote",
+                        help="the stand-in host: on another machine, as on a robot (no shared "
+                             "memory), or on this one (default %(default)s)")
     parser.add_argument("--domain-id", type=int, default=1 + os.getpid() % 100,
                         help="the private ROS_DOMAIN_ID of the run (default: from the process id)")
     parser.add_argument("--bare-subscriber", nargs="+", help=argparse.SUPPRESS)
@@ -272,6 +288,7 @@ def main() -> int:
         return subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE,
                                 stderr=subprocess.DEVNULL, env=env, text=True)
 
+    print(f"stand-in host: {args.host} ({HOST_KINDS[args.host]})", flush=True)
     publishers = [start("-m", "tests.integration.ros_robot", role) for role in ("robot", "camera")]
     baseline = "bare rclpy subscriber"
     ratios: dict[tuple[str, str], list[float]] = {}
@@ -280,7 +297,7 @@ def main() -> int:
         time.sleep(3.0)
         for group, (topics, _) in GROUPS.items():
             windows, group_memory = measure_group(start, topics, args.warmup, args.seconds,
-                                                  args.rounds)
+                                                  args.rounds, host_flags=HOSTS[args.host])
             memory.extend(group_memory.values())
             for number, window in enumerate(windows, 1):
                 bare = window.us_per_message(baseline)
