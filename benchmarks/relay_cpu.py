@@ -9,7 +9,7 @@ MB), three processes receive the same messages at the same time:
 
 - baseline: one rclpy node, ``raw=True`` subscriptions of those topics with the relay's QoS, a
   callback that only counts, spun by rclpy's SingleThreadedExecutor;
-- ``swanky-relay --topics ...`` as installed (its default ``--latency-budget``, 0.05 s), with a
+- ``swanky-relay --topics ...`` as installed (its default ``--latency-budget``, 0.1 s), with a
   Zenoh subscriber in this process standing in for the host (so every topic is demanded),
   forwarding over loopback;
   the stand-in host is a remote one by default (``--host remote``: its session without Zenoh's
@@ -45,9 +45,16 @@ thread, per-thread schedstat; this 2-core machine, shared):
   4.2, Fast DDS's receive thread 3.4, Zenoh's net thread 0.9 (64 messages a second, mostly each
   at its own instant). Nearly all of it is paid per wake-up, not per message: the take thread
   wakes, waits on rcl again, and Zenoh's transmit thread wakes to write, once per message.
-- With the 0.05 s budget, in the same windows: Python 7.9, Zenoh's transmit thread 1.8, Fast
-  DDS 2.8, Zenoh net 0.9. The idle relay (topics present, no host) uses 1.6 ms a second, a third
+- With a 0.05 s budget, in the same windows: Python 7.9, Zenoh's transmit thread 1.8, Fast
+  DDS 2.8, Zenoh net 0.9 (the net thread is Zenoh's shared-memory handoff reactor, woken 10 times
+  a second while a peer on the same machine negotiated shared memory: a remote host, ``--host
+  remote``, has none). The idle relay (topics present, no host) uses 1.6 ms a second, a third
   of it the graph thread's re-reading of the ROS graph every second.
+- What a turn costs (scratch, in one process, a Zenoh subscriber without shared memory, turns 50
+  ms apart): the thread's sleep 70-80 us of its CPU, the first Zenoh put after it about 80 (it
+  wakes Zenoh's transmit thread), each further put of the turn 2; the relay's Python path on top
+  about 60 us for a turn's first message and 7 for each further one. Hence the 0.1 s default:
+  0.35-0.37 of the bare subscriber against 0.52-0.55 with 0.05 s (remote host, 5 windows).
 """
 
 from __future__ import annotations

@@ -18,10 +18,10 @@ Offer = tuple[str, str, int]
 LIVE_DEPTH_FLOOR = 10
 # A volatile stream's queue is what rides out the relay's own stalls (garbage collection, a
 # loaded CPU, a congested link blocking a reliable topic's Zenoh put) and its latency budget
-# (robot_relay.sources.take_loop: the take loop turns at most every 50 ms by default): 10 holds
-# a third of a second of 30 Hz odometry, which a loaded machine exceeds; 50 hold 1.6 s of it and
-# 50 ms of a 1 kHz IMU. The memory is used only while the relay lags behind.
-LIVE_STREAM_FLOOR = 50
+# (robot_relay.sources.take_loop: the take loop turns at most every 0.1 s by default): 10 holds
+# a third of a second of 30 Hz odometry, which a loaded machine exceeds; 100 hold 3.3 s of it and
+# the 0.1 s of a 1 kHz IMU. The memory is used only while the relay lags behind.
+LIVE_STREAM_FLOOR = 100
 
 
 def adapted_qos(offers: Sequence[Offer], floor: int = 1) -> QosProfile:

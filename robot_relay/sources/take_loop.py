@@ -29,15 +29,24 @@ Wake-ups, not messages, are what a small message costs: each turn of the loop wa
 thread, waits on rcl again and wakes Zenoh's transmit thread for a write. With small messages at
 64 a second, most at their own instant (``benchmarks/relay_cpu.py``), the relay's Python threads
 used 11.0 ms of CPU a second and Zenoh's transmit thread 4.2 when every message had its own
-turn; 7.9 and 1.8 in the same windows with the default budget below (scratch per-thread
-schedstat of both relays at once, beside the bare subscriber). So the loop turns at most once
-per ``latency_budget`` (default :data:`LATENCY_BUDGET_S`): a message that follows a quiet spell
+turn; 7.9 and 1.8 in the same windows with a budget of 0.05 s (scratch per-thread schedstat of
+both relays at once, beside the bare subscriber). So the loop turns at most once per
+``latency_budget`` (default :data:`LATENCY_BUDGET_S`): a message that follows a quiet spell
 goes at once, one that follows another within the budget waits for the next turn, and what
 arrived meanwhile goes together (one wake-up, one Zenoh batch). The next turn comes sooner when,
 at the rate a queue filled since the last, it would be more than half full by then (messages a
 full queue overwrites are lost, reliable or not): only a topic's first budget can overflow, and
 :func:`~robot_relay.sources.qos.live_qos` makes volatile queues deep enough
 (:data:`~robot_relay.sources.qos.LIVE_STREAM_FLOOR`) for 1 kHz within the default budget.
+
+Why 0.1 s by default: the host sends a viewer its rows every 0.2 s at the soonest (Rerun's own
+batching period; swanky-host's viewer stream flushes no more often), so a viewer shows a live
+robot 5 times a second whatever the relay's budget below that; the budget only adds to the
+delay, 0.1 s at worst. Against the bare rclpy subscriber of ``benchmarks/relay_cpu.py`` (small
+messages, a remote host, 5 windows each in the same run) the relay's CPU per message was 0.35-0.37
+of it with 0.1 s and 0.52-0.55 with 0.05 s: at 64 messages a second most turns carry one or two
+messages, and each turn costs wake-ups (this 2-core VM: 70-80 us of the thread's CPU per sleep,
+about as much for the first Zenoh put after it).
 
 Threads: subscriptions are created on the caller's thread (the graph thread) and handed over
 with :meth:`TakeLoop.add`; :meth:`TakeLoop.remove` asks for one's end. Both take effect at the
@@ -59,9 +68,9 @@ from robot_relay.wire import TopicInfo
 # Waits end by themselves this often even when nothing arrives: a backstop, since a stop or a
 # change triggers the guard condition at once.
 WAIT_NS = 1_000_000_000
-LATENCY_BUDGET_S = 0.05
+LATENCY_BUDGET_S = 0.1
 """How long a message may wait for the take loop's next turn, by default (``swanky-relay
---latency-budget``): at most 20 turns a second, 50 ms added at worst to what a viewer shows."""
+--latency-budget``): at most 10 turns a second, 100 ms added at worst to what a viewer shows."""
 MAX_LATENCY_BUDGET_S = 1.0
 """The most ``--latency-budget`` (and ``latency_budget:``) accepts: more is surely milliseconds
 written as seconds."""

@@ -219,15 +219,15 @@ def _arrays(path: Path, entity: str, column: str) -> list[tuple[int, NDArray[Any
 def test_qos_chosen_per_topic(live: LiveRun) -> None:
     assert live.catalog is not None
     qos = {t.topic: (t.qos.reliability, t.qos.durability, t.qos.depth) for t in live.catalog.topics}
-    # Fast DDS reports depth 0 for every publisher: the queues get the floors, 50 for streams
+    # Fast DDS reports depth 0 for every publisher: the queues get the floors, 100 for streams
     # (they ride out the relay's stalls and its latency budget), 10 for latched topics.
-    assert qos["/scan"] == ("best_effort", "volatile", 50)
-    assert qos["/odom"] == ("reliable", "volatile", 50)
-    assert qos["/camera/image_raw"] == ("reliable", "volatile", 50)
-    assert qos["/points"] == ("reliable", "volatile", 50)
-    assert qos["/arm/joint_states"] == ("reliable", "volatile", 50)
+    assert qos["/scan"] == ("best_effort", "volatile", 100)
+    assert qos["/odom"] == ("reliable", "volatile", 100)
+    assert qos["/camera/image_raw"] == ("reliable", "volatile", 100)
+    assert qos["/points"] == ("reliable", "volatile", 100)
+    assert qos["/arm/joint_states"] == ("reliable", "volatile", 100)
     # A reliable and a best-effort publisher: best effort reaches both.
-    assert qos["/status"] == ("best_effort", "volatile", 50)
+    assert qos["/status"] == ("best_effort", "volatile", 100)
     assert qos["/robot_description"] == ("reliable", "transient_local", 10)
     assert qos["/rosout"][:2] == ("reliable", "transient_local")
     assert "/parameter_events" not in qos  # as ros2 bag record would not need it

@@ -223,7 +223,7 @@ def test_deploy_example_is_valid_and_the_command_line_overrides_it() -> None:
     assert options.topics == config.allow
     assert options.policies is table
 
-    assert options.latency_budget == config.latency_budget == 0.05
+    assert options.latency_budget == config.latency_budget == 0.1
     assert relay_options(parse_args(["--config", str(example), "--latency-budget", "0"]),
                          config).latency_budget == 0.0
 

@@ -82,9 +82,9 @@ def test_qos_follows_ros2_bag_record() -> None:
 def test_live_queues_hold_enough_where_fast_dds_reports_depth_0() -> None:
     assert adapted_qos([("reliable", "volatile", 0)]).depth == 1  # a bag's offers: as recorded
     # Both ride out a stall of the relay and its latency budget.
-    assert live_qos([("best_effort", "volatile", 0)]).depth == 50
-    assert live_qos([("reliable", "volatile", 0)]).depth == 50
-    assert live_qos([("reliable", "volatile", 0), ("reliable", "volatile", 80)]).depth == 80
+    assert live_qos([("best_effort", "volatile", 0)]).depth == 100
+    assert live_qos([("reliable", "volatile", 0)]).depth == 100
+    assert live_qos([("reliable", "volatile", 0), ("reliable", "volatile", 160)]).depth == 160
     assert live_qos([("reliable", "transient_local", 0)]).depth == 10
     twelve_latched = [("reliable", "transient_local", 0)] * 12
     assert live_qos(twelve_latched).depth == 12
@@ -215,7 +215,7 @@ def test_discovery_follows_new_vanished_and_changed_topics(tmp_path: Path) -> No
     assert sorted(infos) == ["/scan", "/tf_static"]
     assert infos["/tf_static"].latched
     assert infos["/tf_static"].qos.depth == 10
-    assert (infos["/scan"].qos.reliability, infos["/scan"].qos.depth) == ("best_effort", 50)
+    assert (infos["/scan"].qos.reliability, infos["/scan"].qos.depth) == ("best_effort", 100)
 
     # Publishers coming and going within what the request serves change nothing; a deeper
     # queue is asked for once needed, and never given back while the topic lives.
