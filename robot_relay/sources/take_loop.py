@@ -42,11 +42,12 @@ full queue overwrites are lost, reliable or not): only a topic's first budget ca
 Why 0.1 s by default: the host sends a viewer the rows of small topics every 0.2 s at the
 soonest (Rerun's own batching period; swanky-host's viewer stream flushes no more often, only
 2 MiB of rows, images, go sooner), so a viewer shows a live robot 5 times a second whatever the
-relay's budget below that; the budget only adds to the delay, 0.1 s at worst. Against the bare rclpy subscriber of ``benchmarks/relay_cpu.py`` (small
-messages, a remote host, 5 windows each in the same run) the relay's CPU per message was 0.35-0.37
-of it with 0.1 s and 0.52-0.55 with 0.05 s: at 64 messages a second most turns carry one or two
-messages, and each turn costs wake-ups (this 2-core VM: 70-80 us of the thread's CPU per sleep,
-about as much for the first Zenoh put after it).
+relay's budget below that; the budget only adds to the delay, 0.1 s at worst. Against the bare
+rclpy subscriber of ``benchmarks/relay_cpu.py`` (small messages, a remote host, 5 windows each
+in the same run) the relay's CPU per message was 0.35-0.37 of it with 0.1 s and 0.52-0.55 with
+0.05 s: at 64 messages a second most turns carry one or two messages, and each turn costs
+wake-ups (this 2-core VM: 70-80 us of the thread's CPU per sleep, about as much for the first
+Zenoh put after it).
 
 Threads: subscriptions are created on the caller's thread (the graph thread) and handed over
 with :meth:`TakeLoop.add`; :meth:`TakeLoop.remove` asks for one's end. Both take effect at the
