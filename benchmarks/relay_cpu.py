@@ -92,13 +92,12 @@ RELAYS = {  # name -> the relay's extra flags
     "swanky-relay --latency-budget 0": ("--latency-budget", "0"),
 }
 ROBOT = "bench"
-HOSTS = {  # --host -> the stand-in host's Zenoh flags
+HOSTS = {  # --host -> (the stand-in host's Zenoh flags, what it stands for)
     # Shared memory needs both ends on one machine: a host on the robot's network never has it.
-    "remote": ("--cfg", "transport/shared_memory/enabled:false"),
-    "local": (),
+    "remote": (("--cfg", "transport/shared_memory/enabled:false"),
+               "no shared memory, as across a network"),
+    "local": ((), "shared memory, as on the robot's own machine"),
 }
-HOST_KINDS = {"remote": "no shared memory, as across a network",
-              "local": "shared memory, as on the robot's own machine"}
 STARTUP_TIMEOUT_S = 60.0
 Starter = Callable[..., "subprocess.Popen[str]"]
 
@@ -295,7 +294,8 @@ def main() -> int:
         return subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE,
                                 stderr=subprocess.DEVNULL, env=env, text=True)
 
-    print(f"stand-in host: {args.host} ({HOST_KINDS[args.host]})", flush=True)
+    host_flags, host_kind = HOSTS[args.host]
+    print(f"stand-in host: {args.host} ({host_kind})", flush=True)
     publishers = [start("-m", "tests.integration.ros_robot", role) for role in ("robot", "camera")]
     baseline = "bare rclpy subscriber"
     ratios: dict[tuple[str, str], list[float]] = {}
@@ -304,7 +304,7 @@ def main() -> int:
         time.sleep(3.0)
         for group, (topics, _) in GROUPS.items():
             windows, group_memory = measure_group(start, topics, args.warmup, args.seconds,
-                                                  args.rounds, host_flags=HOSTS[args.host])
+                                                  args.rounds, host_flags=host_flags)
             memory.extend(group_memory.values())
             for number, window in enumerate(windows, 1):
                 bare = window.us_per_message(baseline)
